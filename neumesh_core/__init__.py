@@ -1,0 +1,36 @@
+"""neumesh_core: NeuMesh++ neural radiance fields on mesh scaffolds (torch; no bpy).
+
+Public API (see README.md): load_scene, load_mesh, create_field, train, save_field, load_field,
+render_camera, evaluate, save_image, make_default_scene.
+"""
+from __future__ import annotations
+
+from .data.cameras import Cameras, intrinsics_from_fov, opencv_to_opengl, opengl_to_opencv, pixel_rays
+from .data.scene import ImageSet, Scene
+from .errors import CheckpointError, DataError, NeuMeshError, VertexMismatchError, WeightsUnavailableError
+from .mesh import Mesh, load_mesh, save_mesh
+from .field.field import FieldConfig, NeuMeshField
+from .render.renderer import Cancelled, RenderOutput, RenderSettings, render_camera, render_rays
+from .train.checkpoint import load_field, save_field
+from .train.trainer import TrainConfig, TrainProgress, TrainResult, train
+from .evaluate import evaluate
+from .imageio import read_image, save_image
+from .data.loader import load_scene
+from .data.synthetic import default_scene_dir, make_default_scene
+
+__version__ = "0.1.0"
+
+
+def create_field(mesh: Mesh, config: FieldConfig | None = None, device="cpu") -> NeuMeshField:
+    """A new, untrained field on ``mesh`` (vertex order is the field's vertex order)."""
+    return NeuMeshField(mesh, config or FieldConfig()).to(device)
+
+
+__all__ = [
+    "Cameras", "Cancelled", "CheckpointError", "DataError", "FieldConfig", "ImageSet", "Mesh",
+    "NeuMeshError", "NeuMeshField", "RenderOutput", "RenderSettings", "Scene", "TrainConfig",
+    "TrainProgress", "TrainResult", "VertexMismatchError", "WeightsUnavailableError", "create_field",
+    "default_scene_dir", "evaluate", "intrinsics_from_fov", "load_field", "load_mesh", "load_scene",
+    "make_default_scene", "opencv_to_opengl", "opengl_to_opencv", "pixel_rays", "read_image",
+    "render_camera", "render_rays", "save_field", "save_image", "save_mesh", "train",
+]

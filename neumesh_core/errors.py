@@ -1,0 +1,21 @@
+"""Exceptions raised by neumesh_core. Every message says what to do about it."""
+
+
+class NeuMeshError(Exception):
+    """Base class for all errors raised deliberately by neumesh_core."""
+
+
+class DataError(NeuMeshError):
+    """A dataset is missing files, has mismatched counts or unreadable images."""
+
+
+class VertexMismatchError(NeuMeshError):
+    """New vertex positions do not match the field's scaffold (count or order)."""
+
+
+class CheckpointError(NeuMeshError):
+    """A field file is missing, truncated, corrupt or of an unknown format version."""
+
+
+class WeightsUnavailableError(NeuMeshError):
+    """Pretrained weights (LPIPS/DINO/...) are not present in the local cache."""

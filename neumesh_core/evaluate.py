@@ -1,0 +1,67 @@
+"""Evaluate a field over a split: PSNR, SSIM (masked variants when masks exist), LPIPS if available."""
+from __future__ import annotations
+
+import json
+import os
+from typing import Callable, Optional
+
+import numpy as np
+
+from .data.scene import ImageSet
+from .render.renderer import RenderSettings, render_camera
+
+
+def evaluate(field, images: ImageSet, background=(1.0, 1.0, 1.0), masked: bool = False,
+             out_dir: Optional[str] = None, lpips_cache: Optional[str] = None,
+             settings: Optional[RenderSettings] = None,
+             progress: Optional[Callable[[int, int], Optional[bool]]] = None) -> dict:
+    """Render every camera of ``images`` and compare with its image.
+
+    ``masked``: also report foreground metrics (pixels with mask > 0.5; DTU convention) and use them
+    as the headline figures. ``background``: what the ground-truth images were composited on (None for
+    real backgrounds, e.g. DTU: the render is then composited on black and only masked metrics mean
+    much).  ``out_dir``: write renders as PNG.  Returns a dict with per-view and mean figures;
+    ``lpips`` is None when its weights are not present locally (never faked).
+    """
+    from . import metrics
+    from .imageio import save_image
+
+    lp_ok = metrics.lpips_available(lpips_cache)
+    rows = []
+    for i in range(len(images)):
+        cam = images.cameras
+        out = render_camera(field, cam.K[i], cam.c2w[i], cam.width, cam.height,
+                            background=background if background is not None else (0.0, 0.0, 0.0),
+                            settings=settings)
+        gt = images.images[i]
+        pred = np.clip(out.rgb, 0.0, 1.0)
+        row = {"view": images.names[i] if images.names else str(i), "psnr": metrics.psnr(pred, gt),
+               "ssim": metrics.ssim(pred, gt), "render_s": out.seconds}
+        if lp_ok:
+            row["lpips"] = metrics.compute_lpips(pred, gt, cache_dir=lpips_cache)
+        if masked and images.masks is not None:
+            m = images.masks[i] > 0.5
+            row["psnr_fg"] = metrics.masked_psnr(pred, gt, images.masks[i])
+            row["ssim_fg"] = metrics.ssim(pred, gt, mask=m)
+        rows.append(row)
+        if out_dir:
+            save_image(os.path.join(out_dir, f"{row['view'].replace('/', '_')}.png"), pred)
+        if progress is not None and progress(i + 1, len(images)) is False:
+            break
+    keys = [k for k in rows[0] if k != "view"] if rows else []
+    mean = {k: float(np.mean([r[k] for r in rows])) for k in keys}
+    result = {"n_views": len(rows), "mean": mean, "views": rows,
+              "lpips_available": lp_ok,
+              "headline": {"psnr": mean.get("psnr_fg", mean.get("psnr")),
+                           "ssim": mean.get("ssim_fg", mean.get("ssim")),
+                           "lpips": mean.get("lpips")}}
+    return result
+
+
+def write_json(obj, path: str) -> None:
+    d = os.path.dirname(os.path.abspath(path))
+    os.makedirs(d, exist_ok=True)
+    tmp = path + ".tmp"
+    with open(tmp, "w") as fh:
+        json.dump(obj, fh, indent=2, default=float)
+    os.replace(tmp, path)

@@ -1,0 +1,151 @@
+"""Render rays and whole cameras from one or several fields."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+from ..data.cameras import pixel_rays
+from ..errors import NeuMeshError
+from ..sampling.marcher import march_rays
+from .volume import composite
+
+
+class Cancelled(NeuMeshError):
+    """Raised when a progress callback asked to stop."""
+
+
+@dataclass
+class RenderSettings:
+    """How rays are sampled.  step_scale: marching step = field radius x step_scale."""
+
+    step_scale: float = 0.25
+    window: int = 32
+    early_stop_eps: float = 1e-4
+    weight_threshold: float = 1e-4
+    near: float = 0.0
+    chunk_rays: int = 8192
+
+
+def default_step(field, settings: RenderSettings) -> float:
+    return float(field.config.radius) * settings.step_scale
+
+
+def _as_list(fields):
+    if isinstance(fields, (list, tuple)):
+        return list(fields)
+    return [fields]
+
+
+def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=None,
+                settings: Optional[RenderSettings] = None, train: bool = False,
+                jitter: Optional[torch.Tensor] = None) -> dict:
+    """Render rays (R,3) through one field or a list of fields (composited jointly, sorted by depth).
+
+    Returns tensors: rgb (R,3), opacity (R,), depth (R,) (expected distance, normalised by opacity;
+    inf where empty), mod_rgb (R,3), n_samples (int).  With ``train`` the decoders run with autograd;
+    otherwise colours are decoded only for samples that survive marching.
+    ``background``: None (black / premultiplied), an (3,) colour, or (R,3) per-ray colours.
+    """
+    settings = settings or RenderSettings()
+    fl = _as_list(fields)
+    n = origins.shape[0]
+    parts = []
+    for f in fl:
+        s = march_rays(origins, dirs, f.grid, f.sigma_fn, default_step(f, settings), near=settings.near,
+                       window=settings.window, early_stop_eps=settings.early_stop_eps,
+                       weight_threshold=settings.weight_threshold, jitter=jitter)
+        if len(s) == 0:
+            continue
+        d = dirs[s.ray_indices]
+        if train:
+            sigma, rgb, mod = f.decode(s.aux, d, with_rgb=True)
+        else:
+            with torch.no_grad():
+                _, rgb, mod = f.decode(s.aux, d, with_rgb=True, with_sigma=False)
+            sigma = s.sigmas
+        parts.append((s.ray_indices, s.t_starts, s.t_ends, sigma, rgb, mod))
+    if not parts:
+        z = torch.zeros(n, device=origins.device)
+        rgb = torch.zeros(n, 3, device=origins.device)
+        out = {"rgb": rgb, "opacity": z, "depth": torch.full_like(z, float("inf")),
+               "mod_rgb": rgb.clone(), "n_samples": 0}
+    else:
+        if len(parts) == 1:
+            ri, ts, te, sig, rgb, mod = parts[0]
+        else:
+            ri, ts, te, sig, rgb, mod = (torch.cat(x) for x in zip(*parts))
+            order = torch.argsort(ts)
+            order = order[torch.sort(ri[order], stable=True).indices]
+            ri, ts, te, sig, rgb, mod = ri[order], ts[order], te[order], sig[order], rgb[order], mod[order]
+        c = composite(ri, ts, te, sig, {"rgb": rgb, "mod_rgb": mod}, n)
+        depth = torch.where(c["opacity"] > 1e-6, c["depth"] / c["opacity"].clamp_min(1e-6),
+                            torch.full_like(c["depth"], float("inf")))
+        out = {"rgb": c["rgb"], "opacity": c["opacity"], "depth": depth, "mod_rgb": c["mod_rgb"],
+               "n_samples": int(ri.shape[0])}
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)
+        out["rgb"] = out["rgb"] + (1.0 - out["opacity"])[:, None] * bg
+    return out
+
+
+@dataclass
+class RenderOutput:
+    """One rendered camera: numpy float32 arrays."""
+
+    rgb: np.ndarray       # (H,W,3), composited on the background
+    opacity: np.ndarray   # (H,W)
+    depth: np.ndarray     # (H,W) distance along the ray (inf where empty)
+    mod_rgb: np.ndarray   # (H,W,3) rendered modification colour
+    n_samples: int = 0
+    seconds: float = 0.0
+
+    def rgba(self, background=None) -> np.ndarray:
+        """(H,W,4) straight-alpha RGBA. ``background``: the colour the rgb was composited on."""
+        rgb = self.rgb
+        if background is not None:
+            a = self.opacity[..., None]
+            bg = np.asarray(background, np.float32)
+            rgb = np.where(a > 1e-6, (rgb - (1 - a) * bg) / np.maximum(a, 1e-6), 0.0)
+        return np.concatenate([np.clip(rgb, 0, 1), np.clip(self.opacity, 0, 1)[..., None]], -1)
+
+
+def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0, 1.0),
+                  settings: Optional[RenderSettings] = None,
+                  progress: Optional[Callable[[float], Optional[bool]]] = None) -> RenderOutput:
+    """Render one pinhole camera (K (3,3) pixels, c2w (4,4) OpenCV) from a field or list of fields.
+
+    ``background`` None leaves rgb premultiplied (black).  ``progress(fraction)`` returning False
+    cancels with :class:`Cancelled`.
+    """
+    import time
+
+    settings = settings or RenderSettings()
+    fl = _as_list(fields)
+    if not fl:
+        raise ValueError("render_camera needs at least one field")
+    device = fl[0].rest_vertices.device
+    t0 = time.perf_counter()
+    origins, dirs = pixel_rays(K, c2w, width, height, device=device)
+    n = origins.shape[0]
+    rgb = torch.empty(n, 3)
+    opac = torch.empty(n)
+    depth = torch.empty(n)
+    mod = torch.empty(n, 3)
+    n_samples = 0
+    with torch.no_grad():
+        for s in range(0, n, settings.chunk_rays):
+            e = min(n, s + settings.chunk_rays)
+            out = render_rays(fl, origins[s:e], dirs[s:e], background, settings, train=False)
+            rgb[s:e] = out["rgb"].cpu()
+            opac[s:e] = out["opacity"].cpu()
+            depth[s:e] = out["depth"].cpu()
+            mod[s:e] = out["mod_rgb"].cpu()
+            n_samples += out["n_samples"]
+            if progress is not None and progress(e / n) is False:
+                raise Cancelled("rendering cancelled")
+    return RenderOutput(rgb.view(height, width, 3).numpy(), opac.view(height, width).numpy(),
+                        depth.view(height, width).numpy(), mod.view(height, width, 3).numpy(),
+                        n_samples, time.perf_counter() - t0)

@@ -1,0 +1,150 @@
+"""Pure-torch occupancy grid: initialised from the scaffold, refined from densities during training.
+
+The field has zero density farther than ``radius`` from every vertex, so the *mesh mask* (cells within
+``radius`` of a vertex, a conservative box dilation of the vertex splat) bounds everything the marcher
+needs to look at.  Training then prunes mesh-mask cells whose density stays below a threshold.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable, Optional
+
+import torch
+import torch.nn.functional as F
+
+
+class OccupancyGrid:
+    """A dense boolean grid over an axis-aligned box.
+
+    aabb (2,3); resolution (3,) cells per axis (cubic cells); ``occ`` (X,Y,Z) bool; ``mesh_mask``
+    the conservative mask from the scaffold; ``density`` an EMA of observed max densities (-1 = unseen).
+    """
+
+    def __init__(self, aabb: torch.Tensor, resolution, mesh_mask: torch.Tensor):
+        self.aabb = aabb.float()
+        self.resolution = torch.as_tensor(resolution, dtype=torch.long, device=aabb.device)
+        self.mesh_mask = mesh_mask
+        self.occ = mesh_mask.clone()
+        self.density = torch.full(mesh_mask.shape, -1.0, device=aabb.device)
+        self.cell = (self.aabb[1] - self.aabb[0]) / self.resolution.float()
+
+    # ------------------------------------------------------------------ construction
+    @staticmethod
+    def _layout(vertices: torch.Tensor, radius: float, max_res: int):
+        lo = vertices.min(0).values
+        hi = vertices.max(0).values
+        extent = (hi - lo).max().item() + 2 * radius
+        cell = extent / max_res
+        pad = radius + cell
+        lo = lo - pad
+        hi = hi + pad
+        res = torch.clamp(torch.ceil((hi - lo) / cell), min=1).long()
+        hi = lo + res.float() * cell
+        return torch.stack([lo, hi]), res
+
+    @staticmethod
+    def mask_from_vertices(vertices: torch.Tensor, aabb: torch.Tensor, res: torch.Tensor,
+                           radius: float) -> torch.Tensor:
+        """Cells that can contain a point within ``radius`` of some vertex (box dilation, conservative)."""
+        cell = (aabb[1] - aabb[0]) / res.float()
+        ijk = torch.floor((vertices - aabb[0]) / cell).long()
+        ijk = torch.minimum(torch.maximum(ijk, torch.zeros_like(ijk)), res - 1)
+        rx, ry, rz = (int(v) for v in res.tolist())
+        grid = torch.zeros(rx * ry * rz, device=vertices.device)
+        grid[(ijk[:, 0] * ry + ijk[:, 1]) * rz + ijk[:, 2]] = 1.0
+        grid = grid.view(1, 1, rx, ry, rz)
+        r_cells = [int(math.ceil(radius / float(c))) for c in cell.tolist()]
+        for axis, r in enumerate(r_cells):
+            if r <= 0:
+                continue
+            k = [1, 1, 1]
+            k[axis] = 2 * r + 1
+            p = [0, 0, 0]
+            p[axis] = r
+            grid = F.max_pool3d(grid, kernel_size=tuple(k), stride=1, padding=tuple(p))
+        return grid.view(rx, ry, rz) > 0.5
+
+    @classmethod
+    def from_vertices(cls, vertices: torch.Tensor, radius: float, max_res: int = 128) -> "OccupancyGrid":
+        aabb, res = cls._layout(vertices, radius, max_res)
+        return cls(aabb, res, cls.mask_from_vertices(vertices, aabb, res, radius))
+
+    def rebuild_from_vertices(self, vertices: torch.Tensor, radius: float) -> None:
+        """Re-initialise for moved vertices (box and mask recomputed; densities forgotten)."""
+        max_res = int(self.resolution.max().item())
+        aabb, res = self._layout(vertices, radius, max_res)
+        self.__init__(aabb, res, self.mask_from_vertices(vertices, aabb, res, radius))
+
+    # ------------------------------------------------------------------ state
+    def state(self) -> dict:
+        return {"aabb": self.aabb.clone(), "resolution": self.resolution.clone(),
+                "mesh_mask": self.mesh_mask.clone(), "occ": self.occ.clone(), "density": self.density.clone()}
+
+    def load_state(self, s: dict) -> None:
+        self.aabb = s["aabb"].float().to(self.aabb.device)
+        self.resolution = s["resolution"].long().to(self.aabb.device)
+        self.cell = (self.aabb[1] - self.aabb[0]) / self.resolution.float()
+        self.mesh_mask = s["mesh_mask"].bool().to(self.aabb.device)
+        self.occ = s["occ"].bool().to(self.aabb.device)
+        self.density = s["density"].float().to(self.aabb.device)
+
+    def to(self, device) -> "OccupancyGrid":
+        for name in ("aabb", "resolution", "mesh_mask", "occ", "density", "cell"):
+            setattr(self, name, getattr(self, name).to(device))
+        return self
+
+    # ------------------------------------------------------------------ queries
+    def lookup(self, points: torch.Tensor) -> torch.Tensor:
+        """(...,3) points -> (...) bool occupancy (False outside the box)."""
+        rel = (points - self.aabb[0]) / self.cell
+        ijk = torch.floor(rel).long()
+        inside = ((ijk >= 0) & (ijk < self.resolution)).all(-1)
+        ijk = torch.minimum(torch.maximum(ijk, torch.zeros_like(ijk)), self.resolution - 1)
+        ry, rz = int(self.resolution[1]), int(self.resolution[2])
+        flat = (ijk[..., 0] * ry + ijk[..., 1]) * rz + ijk[..., 2]
+        return self.occ.reshape(-1)[flat] & inside
+
+    def ray_aabb(self, origins: torch.Tensor, dirs: torch.Tensor):
+        """Entry/exit distances of rays with the grid box; t_far < t_near where a ray misses."""
+        inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
+        t0 = (self.aabb[0] - origins) * inv
+        t1 = (self.aabb[1] - origins) * inv
+        t_near = torch.minimum(t0, t1).max(-1).values
+        t_far = torch.maximum(t0, t1).min(-1).values
+        return t_near, t_far
+
+    def cell_centers(self, flat_idx: torch.Tensor) -> torch.Tensor:
+        ry, rz = int(self.resolution[1]), int(self.resolution[2])
+        i = torch.div(flat_idx, ry * rz, rounding_mode="floor")
+        j = torch.div(flat_idx, rz, rounding_mode="floor") % ry
+        k = flat_idx % rz
+        return self.aabb[0] + (torch.stack([i, j, k], -1).float() + 0.5) * self.cell
+
+    @property
+    def occupied_fraction(self) -> float:
+        return float(self.occ.float().mean())
+
+    # ------------------------------------------------------------------ refresh
+    @torch.no_grad()
+    def refresh(self, sigma_fn: Callable[[torch.Tensor], torch.Tensor], step_size: float,
+                alpha_threshold: float = 0.005, decay: float = 0.95, max_cells: Optional[int] = 65536,
+                generator: Optional[torch.Generator] = None, chunk: int = 65536) -> None:
+        """Update densities of (a random subset of) mesh-mask cells at jittered points; prune cells whose
+        decayed max density gives an alpha below ``alpha_threshold`` over one marching step."""
+        cand = self.mesh_mask.reshape(-1).nonzero().squeeze(1)
+        if len(cand) == 0:
+            return
+        if max_cells is not None and len(cand) > max_cells:
+            pick = torch.randperm(len(cand), device=cand.device, generator=generator)[:max_cells]
+            cand = cand[pick]
+        dens = self.density.reshape(-1)
+        for s in range(0, len(cand), chunk):
+            c = cand[s:s + chunk]
+            jitter = torch.rand(len(c), 3, device=c.device, generator=generator) - 0.5
+            x = self.cell_centers(c) + jitter * self.cell
+            sigma = sigma_fn(x).float()
+            old = dens[c]
+            dens[c] = torch.where(old < 0, sigma, torch.maximum(old * decay, sigma))
+        threshold = -math.log(1.0 - alpha_threshold) / step_size
+        seen = self.density >= 0
+        self.occ = self.mesh_mask & (~seen | (self.density > threshold))

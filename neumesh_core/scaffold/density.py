@@ -1,0 +1,185 @@
+"""Coarse-to-fine dense density + colour grid fitted by volume rendering random rays (pure torch).
+
+Density is stored per node of a regular grid over the scaffold box and trilinearly interpolated;
+sigma is expressed per voxel length (alpha of one voxel = 1 - exp(-sigma)).  Colour is a per-node
+RGB (SH degree 0).  Density is confined to an ``allowed`` region (the dilated visual hull, or the
+whole box without masks).  Losses: photometric MSE, mask BCE on opacity (when masks exist) and a
+small total-variation term.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..data.scene import ImageSet
+
+
+@dataclass
+class DensityResult:
+    sigma: np.ndarray  # (nx,ny,nz) per-voxel-length density at nodes of the final grid
+    lo: np.ndarray
+    voxel: float
+    iterations: int
+    final_loss: float
+    final_psnr: float
+    rays_per_sec: float
+
+
+def _sample_grid(vol: torch.Tensor, pts_norm: torch.Tensor) -> torch.Tensor:
+    """vol (1,C,nx,ny,nz); pts_norm (P,3) in [-1,1] in (x,y,z) index order -> (P,C)."""
+    g = pts_norm.flip(-1)[None, :, None, None, :]  # grid_sample wants (W,H,D) = (z,y,x) order
+    out = F.grid_sample(vol, g, mode="bilinear", padding_mode="border", align_corners=True)
+    return out[0, :, :, 0, 0].T
+
+
+def _ray_box(o, d, lo, hi):
+    inv = 1.0 / torch.where(d.abs() < 1e-9, torch.full_like(d, 1e-9), d)
+    t0 = (lo - o) * inv
+    t1 = (hi - o) * inv
+    tn = torch.minimum(t0, t1).max(-1).values.clamp_min(0.0)
+    tf = torch.maximum(t0, t1).min(-1).values
+    return tn, tf
+
+
+def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, lo, voxel: float,
+                resolutions=(64, 128), iters=(300, 400), batch_rays: int = 4096,
+                background=None, use_masks: bool = True, lr: float = 0.1, mask_weight: float = 0.5,
+                tv_weight: float = 1e-4, seed: int = 0, check=None, log=None) -> DensityResult:
+    """Fit the grid. ``allowed``/``init_inside``: bool node grids (any resolution) over the box
+    starting at ``lo`` with spacing ``voxel``; they are resampled to each stage's grid.
+    ``check(fraction)`` is called every few iterations (it raises to cancel)."""
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    cams = images.cameras
+    N, H, W = len(cams), cams.height, cams.width
+    dims0 = np.asarray(allowed.shape)
+    ext = (dims0 - 1) * voxel
+    lo_t = torch.as_tensor(np.asarray(lo, np.float32))
+    hi_t = lo_t + torch.as_tensor(ext, dtype=torch.float32)
+    imgs = torch.from_numpy(np.ascontiguousarray(images.images.reshape(N, H * W, 3), np.float32))
+    masks = None
+    if use_masks and images.masks is not None:
+        masks = torch.from_numpy(np.ascontiguousarray(images.masks.reshape(N, H * W), np.float32))
+    bg = None if background is None else torch.tensor(background, dtype=torch.float32)
+    learn_bg = masks is None and bg is None
+    bg_param = torch.full((N, 3), 0.0, requires_grad=True) if learn_bg else None
+
+    K = torch.as_tensor(cams.K)
+    c2w = torch.as_tensor(cams.c2w)
+    allowed_t = torch.from_numpy(allowed.astype(np.float32))[None, None]
+    inside_t = torch.from_numpy(init_inside.astype(np.float32))[None, None]
+
+    total_iters = int(sum(iters))
+    done = 0
+    sig_param = col_param = None
+    t_start = time.perf_counter()
+    rays_done = 0
+    last_loss, last_psnr = float("nan"), float("nan")
+    for stage, (res, n_it) in enumerate(zip(resolutions, iters)):
+        vox0 = float(ext.max() / res)
+        dims = tuple(int(max(2, math.ceil(e / vox0) + 1)) for e in ext)
+        vox_vec = torch.as_tensor(ext / (np.asarray(dims) - 1), dtype=torch.float32)  # exact box
+        vox = float(vox_vec.mean())
+        allow = F.interpolate(allowed_t, size=dims, mode="trilinear", align_corners=True)
+        allow = (allow > 0.01).float()
+        if sig_param is None:
+            inside = F.interpolate(inside_t, size=dims, mode="trilinear", align_corners=True)
+            sig0 = torch.where(inside > 0.5, torch.tensor(3.0), torch.tensor(-2.0))
+            sig_param = sig0.clone()
+            col_param = torch.zeros((1, 3) + dims)
+        else:
+            sig_param = F.interpolate(sig_param.detach(), size=dims, mode="trilinear", align_corners=True)
+            col_param = F.interpolate(col_param.detach(), size=dims, mode="trilinear", align_corners=True)
+        sig_param.requires_grad_(True)
+        col_param.requires_grad_(True)
+        params = [{"params": [sig_param, col_param], "lr": lr}]
+        if bg_param is not None:
+            params.append({"params": [bg_param], "lr": 0.01})
+        opt = torch.optim.Adam(params, betas=(0.9, 0.99))
+        allow_bool = allow[0, 0] > 0.5
+        n_samples = int(min(512, math.ceil(1.6 * max(dims))))
+        step_world = float(ext.max() * 1.8 / n_samples)
+        for it in range(n_it):
+            # --- random rays over all views
+            vi = torch.randint(0, N, (batch_rays,), generator=gen)
+            pi = torch.randint(0, H * W, (batch_rays,), generator=gen)
+            px = torch.stack([(pi % W).float() + torch.rand(batch_rays, generator=gen),
+                              (pi // W).float() + torch.rand(batch_rays, generator=gen)], -1)
+            Kv, Cv = K[vi], c2w[vi]
+            yc = (px[:, 1] - Kv[:, 1, 2]) / Kv[:, 1, 1]
+            xc = (px[:, 0] - Kv[:, 0, 2] - Kv[:, 0, 1] * yc) / Kv[:, 0, 0]
+            dcam = torch.stack([xc, yc, torch.ones_like(xc)], -1)
+            d = torch.einsum("rij,rj->ri", Cv[:, :3, :3], dcam)
+            d = d / d.norm(dim=-1, keepdim=True)
+            o = Cv[:, :3, 3]
+            gt = imgs[vi, pi]
+            gm = masks[vi, pi] if masks is not None else None
+            tn, tf = _ray_box(o, d, lo_t, hi_t)
+            hit = tf > tn
+            # --- stratified samples inside the box
+            S = n_samples
+            steps = (torch.arange(S, dtype=torch.float32)[None] + torch.rand(batch_rays, 1, generator=gen))
+            t = tn[:, None] + steps * step_world
+            valid = hit[:, None] & (t < tf[:, None])
+            pts = o[:, None, :] + d[:, None, :] * t[..., None]
+            idx = ((pts - lo_t) / vox_vec).round().long()
+            for a in range(3):
+                idx[..., a] = idx[..., a].clamp(0, dims[a] - 1)
+            valid &= allow_bool[idx[..., 0], idx[..., 1], idx[..., 2]]
+            sel = valid.nonzero(as_tuple=True)
+            p_sel = pts[sel]
+            pn = (p_sel - lo_t) / (hi_t - lo_t) * 2.0 - 1.0
+            vol = torch.cat([sig_param, col_param, allow], 1)
+            q = _sample_grid(vol, pn)
+            sigma = F.softplus(q[:, 0]) * q[:, 4]
+            rgb_s = torch.sigmoid(q[:, 1:4])
+            dens = torch.zeros(batch_rays, S)
+            dens = dens.index_put(sel, sigma * (step_world / vox))
+            col = torch.zeros(batch_rays, S, 3).index_put(sel, rgb_s)
+            alpha = 1.0 - torch.exp(-dens)
+            csum = torch.cumsum(dens, 1)
+            T = torch.exp(-(csum - dens))
+            w = alpha * T
+            rgb = (w[..., None] * col).sum(1)
+            op = w.sum(1)
+            if bg_param is not None:
+                bgc = torch.sigmoid(bg_param[vi])
+            elif bg is not None and masks is not None:
+                bgc = bg.expand_as(rgb)
+            elif bg is not None:
+                bgc = bg.expand_as(rgb)
+            else:  # masks but real background: composite on the ground truth (only foreground counts)
+                bgc = gt
+            pred = rgb + (1.0 - op[:, None]) * bgc
+            mse = ((pred - gt) ** 2).mean()
+            loss = mse
+            if gm is not None:
+                opc = op.clamp(1e-4, 1 - 1e-4)
+                loss = loss + mask_weight * F.binary_cross_entropy(opc, gm)
+            if tv_weight > 0:
+                s = sig_param[0, 0]
+                tv = ((s[1:] - s[:-1]) ** 2).mean() + ((s[:, 1:] - s[:, :-1]) ** 2).mean() + \
+                    ((s[:, :, 1:] - s[:, :, :-1]) ** 2).mean()
+                loss = loss + tv_weight * tv
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            rays_done += batch_rays
+            done += 1
+            last_loss = float(loss)
+            last_psnr = float(-10 * math.log10(max(float(mse), 1e-10)))
+            if log is not None and (it % 100 == 0 or it == n_it - 1):
+                log(f"density stage {stage} ({'x'.join(map(str, dims))}) it {it}/{n_it}: "
+                    f"loss {last_loss:.4f} psnr {last_psnr:.2f}")
+            if check is not None and (it % 10 == 0):
+                check(done / max(total_iters, 1))
+    with torch.no_grad():
+        sig = (F.softplus(sig_param) * allow)[0, 0].numpy()
+    el = time.perf_counter() - t_start
+    return DensityResult(sig.astype(np.float32), np.asarray(lo, np.float32), vox, done, last_loss,
+                         last_psnr, rays_done / max(el, 1e-9))

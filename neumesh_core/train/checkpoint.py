@@ -1,0 +1,152 @@
+"""Field files: safetensors tensors + a JSON header.  Atomic writes; no pickle on load.
+
+Layout: tensors ``param/<name>``, ``buffer/<name>``, ``grid/<name>``, optional ``optim/<i>/<key>``;
+metadata ``neumesh`` = JSON {format, version, field_config, train_state}.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from typing import Optional
+
+import numpy as np
+import torch
+
+from ..errors import CheckpointError
+from ..mesh import Mesh
+
+FORMAT = "neumesh-field"
+VERSION = 1
+
+
+def _atomic_write(path: str, write) -> None:
+    d = os.path.dirname(os.path.abspath(path)) or "."
+    os.makedirs(d, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".neumesh", dir=d)
+    os.close(fd)
+    try:
+        write(tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save_field(field, path: str, optimizer: Optional[torch.optim.Optimizer] = None,
+               train_state: Optional[dict] = None) -> None:
+    """Write ``field`` (mesh, codes, decoders, occupancy grid, config) to ``path`` atomically.
+
+    With ``optimizer`` its moments are stored too, so training can resume exactly.
+    """
+    from dataclasses import asdict
+
+    from safetensors.torch import save_file
+
+    tensors = {}
+    for name, p in field.named_parameters():
+        tensors[f"param/{name}"] = p.detach().cpu().contiguous()
+    for name, b in field.named_buffers():
+        if name in field.persistent_buffer_names():
+            tensors[f"buffer/{name}"] = b.detach().cpu().contiguous()
+    grid_state = field._rest_grid_state or field.grid.state()
+    for k, v in grid_state.items():
+        t = v.detach().cpu()
+        tensors[f"grid/{k}"] = (t.to(torch.uint8) if t.dtype == torch.bool else t).contiguous()
+    if optimizer is not None:
+        names = {id(p): n for n, p in field.named_parameters()}
+        for group in optimizer.param_groups:
+            for p in group["params"]:
+                st = optimizer.state.get(p, {})
+                for k, v in st.items():
+                    if torch.is_tensor(v):
+                        tensors[f"optim/{names[id(p)]}/{k}"] = v.detach().cpu().reshape(v.shape).contiguous()
+    for k, v in tensors.items():
+        if v.dtype.is_floating_point and not torch.isfinite(v).all():
+            raise CheckpointError(f"refusing to save: tensor {k} holds NaN/inf (training diverged); "
+                                  "lower the learning rate and resume from the last good checkpoint")
+    meta = {"format": FORMAT, "version": VERSION, "field_config": asdict(field.config),
+            "train_state": train_state or {}, "num_vertices": field.num_vertices}
+    _atomic_write(path, lambda tmp: save_file(tensors, tmp, metadata={"neumesh": json.dumps(meta)}))
+
+
+def read_checkpoint(path: str):
+    """Return (meta dict, tensors dict). Raises CheckpointError with a clear message."""
+    from safetensors import safe_open
+
+    if not os.path.isfile(path):
+        raise CheckpointError(f"field file not found: {path}")
+    try:
+        with safe_open(path, framework="pt") as fh:
+            meta_raw = (fh.metadata() or {}).get("neumesh")
+            tensors = {k: fh.get_tensor(k) for k in fh.keys()}
+    except CheckpointError:
+        raise
+    except Exception as exc:
+        raise CheckpointError(
+            f"{path} is not a readable NeuMesh field (truncated or corrupt: {exc}). Use a backup or "
+            "re-export the field; files are written atomically, so a crash never leaves a half file "
+            "under the final name.") from exc
+    if meta_raw is None:
+        raise CheckpointError(f"{path} is a safetensors file but not a NeuMesh field (no 'neumesh' header)")
+    try:
+        meta = json.loads(meta_raw)
+    except json.JSONDecodeError as exc:
+        raise CheckpointError(f"{path}: the field header is not valid JSON ({exc})") from exc
+    if meta.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: unknown format {meta.get('format')!r}")
+    if int(meta.get("version", -1)) > VERSION:
+        raise CheckpointError(f"{path}: format version {meta.get('version')} is newer than this "
+                              f"neumesh ({VERSION}); update neumesh")
+    return meta, tensors
+
+
+def load_field(path: str, device="cpu"):
+    """Load a field saved by :func:`save_field` (no code is unpickled)."""
+    from ..field.field import FieldConfig, NeuMeshField
+
+    meta, t = read_checkpoint(path)
+    try:
+        cfg = FieldConfig.from_dict(meta["field_config"])
+        mesh = Mesh(t["buffer/rest_vertices"].numpy(), t["buffer/faces"].numpy())
+        field = NeuMeshField(mesh, cfg)
+        with torch.no_grad():
+            for name, p in field.named_parameters():
+                src = t[f"param/{name}"]
+                if p.shape != src.shape:
+                    raise CheckpointError(f"{path}: parameter {name} has shape {tuple(src.shape)}, "
+                                          f"expected {tuple(p.shape)}")
+                p.copy_(src)
+            for name, b in field.named_buffers():
+                key = f"buffer/{name}"
+                if key in t:
+                    b.copy_(t[key])
+            field.grid.load_state({k[5:]: t[k] for k in t if k.startswith("grid/")})
+    except KeyError as exc:
+        raise CheckpointError(f"{path}: missing entry {exc}; the file is incomplete") from exc
+    field._checkpoint_meta = meta
+    field._checkpoint_optim = {k[6:]: v for k, v in t.items() if k.startswith("optim/")}
+    return field.to(device)
+
+
+def load_optimizer_state(field, optimizer: torch.optim.Optimizer) -> bool:
+    """Restore Adam moments stored by save_field(optimizer=...). Returns True if anything was loaded."""
+    stored = getattr(field, "_checkpoint_optim", None) or {}
+    if not stored:
+        return False
+    params = dict(field.named_parameters())
+    for key, v in stored.items():
+        pname, _, skey = key.rpartition("/")
+        p = params.get(pname)
+        if p is None:
+            continue
+        optimizer.state.setdefault(p, {})[skey] = v.to(p.device)
+    return True
+
+
+def field_mesh(path: str) -> Mesh:
+    meta, t = read_checkpoint(path)
+    return Mesh(t["buffer/rest_vertices"].numpy(), np.asarray(t["buffer/faces"].numpy()))

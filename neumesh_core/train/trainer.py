@@ -1,0 +1,229 @@
+"""Training: photometric + modification-colour + mask BCE + total-variation losses, Adam, schedule,
+progress/cancel callback, periodic atomic checkpoints, resume, Ctrl-C safe."""
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field as dc_field
+from typing import Callable, Optional, Union
+
+import numpy as np
+import torch
+
+from ..data.cameras import batch_pixel_rays
+from ..data.scene import ImageSet, Scene
+from ..render.renderer import RenderSettings, render_rays
+from .checkpoint import load_optimizer_state, save_field
+
+
+@dataclass
+class TrainConfig:
+    """Training hyper-parameters.  Defaults suit 100-400 px scenes on a CPU."""
+
+    steps: int = 3000
+    rays_per_batch: int = 4096
+    lr_codes: float = 1e-2
+    lr_decoders: float = 2e-3
+    lr_final_factor: float = 0.1      # exponential decay to lr * factor at the last step
+    warmup_steps: int = 50
+    weight_mod: float = 0.01          # x mean squared rendered modification colour
+    weight_mask: float = 0.05         # mask BCE (only when the scene has masks/alpha)
+    weight_tv: float = 1e-3           # total variation between neighbouring vertex codes
+    tv_samples: int = 8192            # vertices sampled per step for the TV loss
+    random_background: bool = True    # composite targets on random colours (needs masks)
+    occ_refresh_every: int = 16
+    occ_warmup_steps: int = 200
+    step_scale: float = 0.25          # marching step = radius x step_scale
+    split: str = "train"
+    seed: int = 0
+    log_every: int = 25
+    checkpoint_path: Optional[str] = None
+    checkpoint_every: int = 500
+    max_seconds: Optional[float] = None  # stop after this wall time (the schedule still uses `steps`)
+    resume: bool = True               # continue from the step stored in a loaded field
+    threads: Optional[int] = None     # torch CPU threads (default: all cores)
+
+
+@dataclass
+class TrainProgress:
+    step: int
+    total_steps: int
+    loss: float
+    psnr: float
+    rays_per_sec: float
+    elapsed_s: float
+    eta_s: float
+    samples_per_ray: float = 0.0
+    occupied_fraction: float = 0.0
+
+
+@dataclass
+class TrainResult:
+    steps_done: int
+    final_loss: float
+    final_psnr: float
+    seconds: float
+    cancelled: bool = False
+    interrupted: bool = False
+    history: list = dc_field(default_factory=list)
+
+
+class _Batcher:
+    """Random pixels from all training images (held as one tensor)."""
+
+    def __init__(self, images: ImageSet, scene_bg, device, seed: int):
+        self.images = torch.from_numpy(np.ascontiguousarray(images.images)).to(device)
+        self.masks = None if images.masks is None else torch.from_numpy(
+            np.ascontiguousarray(images.masks, dtype=np.float32)).to(device)
+        self.K = torch.from_numpy(images.cameras.K).to(device)
+        self.c2w = torch.from_numpy(images.cameras.c2w).to(device)
+        self.n, self.h, self.w = self.images.shape[:3]
+        self.scene_bg = None if scene_bg is None else torch.tensor(scene_bg, dtype=torch.float32, device=device)
+        self.gen = torch.Generator(device="cpu").manual_seed(seed)
+        self.device = device
+
+    def sample(self, b: int):
+        g = self.gen
+        i = torch.randint(0, self.n, (b,), generator=g).to(self.device)
+        x = torch.randint(0, self.w, (b,), generator=g).to(self.device)
+        y = torch.randint(0, self.h, (b,), generator=g).to(self.device)
+        o, d = batch_pixel_rays(self.K[i], self.c2w[i], x, y)
+        rgb = self.images[i, y, x]
+        mask = None if self.masks is None else self.masks[i, y, x]
+        return o, d, rgb, mask
+
+
+def _make_optimizer(field, cfg: TrainConfig):
+    groups = [
+        {"params": [field.geo_codes, field.tex_codes, field.mod_colors], "lr": cfg.lr_codes, "name": "codes"},
+        {"params": list(field.geo_decoder.parameters()) + list(field.rad_decoder.parameters()),
+         "lr": cfg.lr_decoders, "name": "decoders"},
+    ]
+    for g in groups:
+        g["base_lr"] = g["lr"]
+    kwargs = dict(betas=(0.9, 0.99), eps=1e-15)
+    try:
+        return torch.optim.Adam(groups, fused=True, **kwargs)
+    except (RuntimeError, TypeError, ValueError):
+        return torch.optim.Adam(groups, foreach=True, **kwargs)
+
+
+def _lr_factor(step: int, cfg: TrainConfig) -> float:
+    warm = min(1.0, (step + 1) / max(1, cfg.warmup_steps))
+    decay = cfg.lr_final_factor ** (min(step, cfg.steps) / max(1, cfg.steps))
+    return warm * decay
+
+
+def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = None,
+          callback: Optional[Callable[[TrainProgress], Optional[bool]]] = None) -> TrainResult:
+    """Train ``field`` in place on ``data`` (a Scene: its ``config.split``; or an ImageSet).
+
+    ``callback(progress)`` is called every ``log_every`` steps and at the end; returning False cancels
+    (the field keeps what it learned; a checkpoint is written when ``checkpoint_path`` is set).
+    Ctrl-C (KeyboardInterrupt) stops cleanly the same way and is reported in ``TrainResult.interrupted``.
+    """
+    cfg = config or TrainConfig()
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    if isinstance(data, Scene):
+        images = data.split(cfg.split)
+        scene_bg = data.background
+    else:
+        images, scene_bg = data, None
+    if len(images) == 0:
+        raise ValueError("no training images")
+    if not np.isfinite(images.images).all():
+        raise ValueError("training images contain NaN/inf values; check the dataset")
+    if field.to_rest is not None:
+        raise ValueError("the field is deformed; call field.reset_vertices() before training")
+    device = field.rest_vertices.device
+    batcher = _Batcher(images, scene_bg, device, cfg.seed)
+    opt = _make_optimizer(field, cfg)
+    start = 0
+    meta = getattr(field, "_checkpoint_meta", None)
+    if cfg.resume and meta:
+        start = int(meta.get("train_state", {}).get("step", 0))
+        load_optimizer_state(field, opt)
+    settings = RenderSettings(step_scale=cfg.step_scale)
+    step_size = field.config.radius * cfg.step_scale
+    gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
+    field.train()
+    t_begin = time.perf_counter()
+    history = []
+    loss_v = psnr_v = float("nan")
+    cancelled = interrupted = False
+    step = start
+    rays_done = 0
+    samples_done = 0
+    window_t = time.perf_counter()
+    window_rays = 0
+
+    def save(step_now):
+        if cfg.checkpoint_path:
+            save_field(field, cfg.checkpoint_path, optimizer=opt,
+                       train_state={"step": step_now, "steps": cfg.steps, "loss": loss_v, "psnr": psnr_v})
+
+    try:
+        while step < cfg.steps:
+            f = _lr_factor(step, cfg)
+            for g in opt.param_groups:
+                g["lr"] = g["base_lr"] * f
+            o, d, rgb_gt, mask = batcher.sample(cfg.rays_per_batch)
+            if mask is not None and cfg.random_background:
+                bg = torch.rand(len(o), 3, generator=gen).to(device)
+                if batcher.scene_bg is not None:
+                    target = rgb_gt + (1 - mask)[:, None] * (bg - batcher.scene_bg)
+                else:
+                    target = rgb_gt * mask[:, None] + (1 - mask)[:, None] * bg
+            else:
+                bg = batcher.scene_bg if batcher.scene_bg is not None else torch.zeros(3, device=device)
+                target = rgb_gt
+            jitter = torch.rand(len(o), generator=gen).to(device)
+            out = render_rays(field, o, d, background=bg, settings=settings, train=True, jitter=jitter)
+            mse = torch.mean((out["rgb"] - target) ** 2)
+            loss = mse + cfg.weight_mod * torch.mean(out["mod_rgb"] ** 2)
+            if mask is not None and cfg.weight_mask > 0:
+                op = out["opacity"].clamp(1e-4, 1 - 1e-4)
+                loss = loss + cfg.weight_mask * torch.nn.functional.binary_cross_entropy(op, mask)
+            if cfg.weight_tv > 0:
+                loss = loss + cfg.weight_tv * field.tv_loss(cfg.tv_samples, generator=gen)
+            opt.zero_grad(set_to_none=True)
+            if loss.requires_grad:
+                loss.backward()
+                opt.step()
+            if not math.isfinite(float(loss.detach())):
+                raise FloatingPointError(
+                    f"loss became {float(loss)} at step {step}; lower lr_codes/lr_decoders and resume from "
+                    "the last checkpoint")
+            step += 1
+            rays_done += len(o)
+            window_rays += len(o)
+            samples_done += out["n_samples"]
+            loss_v = float(loss.detach())
+            psnr_v = float(-10.0 * torch.log10(mse.detach().clamp_min(1e-10)))
+            if step > cfg.occ_warmup_steps and step % cfg.occ_refresh_every == 0:
+                field.grid.refresh(lambda x: field.query(x, with_rgb=False)[0], step_size, generator=gen)
+            last = step >= cfg.steps
+            elapsed = time.perf_counter() - t_begin
+            over_time = cfg.max_seconds is not None and elapsed >= cfg.max_seconds
+            if step % cfg.log_every == 0 or last or step == start + 1 or over_time:
+                now = time.perf_counter()
+                rps = window_rays / max(now - window_t, 1e-9)
+                window_t, window_rays = now, 0
+                per_step = elapsed / max(1, step - start)
+                p = TrainProgress(step, cfg.steps, loss_v, psnr_v, rps, elapsed, per_step * (cfg.steps - step),
+                                  samples_done / max(1, rays_done), field.grid.occupied_fraction)
+                history.append(p)
+                if callback is not None and callback(p) is False:
+                    cancelled = True
+                    break
+            if cfg.checkpoint_path and step % cfg.checkpoint_every == 0 and not last:
+                save(step)
+            if over_time:
+                break
+    except KeyboardInterrupt:
+        interrupted = True
+    field.eval()
+    save(step)
+    return TrainResult(step, loss_v, psnr_v, time.perf_counter() - t_begin, cancelled, interrupted, history)

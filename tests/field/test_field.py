@@ -1,0 +1,109 @@
+import numpy as np
+import pytest
+import torch
+
+from neumesh_core.errors import VertexMismatchError
+from neumesh_core.field.field import FieldConfig, NeuMeshField
+from neumesh_core.field.knn import knn_radius_reference
+from neumesh_core.mesh import vertex_normals
+
+from ..conftest import textured_field
+
+
+def test_local_indicators_match_brute_force(blob_mesh):
+    f = NeuMeshField(blob_mesh)
+    g = torch.Generator().manual_seed(1)
+    v = f.rest_vertices
+    # points near the surface: vertices pushed along random directions
+    x = v[torch.randint(0, len(v), (1000,), generator=g)] + 0.5 * f.radius * torch.randn(1000, 3, generator=g)
+    nb = f.neighbourhood(x)
+    ridx, rdist = knn_radius_reference(x, v, 4, f.radius)
+    valid = ridx >= 0
+    assert torch.equal(nb.valid, valid)
+    n = torch.as_tensor(vertex_normals(blob_mesh.vertices, blob_mesh.faces))
+    for m in range(0, 1000, 37):
+        ids = ridx[m][valid[m]]
+        if len(ids) == 0:
+            assert nb.w[m].sum() == 0
+            continue
+        inv = 1.0 / rdist[m][valid[m]]
+        w_ref = inv / inv.sum()
+        p_ref = ((v[ids] - x[m]) * n[ids]).sum(-1)
+        got = {int(i): (float(w), float(p)) for i, w, p, ok in zip(nb.idx[m], nb.w[m], nb.p[m], nb.valid[m]) if ok}
+        for i, w, p in zip(ids.tolist(), w_ref.tolist(), p_ref.tolist()):
+            assert got[i][0] == pytest.approx(w, abs=1e-5)
+            assert got[i][1] == pytest.approx(p, abs=1e-5)
+
+
+def test_post_interpolation_is_weighted_mean_of_per_neighbour_decodes(blob_mesh):
+    f = textured_field(blob_mesh)
+    x = f.rest_vertices[:50] + 0.01
+    d = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+    nb = f.neighbourhood(x)
+    sigma, rgb, mod = f.decode(nb, d)
+    from neumesh_core.field.encoding import frequency_encoding, sh_encoding, trunc_exp
+
+    for m in range(0, 50, 7):
+        s_ref = 0.0
+        c_ref = torch.zeros(3)
+        for k in range(4):
+            if not nb.valid[m, k]:
+                continue
+            i = nb.idx[m, k]
+            pe = frequency_encoding(nb.p[m, k:k + 1] / f.radius, f.config.pos_freqs)[0]
+            w = nb.w[m, k]
+            s_k = trunc_exp(f.geo_decoder(torch.cat([f.geo_codes[i], pe, w[None]]))[0])
+            c_k = torch.sigmoid(f.rad_decoder(torch.cat([f.tex_codes[i], pe, w[None], sh_encoding(d[m], 4),
+                                                         f.rest_normals[i]]))) + f.mod_colors[i]
+            s_ref = s_ref + w * s_k
+            c_ref = c_ref + w * c_k
+        assert float(sigma[m].detach()) == pytest.approx(float(s_ref.detach()), rel=1e-4)
+        assert torch.allclose(rgb[m], c_ref, atol=1e-5)
+
+
+def test_far_points_have_zero_density(blob_mesh):
+    f = textured_field(blob_mesh)
+    sigma, rgb, _ = f.query(torch.tensor([[10.0, 0, 0], [0, 0, 0.0]]), torch.tensor([[1.0, 0, 0]] * 2))
+    assert torch.all(sigma == 0)
+
+
+@pytest.mark.parametrize("interp", ["post", "early"])
+def test_decode_is_differentiable(blob_mesh, interp):
+    f = textured_field(blob_mesh, interp)
+    x = f.rest_vertices[:64] * 1.001
+    sigma, rgb, _ = f.query(x, torch.nn.functional.normalize(torch.randn(64, 3), dim=-1))
+    (sigma.mean() + rgb.mean()).backward()
+    assert f.geo_codes.grad.abs().sum() > 0 and f.tex_codes.grad.abs().sum() > 0
+    assert f.rad_decoder[0].weight.grad.abs().sum() > 0
+
+
+def test_set_vertices_errors(blob_mesh):
+    f = NeuMeshField(blob_mesh)
+    with pytest.raises(VertexMismatchError, match="topology changed"):
+        f.set_vertices(np.zeros((f.num_vertices + 3, 3)))
+    bad = f.vertices.copy()
+    bad[5, 1] = np.nan
+    with pytest.raises(VertexMismatchError, match="NaN"):
+        f.set_vertices(bad)
+    with pytest.raises(VertexMismatchError):
+        f.set_vertices(np.zeros((f.num_vertices,)))
+
+
+def test_set_vertices_refreshes_geometry(blob_mesh):
+    f = NeuMeshField(blob_mesh)
+    v = f.vertices + np.array([5.0, 0, 0], np.float32)
+    f.set_vertices(v)
+    assert np.allclose(f.vertices, v)
+    assert (f.grid.aabb[0, 0] > 3.0)
+    idx, _ = f.index.query(torch.as_tensor(v[:3]))
+    assert idx[:, 0].tolist() == [0, 1, 2]
+    f.reset_vertices()
+    assert np.allclose(f.vertices, f.rest_vertices.numpy())
+    assert f.to_rest is None
+
+
+def test_auto_radius_scales_with_edges(blob_mesh):
+    f = NeuMeshField(blob_mesh, FieldConfig(radius_scale=2.0))
+    e = blob_mesh.edges()
+    mean_edge = np.linalg.norm(blob_mesh.vertices[e[:, 0]] - blob_mesh.vertices[e[:, 1]], axis=1).mean()
+    assert f.radius == pytest.approx(2.0 * mean_edge, rel=1e-5)

@@ -1,0 +1,56 @@
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from neumesh_core.cli import build_parser, main
+
+
+@pytest.mark.parametrize("cmd", ["train", "render", "eval", "demo"])
+def test_help_explains_every_option(cmd, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([cmd, "--help"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    parser = build_parser()
+    sub = parser._subparsers._group_actions[0].choices[cmd]
+    for action in sub._actions:
+        if action.option_strings and action.dest != "help":
+            assert action.help, f"{cmd} {action.option_strings} has no help"
+    assert "--" in out
+
+
+def test_train_render_eval_on_the_small_scene(small_scene_dir, tmp_path, capsys):
+    field = str(tmp_path / "f.neumesh")
+    assert main(["train", "--data", small_scene_dir, "--out", field, "--steps", "30", "--rays", "512",
+                 "--no-eval"]) == 0
+    assert os.path.exists(field)
+    assert main(["eval", "--field", field, "--data", small_scene_dir, "--split", "val",
+                 "--json", str(tmp_path / "e.json")]) == 0
+    r = json.load(open(tmp_path / "e.json"))
+    assert r["n_views"] == 4 and r["mean"]["psnr"] > 10 and r["lpips_available"] in (True, False)
+    assert main(["render", "--field", field, "--out", str(tmp_path / "tt"), "--frames", "2",
+                 "--resolution", "24x16"]) == 0
+    assert sorted(os.listdir(tmp_path / "tt")) == ["frame_0000.png", "frame_0001.png"]
+
+
+def test_train_without_mesh_says_what_to_do(tmp_path, capsys):
+    from neumesh_core.data.synthetic import make_default_scene
+
+    d = tmp_path / "s"
+    make_default_scene(str(d), resolution=16, n_train=4, n_val=1, n_test=1)
+    os.remove(d / "mesh.ply")
+    assert main(["train", "--data", str(d), "--out", str(tmp_path / "x.neumesh")]) == 2
+    assert "neumesh scaffold" in capsys.readouterr().err
+
+
+def test_bad_data_path_is_a_clear_error(tmp_path, capsys):
+    assert main(["train", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "x")]) == 2
+    assert "error:" in capsys.readouterr().err
+
+
+def test_console_script_entry_point():
+    r = subprocess.run([sys.executable, "-m", "neumesh_core.cli", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "demo" in r.stdout

@@ -1,0 +1,79 @@
+import os
+
+import numpy as np
+import pytest
+import torch
+
+import neumesh_core as nm
+from neumesh_core.data.cameras import intrinsics_from_fov
+
+from ..conftest import textured_field
+
+
+def _render(f):
+    K = intrinsics_from_fov(0.8, 32, 32)
+    c2w = np.eye(4, dtype=np.float32)
+    c2w[2, 3] = -3.5
+    return nm.render_camera(f, K, c2w, 32, 32)
+
+
+def test_round_trip_renders_identical_pixels(blob_mesh, tmp_path):
+    f = textured_field(blob_mesh)
+    f.grid.refresh(lambda x: f.query(x, with_rgb=False)[0], f.radius * 0.25)
+    path = str(tmp_path / "a.neumesh")
+    nm.save_field(f, path)
+    g = nm.load_field(path)
+    a, b = _render(f), _render(g)
+    assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.opacity, b.opacity)
+    assert torch.equal(f.grid.occ, g.grid.occ)
+    assert g.config == f.config
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".tmp")]
+
+
+def test_saving_a_deformed_field_keeps_rest_pose(blob_mesh, tmp_path):
+    f = textured_field(blob_mesh)
+    rest = _render(f)
+    f.set_vertices(f.vertices * 1.3)
+    path = str(tmp_path / "d.neumesh")
+    nm.save_field(f, path)
+    g = nm.load_field(path)
+    assert np.allclose(g.vertices, f.rest_vertices.numpy())
+    assert np.array_equal(_render(g).rgb, rest.rgb)
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "empty"])
+def test_corrupt_checkpoint_gives_clear_error(blob_mesh, tmp_path, damage):
+    f = textured_field(blob_mesh)
+    path = str(tmp_path / "c.neumesh")
+    nm.save_field(f, path)
+    data = open(path, "rb").read()
+    with open(path, "wb") as fh:
+        if damage == "truncate":
+            fh.write(data[: len(data) // 2])
+        elif damage == "garbage":
+            fh.write(b"\x00\x01garbage" * 100)
+    with pytest.raises(nm.CheckpointError, match="not a readable NeuMesh field"):
+        nm.load_field(path)
+
+
+def test_missing_and_foreign_files(tmp_path):
+    with pytest.raises(nm.CheckpointError, match="not found"):
+        nm.load_field(str(tmp_path / "nope.neumesh"))
+    from safetensors.torch import save_file
+
+    p = str(tmp_path / "other.safetensors")
+    save_file({"x": torch.zeros(3)}, p)
+    with pytest.raises(nm.CheckpointError, match="not a NeuMesh field"):
+        nm.load_field(p)
+
+
+def test_nan_parameters_are_never_saved(blob_mesh, tmp_path):
+    f = textured_field(blob_mesh)
+    path = str(tmp_path / "n.neumesh")
+    nm.save_field(f, path)
+    before = open(path, "rb").read()
+    with torch.no_grad():
+        f.tex_codes[3, 0] = float("nan")
+    with pytest.raises(nm.CheckpointError, match="NaN"):
+        nm.save_field(f, path)
+    assert open(path, "rb").read() == before  # the good file is untouched

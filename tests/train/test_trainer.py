@@ -1,0 +1,58 @@
+"""End to end on the built-in scene with its true mesh, plus cancel and resume."""
+import numpy as np
+import pytest
+
+import neumesh_core as nm
+from neumesh_core.metrics import psnr
+
+
+def _val_psnr(field, scene):
+    val = scene.split("val")
+    vals = []
+    for i in range(len(val)):
+        out = nm.render_camera(field, val.cameras.K[i], val.cameras.c2w[i], val.cameras.width,
+                               val.cameras.height, background=scene.background)
+        vals.append(psnr(np.clip(out.rgb, 0, 1), val.images[i]))
+    return float(np.mean(vals))
+
+
+def test_training_learns_the_builtin_scene(small_scene_dir, tmp_path):
+    """Short budget (300 steps x 1024 rays, 64 px). An untrained field scores ~10 dB here; the stated
+    pass mark is 24 dB on held-out views, which a broken loss/renderer/optimiser cannot reach."""
+    scene = nm.load_scene(small_scene_dir)
+    field = nm.create_field(nm.load_mesh(scene.mesh_path))
+    before = _val_psnr(field, scene)
+    seen = []
+    res = nm.train(field, scene, nm.TrainConfig(steps=300, rays_per_batch=1024, log_every=50,
+                                                checkpoint_path=str(tmp_path / "f.neumesh")),
+                   callback=seen.append)
+    after = _val_psnr(field, scene)
+    print(f"held-out PSNR: untrained {before:.2f} dB -> trained {after:.2f} dB ({res.seconds:.0f}s)")
+    assert before < 15
+    assert after > 24.0
+    assert [p.step for p in seen][-1] == 300 and seen[-1].rays_per_sec > 0
+    g = nm.load_field(str(tmp_path / "f.neumesh"))
+    assert g._checkpoint_meta["train_state"]["step"] == 300
+
+
+def test_cancel_and_resume(small_scene_dir, tmp_path):
+    scene = nm.load_scene(small_scene_dir)
+    field = nm.create_field(nm.load_mesh(scene.mesh_path))
+    path = str(tmp_path / "r.neumesh")
+    cfg = nm.TrainConfig(steps=40, rays_per_batch=256, log_every=10, checkpoint_path=path)
+    res = nm.train(field, scene, cfg, callback=lambda p: p.step < 20)
+    assert res.cancelled and res.steps_done == 20
+    g = nm.load_field(path)
+    assert g._checkpoint_meta["train_state"]["step"] == 20
+    assert g._checkpoint_optim  # Adam moments travel with the field
+    steps = []
+    res2 = nm.train(g, scene, cfg, callback=lambda p: steps.append(p.step))
+    assert steps[0] == 21 and res2.steps_done == 40 and not res2.cancelled
+
+
+def test_training_a_deformed_field_is_refused(small_scene_dir):
+    scene = nm.load_scene(small_scene_dir)
+    field = nm.create_field(nm.load_mesh(scene.mesh_path))
+    field.set_vertices(field.vertices * 1.1)
+    with pytest.raises(ValueError, match="reset_vertices"):
+        nm.train(field, scene, nm.TrainConfig(steps=1))
