@@ -161,6 +161,7 @@ class NeuMeshField(nn.Module):
 
         self.grid = OccupancyGrid.from_vertices(verts, cfg.radius, cfg.grid_resolution)
         self._rest_grid_state = None
+        self._grid_anchors = None
 
     # ------------------------------------------------------------------ geometry
     @staticmethod
@@ -236,15 +237,28 @@ class NeuMeshField(nn.Module):
                 # rotation current -> rest: R = F_rest F_cur^T
                 self.to_rest = self.rest_frames @ frames.transpose(1, 2)
         self.index = VertexIndex(v, self.config.k, self.config.radius)
-        # the grid refined from densities is valid in the rest pose only: keep it aside while deformed
+        # the grid refined from densities is valid in the rest pose only: keep it aside while deformed,
+        # and carry its occupied cells along with the surface (each moves rigidly with its nearest vertex)
         if self.to_rest is None:
             if self._rest_grid_state is not None:
                 self.grid.load_state(self._rest_grid_state)
                 self._rest_grid_state = None
+                self._grid_anchors = None
         else:
             if self._rest_grid_state is None:
                 self._rest_grid_state = self.grid.state()
-            self.grid.rebuild_from_vertices(v, self.config.radius)
+                self._grid_anchors = None
+                if self.grid.refined:
+                    centers = self.grid.occupied_centers()
+                    nearest, _ = VertexIndex(self.rest_vertices, 1).query(centers)
+                    nearest = nearest[:, 0]
+                    self._grid_anchors = (nearest, centers - self.rest_vertices[nearest])
+            carried = None
+            if self._grid_anchors is not None:
+                vid, offset = self._grid_anchors
+                rest_to_cur = self.to_rest[vid].transpose(1, 2)
+                carried = v[vid] + (rest_to_cur * offset[:, None, :]).sum(-1)
+            self.grid.rebuild_from_vertices(v, self.config.radius, carried)
 
     def reset_vertices(self) -> None:
         """Back to the rest (training) pose."""
@@ -271,7 +285,7 @@ class NeuMeshField(nn.Module):
         if self.to_rest is None:
             return d
         r = self.to_rest[idx]
-        return torch.einsum("pij,pj->pi", r, d)
+        return (r * d[:, None, :]).sum(-1)
 
     def decode(self, nb: Neighbourhood, dirs: Optional[torch.Tensor] = None, with_rgb: bool = True,
                with_sigma: bool = True):
@@ -282,26 +296,37 @@ class NeuMeshField(nn.Module):
         if self.config.interpolation == "early":
             return self._decode_early(nb, dirs, with_rgb, with_sigma)
         m, k = nb.idx.shape
-        flat = nb.valid.reshape(-1).nonzero().squeeze(1)
-        vid = nb.idx.reshape(-1)[flat]
-        wk = nb.w.reshape(-1)[flat]
-        pe = self._p_encoding(nb.p.reshape(-1)[flat])
-        sample = torch.div(flat, k, rounding_mode="floor")
+        n_valid = int(nb.valid.sum())
+        if n_valid >= 0.85 * m * k:
+            # dense: decode every slot (invalid ones carry w=0), reduce with a reshape-sum
+            vid, wk, pk = nb.idx.reshape(-1), nb.w.reshape(-1), nb.p.reshape(-1)
+            sample = None
+        else:
+            flat = nb.valid.reshape(-1).nonzero().squeeze(1)
+            vid, wk, pk = nb.idx.reshape(-1)[flat], nb.w.reshape(-1)[flat], nb.p.reshape(-1)[flat]
+            sample = torch.div(flat, k, rounding_mode="floor")
+
+        def reduce(values):  # sum_k w_k * values_k per sample
+            wv = wk[:, None] * values
+            if sample is None:
+                return wv.view(m, k, -1).sum(1)
+            return torch.zeros(m, wv.shape[1], device=wv.device, dtype=wv.dtype).index_add(0, sample, wv)
+
+        pe = self._p_encoding(pk)
         sigma = None
         if with_sigma:
             geo_in = torch.cat([self.geo_codes[vid], pe, wk[:, None]], -1)
-            sig_k = trunc_exp(self.geo_decoder(geo_in).squeeze(-1))
-            sigma = torch.zeros(m, device=sig_k.device, dtype=sig_k.dtype).index_add(0, sample, wk * sig_k)
+            sigma = reduce(trunc_exp(self.geo_decoder(geo_in))).squeeze(-1)
         if not with_rgb:
             return sigma, None, None
-        d = self._rest_dirs(vid, dirs[sample])
+        d = dirs[:, None, :].expand(m, k, 3).reshape(-1, 3) if sample is None else dirs[sample]
+        d = self._rest_dirs(vid, d)
         rad_in = torch.cat([self.tex_codes[vid], pe, wk[:, None], sh_encoding(d, self.config.sh_degree),
                             self.rest_normals[vid]], -1)
         mod_k = self.mod_colors[vid]
         c_k = torch.sigmoid(self.rad_decoder(rad_in)) + mod_k
-        rgb = torch.zeros(m, 3, device=c_k.device, dtype=c_k.dtype).index_add(0, sample, wk[:, None] * c_k)
-        mod = torch.zeros(m, 3, device=c_k.device, dtype=c_k.dtype).index_add(0, sample, wk[:, None] * mod_k)
-        return sigma, rgb, mod
+        out = reduce(torch.cat([c_k, mod_k], -1))
+        return sigma, out[:, :3], out[:, 3:]
 
     def _decode_early(self, nb: Neighbourhood, dirs, with_rgb: bool, with_sigma: bool):
         w = nb.w[..., None]
@@ -321,7 +346,7 @@ class NeuMeshField(nn.Module):
         if self.to_rest is None:
             d = dirs
         else:
-            d = torch.einsum("mkij,mj->mki", self.to_rest[nb.idx], dirs)
+            d = (self.to_rest[nb.idx] * dirs[:, None, None, :]).sum(-1)
             d = (d * w).sum(1)
             d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         mod = (self.mod_colors[nb.idx] * w).sum(1)

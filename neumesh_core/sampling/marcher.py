@@ -47,10 +47,12 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
                sigma_fn: Callable[[torch.Tensor], tuple], step_size: float,
                near: float = 0.0, far: float = float("inf"), window: int = 32,
                early_stop_eps: float = 1e-4, weight_threshold: float = 1e-4,
-               jitter: Optional[torch.Tensor] = None) -> RaySamples:
+               jitter: Optional[torch.Tensor] = None, max_eval: int = 8) -> RaySamples:
     """March rays (R,3)/(R,3 unit) through ``grid``; returns packed samples sorted by (ray, t).
 
-    ``jitter`` (R,) in [0,1) offsets each ray's sample positions (training); None = step centres.
+    Each round looks ``window`` steps ahead but evaluates at most ``max_eval`` occupied steps per ray,
+    so a ray that turns opaque stops within a few samples.  ``jitter`` (R,) in [0,1) offsets each
+    ray's sample positions (training); None = step centres.
     """
     device = origins.device
     n_rays = origins.shape[0]
@@ -74,6 +76,11 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
         in_range = (ts < t_far[alive, None]) & (ts >= t_near[alive, None])
         pts = o[:, None, :] + d[:, None, :] * ts[..., None]
         occ = grid.lookup(pts) & in_range
+        n_occ = torch.cumsum(occ, 1)
+        capped = n_occ[:, -1] > max_eval
+        occ = occ & (n_occ <= max_eval)
+        # a capped ray resumes right after its last evaluated step, the others after the window
+        last = torch.where(capped, (n_occ <= max_eval).sum(1), torch.full_like(n_occ[:, -1], window))
         sel = occ.nonzero()
         if sel.numel():
             rl, si = sel[:, 0], sel[:, 1]
@@ -93,7 +100,7 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
                 out_s.append(sigma[k_idx])
                 out_aux.append(aux.select(k_idx) if aux is not None else None)
             log_T[alive] = log_T[alive] - dense.sum(1)
-        t_cur[alive] = t0 + window * step_size
+        t_cur[alive] = t0 + last.float() * step_size
         still = (t_cur[alive] < t_far[alive]) & (log_T[alive] > log_eps)
         alive = alive[still]
     if out_r:

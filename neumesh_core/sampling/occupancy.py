@@ -69,11 +69,29 @@ class OccupancyGrid:
         aabb, res = cls._layout(vertices, radius, max_res)
         return cls(aabb, res, cls.mask_from_vertices(vertices, aabb, res, radius))
 
-    def rebuild_from_vertices(self, vertices: torch.Tensor, radius: float) -> None:
-        """Re-initialise for moved vertices (box and mask recomputed; densities forgotten)."""
+    def rebuild_from_vertices(self, vertices: torch.Tensor, radius: float,
+                              carried_points: Optional[torch.Tensor] = None) -> None:
+        """Re-initialise for moved vertices (box and mesh mask recomputed; densities forgotten).
+
+        ``carried_points``: centres of the cells that were occupied before the move, moved along with
+        the surface; when given, occupancy is limited to their cells (dilated by one cell) within the new
+        mesh mask, so pruning learnt in the rest pose survives a deformation.
+        """
         max_res = int(self.resolution.max().item())
         aabb, res = self._layout(vertices, radius, max_res)
         self.__init__(aabb, res, self.mask_from_vertices(vertices, aabb, res, radius))
+        if carried_points is not None:
+            carried = self.mask_from_vertices(carried_points, aabb, res, float(self.cell.max()))
+            self.occ = self.mesh_mask & carried
+
+    def occupied_centers(self) -> torch.Tensor:
+        """(C,3) centres of occupied cells."""
+        return self.cell_centers(self.occ.reshape(-1).nonzero().squeeze(1))
+
+    @property
+    def refined(self) -> bool:
+        """True once densities pruned anything below the mesh mask."""
+        return bool((self.density >= 0).any()) and not torch.equal(self.occ, self.mesh_mask)
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict:

@@ -1,0 +1,120 @@
+"""Lazy access to the torch core.
+
+The zip built by build_addon.py vendors ``neumesh_core`` as a subpackage of the add-on; a development
+checkout (add-on run from the repository) falls back to a top-level ``neumesh_core``.  Importing it
+pulls in torch, so it only happens when something is trained or rendered, never at registration.
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.util
+
+_nm = None
+
+
+class CoreUnavailable(RuntimeError):
+    """The core (or one of its dependencies such as torch) cannot be imported."""
+
+
+def _import():
+    pkg = __package__
+    vendored = pkg + ".neumesh_core" if pkg else None
+    if vendored and importlib.util.find_spec(vendored) is not None:
+        return importlib.import_module(vendored)
+    return importlib.import_module("neumesh_core")
+
+
+def get():
+    """Return the ``neumesh_core`` module or raise :class:`CoreUnavailable` with what to do."""
+    global _nm
+    if _nm is not None:
+        return _nm
+    from . import deps
+
+    try:
+        from . import prefs
+
+        deps.configure_sys_path(prefs.extra_paths())
+    except Exception:
+        pass
+    missing = deps.missing_required()
+    if missing:
+        raise CoreUnavailable(
+            "NeuMesh needs the Python package(s) " + ", ".join(missing) + ", which Blender's Python cannot "
+            "import. Open Edit > Preferences > Add-ons > NeuMesh and press 'Install dependencies', or set "
+            "'Existing environment' to a site-packages folder that has torch 2.13 (numpy<2).")
+    try:
+        _nm = _import()
+        guard_torch_namespaces()
+    except ModuleNotFoundError as exc:
+        missing = exc.name or str(exc)
+        raise CoreUnavailable(
+            f"NeuMesh needs the Python package '{missing}', which Blender's Python cannot import. "
+            "Open Edit > Preferences > Add-ons > NeuMesh and press 'Install dependencies', or set "
+            "'Existing environment' to a site-packages folder that has torch 2.13 (numpy<2)."
+        ) from exc
+    except ImportError as exc:
+        raise CoreUnavailable(
+            f"NeuMesh could not import its core: {exc}. The installed dependencies are probably broken or "
+            "built for another Python; reinstall them from the add-on preferences."
+        ) from exc
+    return _nm
+
+
+_FOREIGN_NAMESPACE_TYPES = {"_Ops", "_OpNamespace", "_PyOpNamespace", "_Classes", "_ClassNamespace"}
+
+
+def guard_torch_namespaces() -> int:
+    """Make torch's module-like objects in sys.modules safe for Blender's add-on scan.
+
+    Blender's ``addon_utils.disable_all()`` (run at exit) calls ``getattr(m, "__addon_enabled__")`` on
+    every entry of sys.modules. torch registers module-like objects there (``torch.ops``,
+    ``torch.classes``, ``torch._VF``, backend/config modules) whose ``__getattr__`` forwards to
+    torch's C state: ``torch.ops`` answers *any* name with a new (truthy) namespace, so Blender tries
+    to "unregister" it, and at exit (torch's C side torn down) such a lookup segfaults Blender 3.4.
+    Setting the attribute to False short-circuits the lookup. Called after importing the core and
+    after every render/training (torch imports some modules lazily). Returns how many were patched.
+    """
+    import sys
+    import types
+
+    n = 0
+    # multiprocessing (imported by torch) aliases sys.modules["__mp_main__"] to the *current*
+    # __main__; inside a `blender --python script.py` run that is Blender's temporary script module,
+    # which Blender frees behind Python's back when the script ends -> the exit scan segfaults on it.
+    mp = sys.modules.get("__mp_main__")
+    if mp is not None and getattr(mp, "__name__", "") != "__mp_main__":
+        sys.modules["__mp_main__"] = types.ModuleType("__mp_main__")
+        n += 1
+    for name, m in list(sys.modules.items()):
+        if type(m) is types.ModuleType:
+            continue
+        if not (name.startswith("torch") or type(m).__name__ in _FOREIGN_NAMESPACE_TYPES):
+            continue
+        d = getattr(m, "__dict__", None)
+        if isinstance(d, dict) and d.get("__addon_enabled__", None) is False:
+            continue
+        try:
+            object.__setattr__(m, "__addon_enabled__", False)
+            n += 1
+        except Exception:  # noqa: BLE001
+            pass
+    return n
+
+
+def available() -> bool:
+    try:
+        get()
+        return True
+    except CoreUnavailable:
+        return False
+
+
+def error_types():
+    """Exception types from the core that carry user-facing messages (empty if core unavailable)."""
+    try:
+        nm = get()
+    except CoreUnavailable:
+        return ()
+    names = ("NeuMeshError", "CheckpointError", "VertexMismatchError", "DataError", "Cancelled")
+    return tuple(getattr(nm, n) for n in names if isinstance(getattr(nm, n, None), type))

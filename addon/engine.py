@@ -1,0 +1,301 @@
+"""The NEUMESH render engine: F12 / `blender -b -a` renders and a progressive rendered viewport."""
+from __future__ import annotations
+
+import threading
+import time
+import weakref
+
+import bpy
+from ._np import np
+
+from . import camera, core, render, sync
+
+LAST_ERROR = {"message": ""}
+
+
+def _user_message(exc) -> str:
+    if isinstance(exc, (sync.TopologyError, camera.CameraError, FileNotFoundError, core.CoreUnavailable)):
+        return str(exc)
+    types = core.error_types()
+    if types and isinstance(exc, types):
+        return str(exc)
+    return f"{type(exc).__name__}: {exc}"
+
+
+class PreviewRenderer:
+    """Renders a viewport request at increasing resolutions (1/8, 1/4, ...) in a background thread.
+
+    ``request()`` supersedes (cancels) the render in progress. ``latest`` holds (serial, level, rgba)
+    where rgba is scene-linear premultiplied (h,w,4) float32. ``on_image`` is called from the thread.
+    """
+
+    def __init__(self, divisors=(8, 4, 2), on_image=None):
+        self.divisors = tuple(divisors)
+        self.on_image = on_image
+        self._cv = threading.Condition()
+        self._pending = None
+        self._serial = 0
+        self._stop = False
+        self.latest = None
+        self.error = ""
+        self.busy = False
+        self.timings: list[tuple[int, float]] = []  # (divisor, seconds since request)
+        self._thread = threading.Thread(target=self._loop, name="neumesh-preview", daemon=True)
+        self._thread.start()
+
+    def request(self, items, K, c2w, width, height, transparent=False):
+        with self._cv:
+            self._serial += 1
+            self._pending = (self._serial, items, K, c2w, int(width), int(height), bool(transparent),
+                             time.perf_counter())
+            self._cv.notify_all()
+            return self._serial
+
+    def stop(self):
+        with self._cv:
+            self._stop = True
+            self._serial += 1
+            self._cv.notify_all()
+
+    def wait(self, serial, divisor=None, timeout=60.0) -> bool:
+        """Block until the image of ``serial`` at ``divisor`` (default: the last level) exists."""
+        divisor = divisor or self.divisors[-1]
+        t_end = time.perf_counter() + timeout
+        while time.perf_counter() < t_end:
+            lt = self.latest
+            if lt is not None and lt[0] >= serial and (lt[0] > serial or lt[1] <= divisor):
+                return True
+            if self.error and not self.busy:
+                return False
+            time.sleep(0.002)
+        return False
+
+    def _loop(self):
+        while True:
+            with self._cv:
+                while self._pending is None and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                job, self._pending = self._pending, None
+            serial, items, K, c2w, W, H, transparent, t0 = job
+            self.busy = True
+            self.timings = []
+            try:
+                for div in self.divisors:
+                    w, h = max(1, W // div), max(1, H // div)
+                    Ks = render.scale_K(K, W, H, w, h)
+
+                    def prog(_f, serial=serial):
+                        return self._serial == serial and not self._stop
+
+                    rgba = render.render_items(items, Ks, c2w, w, h, transparent, progress=prog)
+                    if self._serial != serial:
+                        break
+                    self.latest = (serial, div, render.to_scene_linear(rgba, transparent))
+                    self.timings.append((div, time.perf_counter() - t0))
+                    self.error = ""
+                    if self.on_image is not None:
+                        self.on_image()
+            except Exception as exc:  # noqa: BLE001 - shown in the viewport
+                if type(exc).__name__ != "Cancelled":
+                    self.error = _user_message(exc)
+            finally:
+                self.busy = False
+
+
+def _prefs_divisors():
+    from . import prefs
+
+    p = prefs.get_prefs()
+    start, final = (8, 2) if p is None else (int(p.preview_start), int(p.preview_final))
+    divs = [d for d in (8, 4, 2, 1) if final <= d <= start]
+    return tuple(divs or [final])
+
+
+class NeuMeshRenderEngine(bpy.types.RenderEngine):
+    bl_idname = "NEUMESH"
+    bl_label = "NeuMesh"
+    bl_use_preview = False
+    bl_use_postprocess = True
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._preview = None
+        self._items = []
+        self._error = ""
+        self._generation = 0
+        self._key = None
+        self._texture = None
+        self._texture_serial = None
+        self._dirty = False
+
+    def __del__(self):
+        pv = getattr(self, "_preview", None)
+        if pv is not None:
+            pv.stop()
+
+    # ------------------------------------------------------------------ final render (F12, -a)
+    def render(self, depsgraph):
+        scene = depsgraph.scene
+        W, H = camera.render_size(scene)
+        transparent = bool(scene.render.film_transparent)
+        LAST_ERROR["message"] = ""
+        try:
+            cam = scene.camera
+            K, c2w, W, H = camera.camera_K_c2w(cam, scene, depsgraph, W, H)
+            items = render.collect(depsgraph, for_render=True)
+            if not items:
+                self.report({"WARNING"}, "NeuMesh: no object with a field in the scene (Object properties > "
+                                         "NeuMesh field)")
+            self.update_stats("NeuMesh", f"rendering {len(items)} field(s) at {W}x{H}")
+
+            def prog(f):
+                self.update_progress(float(f))
+                return not self.test_break()
+
+            rgba = render.render_items(items, K, c2w, W, H, transparent, progress=prog)
+        except Exception as exc:  # noqa: BLE001 - reported to the user, no (wrong) image written
+            if type(exc).__name__ == "Cancelled":
+                return
+            msg = "NeuMesh: " + _user_message(exc)
+            LAST_ERROR["message"] = msg
+            print(msg)
+            if hasattr(self, "error_set"):
+                self.error_set(msg)
+            self.report({"ERROR"}, msg)
+            return
+        lin = render.to_scene_linear(rgba, transparent)
+        pixels = np.ascontiguousarray(lin[::-1].reshape(-1, 4))  # Blender rows go bottom-up
+        result = self.begin_result(0, 0, W, H)
+        layer = result.layers[0].passes["Combined"]
+        try:
+            layer.rect.foreach_set(pixels.ravel())
+        except (AttributeError, TypeError):
+            layer.rect = pixels.tolist()
+        self.end_result(result)
+
+    # ------------------------------------------------------------------ viewport
+    def view_update(self, context, depsgraph):
+        try:
+            self._items = render.collect(depsgraph, for_render=False)
+            self._error = ""
+        except Exception as exc:  # noqa: BLE001 - drawn in the viewport
+            self._items = []
+            self._error = _user_message(exc)
+        self._generation += 1
+
+    def _ensure_preview(self):
+        if self._preview is None:
+            ref = weakref.ref(self)
+
+            def on_image():
+                e = ref()
+                if e is not None:
+                    e._dirty = True
+
+            self._preview = PreviewRenderer(_prefs_divisors(), on_image=on_image)
+            _PollRedraw.add(self)
+        return self._preview
+
+    def view_draw(self, context, depsgraph):
+        import gpu
+
+        region, rv3d, scene = context.region, context.region_data, depsgraph.scene
+        transparent = bool(scene.render.film_transparent)
+        if self._error:
+            self._draw_message(context, self._error)
+            return
+        try:
+            K, c2w, W, H = camera.viewport_K_c2w(region, rv3d)
+        except camera.CameraError as exc:
+            self._draw_message(context, str(exc))
+            return
+        pv = self._ensure_preview()
+        key = (self._generation, K.tobytes(), c2w.tobytes(), W, H, transparent)
+        if key != self._key:
+            self._key = key
+            pv.request(self._items, K, c2w, W, H, transparent)
+        latest = pv.latest
+        if pv.error:
+            self._draw_message(context, pv.error)
+            return
+        if latest is None:
+            return
+        serial, _div, rgba = latest
+        if self._texture_serial != (serial, _div):
+            h, w = rgba.shape[:2]
+            buf = gpu.types.Buffer("FLOAT", w * h * 4, np.ascontiguousarray(rgba[::-1]).ravel().tolist())
+            self._texture = gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
+            self._texture_serial = (serial, _div)
+        from gpu_extras.presets import draw_texture_2d
+
+        gpu.state.blend_set("ALPHA_PREMULT")
+        self.bind_display_space_shader(scene)
+        draw_texture_2d(self._texture, (0, 0), region.width, region.height)
+        self.unbind_display_space_shader()
+        gpu.state.blend_set("NONE")
+
+    def _draw_message(self, context, text):
+        try:
+            import blf
+
+            blf.position(0, 12, 30, 0)
+            blf.size(0, 14) if bpy.app.version >= (4, 0, 0) else blf.size(0, 14, 72)
+            blf.color(0, 1.0, 0.3, 0.3, 1.0)
+            blf.draw(0, text[:200])
+        except Exception:
+            pass
+
+
+class _PollRedraw:
+    """Main-thread timer: redraw viewports whose preview thread produced a new image."""
+
+    _engines: "weakref.WeakSet" = weakref.WeakSet()
+    _registered = False
+
+    @classmethod
+    def add(cls, engine):
+        cls._engines.add(engine)
+        if not cls._registered and not bpy.app.background:
+            bpy.app.timers.register(cls._tick, first_interval=0.05)
+            cls._registered = True
+
+    @classmethod
+    def _tick(cls):
+        for e in list(cls._engines):
+            try:
+                if getattr(e, "_dirty", False):
+                    e._dirty = False
+                    e.tag_redraw()
+            except ReferenceError:
+                pass
+        if not len(cls._engines):
+            cls._registered = False
+            return None
+        return 0.05
+
+
+def compatible_panels():
+    """Blender's own panels that make sense for this engine (output, colour management, ...)."""
+    exclude = {"VIEWLAYER_PT_filter", "VIEWLAYER_PT_layer_passes"}
+    out = []
+    for name in dir(bpy.types):
+        p = getattr(bpy.types, name, None)
+        ce = getattr(p, "COMPAT_ENGINES", None)
+        if ce is not None and "BLENDER_RENDER" in ce and name not in exclude:
+            out.append(p)
+    return out
+
+
+def register():
+    bpy.utils.register_class(NeuMeshRenderEngine)
+    for p in compatible_panels():
+        p.COMPAT_ENGINES.add("NEUMESH")
+
+
+def unregister():
+    for p in compatible_panels():
+        p.COMPAT_ENGINES.discard("NEUMESH")
+    bpy.utils.unregister_class(NeuMeshRenderEngine)
+    render.clear_cache()

@@ -1,0 +1,461 @@
+"""Operators: import a dataset as cameras, scaffold / mesh import, training, field loading, rendering
+to image files."""
+from __future__ import annotations
+
+import os
+
+import bpy
+from ._np import np
+from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
+
+from . import camera, core, props, render, sync, worker
+
+DATASET_COLLECTION = "NeuMesh Dataset"
+
+
+def _report_exc(op, exc, what):
+    msg = f"NeuMesh: {what}: {exc}" if not isinstance(exc, core.CoreUnavailable) else f"NeuMesh: {exc}"
+    op.report({"ERROR"}, msg)
+    return {"CANCELLED"}
+
+
+def _find_image_file(root: str, name: str) -> str | None:
+    if not name:
+        return None
+    cands = [name, os.path.join(root, name)]
+    for c in list(cands):
+        if not os.path.splitext(c)[1]:
+            cands += [c + ".png", c + ".jpg"]
+    for c in cands:
+        if os.path.isfile(c):
+            return os.path.abspath(c)
+    return None
+
+
+def _image_from_array(name: str, img: np.ndarray):
+    img = np.asarray(img, np.float32)
+    h, w = img.shape[:2]
+    rgba = np.ones((h, w, 4), np.float32)
+    rgba[..., : min(3, img.shape[2])] = img[..., :3]
+    if img.shape[2] == 4:
+        rgba[..., 3] = img[..., 3]
+    im = bpy.data.images.new(name, w, h, alpha=True)
+    im.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())
+    im.pack()
+    return im
+
+
+def dataset_cameras(scene=None):
+    coll = bpy.data.collections.get(DATASET_COLLECTION)
+    if coll is None:
+        return []
+    return sorted((o for o in coll.objects if o.type == "CAMERA"), key=lambda o: o.name)
+
+
+class NEUMESH_OT_import_dataset(bpy.types.Operator):
+    """Import a NeRF-synthetic (transforms_*.json) or DTU (cameras.npz) dataset as Blender cameras, each
+    with its photo as camera background image"""
+
+    bl_idname = "neumesh.import_dataset"
+    bl_label = "Import dataset cameras"
+    bl_options = {"REGISTER", "UNDO"}
+
+    directory: StringProperty(subtype="DIR_PATH")
+    split: EnumProperty(items=[("train", "Train", ""), ("val", "Validation", ""), ("test", "Test", "")],
+                        default="train")
+    downscale: IntProperty(default=1, min=1, max=16)
+    max_cameras: IntProperty(name="Max cameras", default=0, min=0, description="0 = all")
+    background_images: BoolProperty(name="Background images", default=True)
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        path = bpy.path.abspath(self.directory or context.scene.neumesh.dataset_path)
+        try:
+            nm = core.get()
+            ds = nm.load_scene(path, downscale=self.downscale, background="white")
+        except Exception as exc:  # noqa: BLE001
+            return _report_exc(self, exc, f"cannot load dataset {path}")
+        splits = ds.splits
+        iset = splits.get(self.split) or splits.get("train") or next(iter(splits.values()))
+        cams = iset.cameras
+        n = len(cams) if self.max_cameras == 0 else min(self.max_cameras, len(cams))
+        scene = context.scene
+        coll = bpy.data.collections.get(DATASET_COLLECTION)
+        if coll is None:
+            coll = bpy.data.collections.new(DATASET_COLLECTION)
+        if coll.name not in scene.collection.children:
+            scene.collection.children.link(coll)
+        for o in list(coll.objects):
+            if o.type == "CAMERA":
+                bpy.data.objects.remove(o, do_unlink=True)
+        W, H = cams.width, cams.height
+        scene.render.resolution_x, scene.render.resolution_y = W, H
+        scene.render.resolution_percentage = 100
+        scene.render.pixel_aspect_x = scene.render.pixel_aspect_y = 1.0
+        names = list(getattr(iset, "names", []) or [])
+        worst = 0.0
+        first = None
+        for i in range(n):
+            name = os.path.basename(names[i]) if i < len(names) and names[i] else f"{i:04d}"
+            cd = bpy.data.cameras.new(f"nm_{self.split}_{name}")
+            co = bpy.data.objects.new(f"nm_{self.split}_{i:04d}", cd)
+            coll.objects.link(co)
+            cd.clip_start, cd.clip_end = 0.01, 1000.0
+            worst = max(worst, camera.set_camera_from_K(co, cams.K[i], cams.c2w[i], W, H))
+            co["neumesh_index"] = i
+            if self.background_images:
+                f = _find_image_file(path, names[i] if i < len(names) else "")
+                try:
+                    im = bpy.data.images.load(f, check_existing=True) if f else \
+                        _image_from_array(co.name, iset.images[i])
+                    bg = cd.background_images.new()
+                    bg.image = im
+                    cd.show_background_images = True
+                except Exception as exc:  # noqa: BLE001 - cameras are still useful without photos
+                    self.report({"WARNING"}, f"NeuMesh: no background image for {co.name}: {exc}")
+            first = first or co
+        if first is not None:
+            scene.camera = first
+        scene.neumesh.dataset_path = path
+        scene.neumesh.downscale = self.downscale
+        if worst > 1e-3:
+            self.report({"WARNING"}, f"NeuMesh: fy differs from fx by {worst:.2%}; Blender cameras use fx")
+        self.report({"INFO"}, f"NeuMesh: imported {n} cameras ({W}x{H}) from {path}")
+        return {"FINISHED"}
+
+
+class NEUMESH_OT_import_mesh(bpy.types.Operator):
+    """Import a scaffold mesh (.ply/.obj/...) with the core's loader (vertex order kept exactly)"""
+
+    bl_idname = "neumesh.import_mesh"
+    bl_label = "Import scaffold mesh"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filepath: StringProperty(subtype="FILE_PATH")
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        path = bpy.path.abspath(self.filepath)
+        try:
+            mesh = core.get().load_mesh(path)
+        except Exception as exc:  # noqa: BLE001
+            return _report_exc(self, exc, f"cannot load mesh {path}")
+        name = os.path.splitext(os.path.basename(path))[0] or "scaffold"
+        obj = sync.new_mesh_object(name, np.asarray(mesh.vertices), np.asarray(mesh.faces))
+        _make_active(context, obj)
+        context.scene.neumesh.train_object = obj
+        self.report({"INFO"}, f"NeuMesh: imported {len(mesh.vertices)} vertices, {len(mesh.faces)} faces")
+        return {"FINISHED"}
+
+
+def _make_active(context, obj):
+    for o in context.view_layer.objects:
+        o.select_set(False)
+    obj.select_set(True)
+    context.view_layer.objects.active = obj
+
+
+class NEUMESH_OT_build_scaffold(bpy.types.Operator):
+    """Build a mesh scaffold from the dataset's posed images (visual hull, density grid, marching cubes)"""
+
+    bl_idname = "neumesh.build_scaffold"
+    bl_label = "Build scaffold"
+    bl_options = {"REGISTER", "UNDO"}
+
+    config_json: StringProperty(default="", options={"HIDDEN", "SKIP_SAVE"},
+                                description="JSON object of extra ScaffoldConfig fields (scripts)")
+
+    def execute(self, context):
+        s = context.scene.neumesh
+        path = bpy.path.abspath(s.dataset_path)
+        if not path or not os.path.isdir(path):
+            self.report({"ERROR"}, "NeuMesh: set the dataset folder first (Import dataset cameras)")
+            return {"CANCELLED"}
+        try:
+            nm = core.get()
+        except core.CoreUnavailable as exc:
+            return _report_exc(self, exc, "")
+        try:
+            import importlib
+
+            scaffold = importlib.import_module(nm.__name__ + ".scaffold")
+            build, cfg_cls = scaffold.build_scaffold, scaffold.ScaffoldConfig
+        except (ImportError, AttributeError) as exc:
+            self.report({"ERROR"}, "NeuMesh: this neumesh_core has no scaffold builder "
+                                   f"(neumesh_core.scaffold.build_scaffold: {exc}); import a mesh instead")
+            return {"CANCELLED"}
+        wm = context.window_manager
+        wm.progress_begin(0, 100)
+        try:
+            ds = nm.load_scene(path, downscale=s.downscale, background="white")
+
+            def prog(*args):  # (stage, fraction)
+                frac = [a for a in args if isinstance(a, (int, float))]
+                if frac:
+                    wm.progress_update(int(100 * float(frac[-1])))
+                return True
+
+            known = set(getattr(cfg_cls, "__dataclass_fields__", {}))
+            kw = {k: v for k, v in (("method", s.scaffold_method), ("target_vertices", s.scaffold_vertices))
+                  if k in known}
+            if self.config_json.strip():
+                import json
+
+                extra = json.loads(self.config_json)
+                unknown = sorted(set(extra) - known)
+                if unknown:
+                    raise ValueError(f"unknown ScaffoldConfig field(s) {unknown}; known: {sorted(known)}")
+                kw.update(extra)
+            mesh, report = build(ds, cfg_cls(**kw), prog)
+        except Exception as exc:  # noqa: BLE001
+            return _report_exc(self, exc, "scaffold failed")
+        finally:
+            wm.progress_end()
+        obj = sync.new_mesh_object("NeuMesh Scaffold", np.asarray(mesh.vertices), np.asarray(mesh.faces))
+        _make_active(context, obj)
+        s.train_object = obj
+        secs = getattr(report, "timings", {}).get("total", float("nan")) if report is not None else float("nan")
+        self.report({"INFO"}, f"NeuMesh: scaffold with {len(mesh.vertices)} vertices, {len(mesh.faces)} faces "
+                              f"({secs:.1f}s)")
+        return {"FINISHED"}
+
+
+def _default_field_path(obj, scene) -> str:
+    p = props.field_abspath(obj)
+    if p:
+        return p
+    fname = bpy.path.clean_name(obj.name) + ".neumesh"
+    if bpy.data.filepath:
+        return os.path.join(os.path.dirname(bpy.data.filepath), fname)
+    return os.path.join(bpy.path.abspath(scene.neumesh.dataset_path) or bpy.app.tempdir, fname)
+
+
+class NEUMESH_OT_train(bpy.types.Operator):
+    """Train the NeuMesh field of the mesh object on the dataset in a background thread"""
+
+    bl_idname = "neumesh.train"
+    bl_label = "Train field"
+
+    resume: BoolProperty(name="Resume", default=False,
+                         description="Continue training the saved field file instead of starting anew")
+    wait: BoolProperty(default=False, options={"HIDDEN", "SKIP_SAVE"},
+                       description="Block until training ends (scripts, background mode)")
+    steps: IntProperty(default=0, min=0, options={"SKIP_SAVE"}, description="0 = scene setting")
+
+    def execute(self, context):
+        s = context.scene.neumesh
+        obj = s.train_object or context.active_object
+        if obj is None or obj.type != "MESH":
+            self.report({"ERROR"}, "NeuMesh: choose a mesh object to train (Training > Mesh)")
+            return {"CANCELLED"}
+        dataset = bpy.path.abspath(s.dataset_path)
+        if not dataset or not os.path.isdir(dataset):
+            self.report({"ERROR"}, "NeuMesh: set the dataset folder first")
+            return {"CANCELLED"}
+        job = worker.current()
+        if job is not None and job.running:
+            self.report({"ERROR"}, "NeuMesh: a training is already running; cancel it first")
+            return {"CANCELLED"}
+        field_path = _default_field_path(obj, context.scene)
+        verts = sync.rest_world_vertices(obj)
+        faces = sync.mesh_triangles(obj.data)
+        if len(faces) == 0:
+            self.report({"ERROR"}, f"NeuMesh: '{obj.name}' has no faces")
+            return {"CANCELLED"}
+        try:
+            job = worker.start(dataset_path=dataset, field_path=field_path, steps=self.steps or s.train_steps,
+                               vertices=verts, faces=faces, resume=self.resume, downscale=s.downscale,
+                               object_name=obj.name)
+        except Exception as exc:  # noqa: BLE001
+            return _report_exc(self, exc, "cannot start training")
+        if self.wait:
+            job.join()
+            finish_training()
+            if job.state in ("DONE", "CANCELLED"):
+                self.report({"INFO"}, job.status_text())
+                return {"FINISHED"}
+            self.report({"ERROR"}, job.status_text())
+            return {"CANCELLED"}
+        if not bpy.app.timers.is_registered(_train_timer):
+            bpy.app.timers.register(_train_timer, first_interval=0.25)
+        self.report({"INFO"}, f"NeuMesh: training '{obj.name}' -> {field_path}")
+        return {"FINISHED"}
+
+
+def finish_training():
+    """Main thread, after the thread ended: attach the saved field to its object, refresh caches."""
+    job = worker.current()
+    if job is None or job.running or getattr(job, "_finished_handled", False):
+        return
+    job._finished_handled = True
+    if job.state in ("DONE", "CANCELLED") and os.path.isfile(job.field_path):
+        obj = bpy.data.objects.get(job.object_name)
+        if obj is not None:
+            props.set_field_path(obj, job.field_path)
+    _set_status(None)
+    _redraw_all()
+
+
+def _train_timer():
+    job = worker.current()
+    if job is None:
+        return None
+    _set_status(job.status_text() if job.running else None)
+    _redraw_all()
+    if job.running:
+        return 0.25
+    finish_training()
+    return None
+
+
+def _set_status(text):
+    try:
+        ws = bpy.context.workspace
+        if ws is not None:
+            ws.status_text_set(text)
+    except Exception:
+        pass
+
+
+def _redraw_all():
+    try:
+        for win in bpy.context.window_manager.windows:
+            for area in win.screen.areas:
+                if area.type in ("VIEW_3D", "PROPERTIES"):
+                    area.tag_redraw()
+    except Exception:
+        pass
+
+
+class NEUMESH_OT_train_cancel(bpy.types.Operator):
+    """Stop training; the field trained so far is saved (Resume continues from it)"""
+
+    bl_idname = "neumesh.train_cancel"
+    bl_label = "Cancel training"
+
+    def execute(self, context):
+        job = worker.current()
+        if job is None or not job.running:
+            self.report({"WARNING"}, "NeuMesh: no training is running")
+            return {"CANCELLED"}
+        job.cancel()
+        self.report({"INFO"}, "NeuMesh: cancelling; the field is saved when the current step ends")
+        return {"FINISHED"}
+
+
+class NEUMESH_OT_load_field(bpy.types.Operator):
+    """Attach a trained field file to the active mesh (same vertex count), or create its scaffold mesh"""
+
+    bl_idname = "neumesh.load_field"
+    bl_label = "Load field"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filepath: StringProperty(subtype="FILE_PATH")
+    filter_glob: StringProperty(default="*.neumesh", options={"HIDDEN"})
+    new_object: BoolProperty(name="New object", default=False,
+                             description="Create a mesh object from the field's scaffold")
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        path = os.path.abspath(bpy.path.abspath(self.filepath))
+        try:
+            field = core.get().load_field(path)
+        except Exception as exc:  # noqa: BLE001
+            return _report_exc(self, exc, f"cannot load field {path}")
+        obj = context.active_object
+        if self.new_object or obj is None or obj.type != "MESH":
+            V = np.asarray(field.rest_vertices, np.float32)
+            F = np.asarray(field.faces, np.int64)
+            name = os.path.splitext(os.path.basename(path))[0]
+            obj = sync.new_mesh_object(name, V, F)
+            _make_active(context, obj)
+        elif len(obj.data.vertices) != int(field.num_vertices):
+            self.report({"ERROR"}, f"NeuMesh: '{obj.name}' has {len(obj.data.vertices)} vertices but the field "
+                                   f"has {field.num_vertices}; enable 'New object' to create its mesh")
+            return {"CANCELLED"}
+        props.set_field_path(obj, path)
+        obj.neumesh.enabled = True
+        self.report({"INFO"}, f"NeuMesh: field {os.path.basename(path)} on '{obj.name}'")
+        return {"FINISHED"}
+
+
+class NEUMESH_OT_render_images(bpy.types.Operator):
+    """Render the scene camera or every imported dataset camera with NeuMesh to PNG files"""
+
+    bl_idname = "neumesh.render_images"
+    bl_label = "Render to images"
+
+    directory: StringProperty(subtype="DIR_PATH", default="", options={"SKIP_SAVE"},
+                              description="Output folder (default: scene setting)")
+    cameras: EnumProperty(items=[("SCENE", "Scene setting", ""), ("ACTIVE", "Scene camera", ""),
+                                 ("DATASET", "Dataset cameras", "")], default="SCENE", options={"SKIP_SAVE"})
+    camera: StringProperty(name="Camera", default="", options={"SKIP_SAVE"},
+                           description="Name of one camera object to render (overrides 'cameras')")
+
+    def execute(self, context):
+        scene = context.scene
+        s = scene.neumesh
+        out_dir = bpy.path.abspath(self.directory or s.output_dir)
+        mode = s.render_cameras if self.cameras == "SCENE" else self.cameras
+        cams = dataset_cameras() if mode == "DATASET" else [scene.camera]
+        if self.camera:
+            cam = bpy.data.objects.get(self.camera)
+            if cam is None or cam.type != "CAMERA":
+                self.report({"ERROR"}, f"NeuMesh: no camera object named '{self.camera}'")
+                return {"CANCELLED"}
+            cams = [cam]
+        if not cams or cams[0] is None:
+            self.report({"ERROR"}, "NeuMesh: no camera to render (set the scene camera or import a dataset)")
+            return {"CANCELLED"}
+        transparent = bool(scene.render.film_transparent)
+        try:
+            nm = core.get()
+            os.makedirs(out_dir, exist_ok=True)
+            depsgraph = context.evaluated_depsgraph_get()
+            items = render.collect(depsgraph, for_render=True)
+            wm = context.window_manager
+            wm.progress_begin(0, len(cams))
+            written = []
+            for i, cam in enumerate(cams):
+                K, c2w, W, H = camera.camera_K_c2w(cam, scene, depsgraph)
+                rgba = render.render_items(items, K, c2w, W, H, transparent)
+                if transparent:  # PNG wants straight alpha
+                    a = rgba[..., 3:4]
+                    rgba = np.concatenate([np.where(a > 1e-6, rgba[..., :3] / np.maximum(a, 1e-6), 0), a], -1)
+                path = os.path.join(out_dir, bpy.path.clean_name(cam.name) + ".png")
+                nm.save_image(path, np.clip(rgba, 0, 1))
+                written.append(path)
+                wm.progress_update(i + 1)
+            wm.progress_end()
+        except Exception as exc:  # noqa: BLE001
+            return _report_exc(self, exc, "render failed")
+        self.report({"INFO"}, f"NeuMesh: wrote {len(written)} image(s) to {out_dir}")
+        return {"FINISHED"}
+
+
+classes = (NEUMESH_OT_import_dataset, NEUMESH_OT_import_mesh, NEUMESH_OT_build_scaffold, NEUMESH_OT_train,
+           NEUMESH_OT_train_cancel, NEUMESH_OT_load_field, NEUMESH_OT_render_images)
+
+
+def register():
+    for c in classes:
+        bpy.utils.register_class(c)
+
+
+def unregister():
+    if bpy.app.timers.is_registered(_train_timer):
+        bpy.app.timers.unregister(_train_timer)
+    job = worker.current()
+    if job is not None and job.running:
+        job.cancel()
+    for c in reversed(classes):
+        bpy.utils.unregister_class(c)

@@ -1,0 +1,109 @@
+"""Scene building helpers shared by the Blender tests (and the real-Blender driver script)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def grid_mesh(nx=12, ny=4, size=(1.2, 0.4), z=0.0):
+    """A flat (nx*ny vertex) grid along x, triangulated; returns (V,3) float32, (F,3) int64."""
+    xs = np.linspace(-size[0] / 2, size[0] / 2, nx)
+    ys = np.linspace(-size[1] / 2, size[1] / 2, ny)
+    X, Y = np.meshgrid(xs, ys, indexing="xy")
+    V = np.stack([X.ravel(), Y.ravel(), np.full(X.size, z)], -1).astype(np.float32)
+    F = []
+    for j in range(ny - 1):
+        for i in range(nx - 1):
+            a = j * nx + i
+            F += [(a, a + 1, a + nx + 1), (a, a + nx + 1, a + nx)]
+    return V, np.asarray(F, np.int64)
+
+
+def add_armature_bend(obj, split_x=0.0, angle_deg=60.0, axis="Y", frame=None):
+    """Rig ``obj`` with a two-bone armature along x; vertices with x > split_x follow the second bone,
+    which is rotated by ``angle_deg`` (keyed at ``frame`` if given). Returns the armature object."""
+    import bpy
+    import mathutils
+
+    me = obj.data
+    xs = np.array([v.co.x for v in me.vertices])
+    x0, x1 = float(xs.min()), float(xs.max())
+    arm_data = bpy.data.armatures.new("rig")
+    arm = bpy.data.objects.new("rig", arm_data)
+    bpy.context.scene.collection.objects.link(arm)
+    arm.matrix_world = obj.matrix_world.copy()
+    bpy.context.view_layer.objects.active = arm
+    bpy.ops.object.mode_set(mode="EDIT")
+    b1 = arm_data.edit_bones.new("root")
+    b1.head, b1.tail = (x0, 0, 0), (split_x, 0, 0)
+    b2 = arm_data.edit_bones.new("tip")
+    b2.head, b2.tail = (split_x, 0, 0), (x1, 0, 0)
+    b2.parent = b1
+    b2.use_connect = True
+    bpy.ops.object.mode_set(mode="OBJECT")
+    g_root = obj.vertex_groups.new(name="root")
+    g_tip = obj.vertex_groups.new(name="tip")
+    idx_tip = [v.index for v in me.vertices if v.co.x > split_x]
+    idx_root = [v.index for v in me.vertices if v.co.x <= split_x]
+    g_tip.add(idx_tip, 1.0, "REPLACE")
+    g_root.add(idx_root, 1.0, "REPLACE")
+    mod = obj.modifiers.new("Armature", "ARMATURE")
+    mod.object = arm
+    pb = arm.pose.bones["tip"]
+    pb.rotation_mode = "XYZ"
+    rot = [0.0, 0.0, 0.0]
+    rot["XYZ".index(axis)] = math.radians(angle_deg)
+    if frame is None:
+        pb.rotation_euler = rot
+    else:
+        pb.rotation_euler = (0, 0, 0)
+        pb.keyframe_insert("rotation_euler", frame=frame[0])
+        pb.rotation_euler = rot
+        pb.keyframe_insert("rotation_euler", frame=frame[1])
+    bpy.context.view_layer.objects.active = obj
+    bpy.context.view_layer.update()
+    return arm, np.asarray(idx_root), np.asarray(idx_tip)
+
+
+def add_camera(location, look_at=(0, 0, 0), lens=35.0, name="cam"):
+    import bpy
+    import mathutils
+
+    cd = bpy.data.cameras.new(name)
+    cd.lens = lens
+    cd.sensor_fit = "AUTO"
+    cd.sensor_width = 36.0
+    co = bpy.data.objects.new(name, cd)
+    bpy.context.scene.collection.objects.link(co)
+    loc = mathutils.Vector(location)
+    direction = mathutils.Vector(look_at) - loc
+    co.matrix_world = mathutils.Matrix.Translation(loc) @ direction.to_track_quat("-Z", "Y").to_matrix().to_4x4()
+    bpy.context.scene.camera = co
+    return co
+
+
+def manual_K_c2w(cam_obj, width, height):
+    """Independent K / OpenCV c2w from lens & sensor (sensor_fit AUTO, no shift) for checking."""
+    cd = cam_obj.data
+    f = cd.lens / cd.sensor_width * max(width, height)
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], np.float32)
+    M = np.array([list(r) for r in cam_obj.matrix_world], np.float64)
+    c2w = (M @ np.diag([1.0, -1.0, -1.0, 1.0])).astype(np.float32)
+    return K, c2w
+
+
+def exact_colour_settings(scene, width, height, filepath=None, depth="16"):
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    scene.view_settings.view_transform = "Standard"
+    scene.view_settings.look = "None"
+    scene.view_settings.exposure = 0.0
+    scene.view_settings.gamma = 1.0
+    scene.display_settings.display_device = "sRGB"
+    scene.render.dither_intensity = 0.0
+    scene.render.image_settings.file_format = "PNG"
+    scene.render.image_settings.color_mode = "RGBA"
+    scene.render.image_settings.color_depth = depth
+    if filepath:
+        scene.render.filepath = filepath

@@ -1,0 +1,230 @@
+"""The NEUMESH render engine against the core's own renderer.
+
+Tolerances (stated): EXR (32-bit float, scene linear) -> sRGB-encoded: max |diff| <= 1e-4 against
+``nm.render_camera``; 8-bit PNG through the 'Standard' view transform with dither 0: max |diff| <=
+1.5/255 (one quantisation step plus colour-management round-off).
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import bpy
+import numpy as np
+import pytest
+
+from helpers import add_armature_bend, add_camera, exact_colour_settings, manual_K_c2w
+
+W, H = 48, 40
+
+
+def _read_png(path):
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGBA"), np.float32) / 255.0
+
+
+def _read_exr(path):
+    img = bpy.data.images.load(path)
+    try:
+        w, h = img.size
+        px = np.empty(w * h * 4, np.float32)
+        img.pixels.foreach_get(px)
+        return px.reshape(h, w, 4)[::-1].copy()
+    finally:
+        bpy.data.images.remove(img)
+
+
+def _linear_to_srgb(x):
+    x = np.clip(x, 0, None)
+    return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def _field_object(field_path):
+    assert bpy.ops.neumesh.load_field(filepath=field_path, new_object=True) == {"FINISHED"}
+    return bpy.context.active_object
+
+
+def _deformed_scene(addon, field_path, angle=50.0):
+    obj = _field_object(field_path)
+    obj.location = (0.1, 0.0, 0.05)
+    obj.rotation_euler = (0.0, 0.0, math.radians(20))
+    bpy.context.view_layer.update()
+    _arm, idx_root, idx_tip = add_armature_bend(obj, split_x=0.25, angle_deg=angle)
+    cam = add_camera((0.0, -4.6, 0.8), lens=35.0)
+    scene = bpy.context.scene
+    scene.render.engine = "NEUMESH"
+    exact_colour_settings(scene, W, H)
+    return obj, cam, idx_root, idx_tip
+
+
+def _reference(field_path, obj, cam, transparent=False):
+    """Core render with world-space evaluated vertices taken independently of the add-on's sync."""
+    import neumesh_core as nm
+
+    dg = bpy.context.evaluated_depsgraph_get()
+    ob_eval = obj.evaluated_get(dg)
+    me = ob_eval.to_mesh()
+    v = np.array([tuple(p.co) for p in me.vertices], np.float64)
+    ob_eval.to_mesh_clear()
+    M = np.array(ob_eval.matrix_world)
+    world = (v @ M[:3, :3].T + M[:3, 3]).astype(np.float32)
+    field = nm.load_field(field_path)
+    field.set_vertices(world)
+    K, c2w = manual_K_c2w(cam, W, H)
+    bg = None if transparent else (1.0, 1.0, 1.0)
+    return nm.render_camera(field, K, c2w, W, H, background=bg), world
+
+
+def test_f12_matches_core_render_of_armature_deformed_mesh(addon, trained_field, tmp_path):
+    obj, cam, _r, idx_tip = _deformed_scene(addon, trained_field)
+    scene = bpy.context.scene
+    ref, world = _reference(trained_field, obj, cam)
+    assert float(ref.opacity.max()) > 0.5 and float(ref.rgb.std()) > 0.02  # a real image, not blank
+
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    scene.render.filepath = str(tmp_path / "f12.exr")
+    bpy.ops.render.render(write_still=True)
+    exr = _read_exr(str(tmp_path / "f12.exr"))
+    assert exr.shape == (H, W, 4)
+    got = _linear_to_srgb(exr[..., :3])
+    assert np.abs(got - ref.rgb).max() <= 1e-4
+    assert np.allclose(exr[..., 3], 1.0)
+
+    exact_colour_settings(scene, W, H, filepath=str(tmp_path / "f12.png"), depth="8")
+    bpy.ops.render.render(write_still=True)
+    png = _read_png(str(tmp_path / "f12.png"))
+    assert np.abs(png[..., :3] - ref.rgb).max() <= 1.5 / 255
+
+    # the deformation is really in the image: the rest pose renders differently
+    import neumesh_core as nm
+
+    rest = nm.load_field(trained_field)
+    M = np.array(obj.matrix_world)
+    rest.set_vertices((rest.rest_vertices.cpu().numpy() @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
+    K, c2w = manual_K_c2w(cam, W, H)
+    undeformed = nm.render_camera(rest, K, c2w, W, H)
+    assert np.abs(undeformed.rgb - png[..., :3]).max() > 0.2
+
+
+def test_film_transparent_alpha_is_opacity(addon, trained_field, tmp_path):
+    obj, cam, _r, _t = _deformed_scene(addon, trained_field, angle=30.0)
+    scene = bpy.context.scene
+    scene.render.film_transparent = True
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    scene.render.filepath = str(tmp_path / "t.exr")
+    bpy.ops.render.render(write_still=True)
+    exr = _read_exr(str(tmp_path / "t.exr"))
+    ref, _ = _reference(trained_field, obj, cam, transparent=True)
+    np.testing.assert_allclose(exr[..., 3], ref.opacity, atol=1e-4)
+    # premultiplied: straight colour (sRGB) * alpha == core's premultiplied rgb (black background)
+    a = exr[..., 3:4]
+    straight = np.where(a > 1e-3, exr[..., :3] / np.maximum(a, 1e-3), 0)
+    got = _linear_to_srgb(straight) * a
+    m = exr[..., 3] > 1e-3
+    assert np.abs(got - ref.rgb)[m].max() <= 2e-4
+    assert exr[..., 3].min() < 0.01  # background really transparent
+
+
+def test_topology_change_gives_error_naming_modifier_and_no_image(addon, trained_field, tmp_path):
+    obj, cam, _r, _t = _deformed_scene(addon, trained_field)
+    obj.modifiers.new("Smooth it", "SUBSURF").levels = 1
+    scene = bpy.context.scene
+    out = tmp_path / "topo.png"
+    exact_colour_settings(scene, W, H, filepath=str(out), depth="8")
+    try:
+        bpy.ops.render.render(write_still=True)
+    except RuntimeError as exc:  # Blender turns the engine's error report into an exception
+        assert "Smooth it" in str(exc)
+    assert "'Smooth it'" in addon.engine.LAST_ERROR["message"]
+    assert "Subsurf" in addon.engine.LAST_ERROR["message"]
+    if out.exists():  # Blender may still save the empty result: it must not contain a field image
+        assert _read_png(str(out))[..., 3].max() == 0.0
+
+
+def test_field_cache_reloads_on_change_and_skips_unchanged_vertices(addon, trained_field, tmp_path):
+    import shutil
+
+    path = str(tmp_path / "copy.neumesh")
+    shutil.copy(trained_field, path)
+    obj, cam, _r, _t = _deformed_scene(addon, path)
+    scene = bpy.context.scene
+    render = addon.render
+    render.clear_cache()
+    scene.render.filepath = str(tmp_path / "a.png")
+    bpy.ops.render.render(write_still=True)
+    loads, setv = render.STATS["loads"], render.STATS["set_vertices"]
+    bpy.ops.render.render(write_still=True)  # nothing changed: no reload, no set_vertices
+    assert (render.STATS["loads"], render.STATS["set_vertices"]) == (loads, setv)
+    scene.objects["rig"].pose.bones["tip"].rotation_euler[1] = math.radians(10)
+    bpy.ops.render.render(write_still=True)  # pose changed: set_vertices, no reload
+    assert (render.STATS["loads"], render.STATS["set_vertices"]) == (loads, setv + 1)
+    shutil.copy(trained_field, path + ".tmp")
+    os.replace(path + ".tmp", path)
+    os.utime(path, ns=(1, 1))
+    bpy.ops.render.render(write_still=True)  # file replaced: reloaded
+    assert render.STATS["loads"] == loads + 1
+
+
+def test_animation_frames_follow_keyed_armature(addon, trained_field, tmp_path):
+    obj = _field_object(trained_field)
+    add_armature_bend(obj, split_x=0.25, angle_deg=70.0, frame=(1, 2))
+    cam = add_camera((0.0, -4.6, 0.8))
+    scene = bpy.context.scene
+    scene.render.engine = "NEUMESH"
+    exact_colour_settings(scene, W, H, filepath=str(tmp_path / "anim_####"), depth="8")
+    scene.frame_start, scene.frame_end = 1, 2
+    bpy.ops.render.render(animation=True)
+    a, b = _read_png(str(tmp_path / "anim_0001.png")), _read_png(str(tmp_path / "anim_0002.png"))
+    assert np.abs(a - b).max() > 0.2
+    scene.frame_set(2)
+    ref, _ = _reference(trained_field, obj, cam)
+    assert np.abs(b[..., :3] - ref.rgb).max() <= 1.5 / 255
+
+
+def test_progressive_preview_renders_low_resolution_first(addon, trained_field):
+    obj, cam, _r, _t = _deformed_scene(addon, trained_field)
+    dg = bpy.context.evaluated_depsgraph_get()
+    items = addon.render.collect(dg, for_render=False)
+    K, c2w = manual_K_c2w(cam, 96, 80)
+    pv = addon.engine.PreviewRenderer(divisors=(8, 4, 2))
+    try:
+        serial = pv.request(items, K, c2w, 96, 80)
+        assert pv.wait(serial, divisor=2, timeout=60), pv.error
+        assert [d for d, _ in pv.timings] == [8, 4, 2]
+        assert pv.latest[2].shape == (40, 48, 4)
+        t8 = pv.timings[0][1]
+        assert t8 < 1.0  # first refreshed preview within a second
+        # a newer request supersedes the old one
+        s2 = pv.request(items, K, c2w, 96, 80, transparent=True)
+        assert pv.wait(s2, divisor=8, timeout=60)
+        assert pv.latest[0] == s2
+    finally:
+        pv.stop()
+
+
+def test_render_images_operator_writes_dataset_cameras(addon, trained_field, tiny_dataset, tmp_path):
+    assert bpy.ops.neumesh.import_dataset(directory=tiny_dataset, max_cameras=3) == {"FINISHED"}
+    _field_object(trained_field)
+    out = tmp_path / "renders"
+    assert bpy.ops.neumesh.render_images(directory=str(out), cameras="DATASET") == {"FINISHED"}
+    files = sorted(os.listdir(out))
+    assert len(files) == 3
+    img = _read_png(str(out / files[0]))
+    assert img.shape[:2] == (32, 32) and img[..., :3].std() > 0.02
+    one = addon.operators.dataset_cameras()[1].name
+    assert bpy.ops.neumesh.render_images(directory=str(tmp_path / "one"), camera=one) == {"FINISHED"}
+    assert os.listdir(tmp_path / "one") == [one + ".png"]
+    assert np.array_equal(_read_png(str(tmp_path / "one" / (one + ".png"))), _read_png(str(out / (one + ".png"))))
+    with pytest.raises(RuntimeError, match="no camera object named"):
+        bpy.ops.neumesh.render_images(directory=str(tmp_path / "x"), camera="nope")
+
+
+def test_no_camera_is_a_clear_error(addon, trained_field):
+    _field_object(trained_field)
+    bpy.context.scene.render.engine = "NEUMESH"
+    with pytest.raises(RuntimeError, match="camera"):
+        bpy.ops.neumesh.render_images(cameras="ACTIVE")

@@ -1,0 +1,110 @@
+"""Drive the real `blender` binary (Debian's 3.4 in CI) headless: install the add-on zip as a legacy
+add-on, build a scene with a keyed armature, then `blender -b scene.blend -E NEUMESH -s 1 -e 2 -a`.
+
+torch for that Blender comes from `pip install --target <repo>/.blender_torch` (scripts/setup_blender.sh),
+found by the add-on through NEUMESH_PYTHONPATH.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+BLENDER = shutil.which("blender") or "/usr/bin/blender"
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TORCH_DIR = os.environ.get("NEUMESH_BLENDER_TORCH", os.path.join(ROOT, ".blender_torch"))
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+pytestmark = pytest.mark.skipif(not os.path.exists(BLENDER), reason="no blender binary (/usr/bin/blender); "
+                                "install it with scripts/setup_blender.sh")
+
+
+def _env(tmp):
+    env = dict(os.environ)
+    for k in ("BLENDER_USER_RESOURCES",):
+        env.pop(k, None)
+    env.update({
+        "BLENDER_USER_CONFIG": str(tmp / "config"), "BLENDER_USER_SCRIPTS": str(tmp / "scripts"),
+        "BLENDER_USER_DATAFILES": str(tmp / "datafiles"), "BLENDER_USER_RESOURCES": str(tmp / "resources"),
+        "HOME": str(tmp / "home"), "TMPDIR": str(tmp), "NEUMESH_PYTHONPATH": TORCH_DIR,
+        "PYTHONNOUSERSITE": "1",
+    })
+    os.makedirs(env["HOME"], exist_ok=True)
+    return env
+
+
+def _run(cmd, env, timeout=240):
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
+    log = r.stdout + r.stderr
+    assert r.returncode == 0, log[-4000:]
+    return log
+
+
+def _project(K, c2w, pts):
+    w2c = np.linalg.inv(c2w)
+    p = pts @ w2c[:3, :3].T + w2c[:3, 3]
+    uv = p[:, :2] / p[:, 2:3] @ np.diag([K[0, 0], K[1, 1]]) + K[:2, 2]
+    return uv
+
+
+def test_real_blender_renders_animation_with_neumesh_engine(addon_zip, trained_field, tmp_path):
+    if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
+        pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
+    env = _env(tmp_path)
+    out = tmp_path / "out"
+    log = _run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_scene.py"),
+                "--", addon_zip, trained_field, str(out)], env)
+    facts = json.loads(next(l for l in log.splitlines() if l.startswith("NEUMESH_FACTS "))[14:])
+    assert facts["load_field"] == ["FINISHED"] and facts["field_path"].startswith("//")
+    # second process: the saved .blend, the engine from the command line, the add-on from user prefs
+    log = _run([BLENDER, "-b", str(out / "scene.blend"), "-E", "NEUMESH", "-o", str(out / "frame_####"),
+                "-s", "1", "-e", "2", "-a"], env)
+    assert "NeuMesh:" not in log or "error" not in log.lower(), log[-3000:]
+    from PIL import Image
+
+    f1 = np.asarray(Image.open(out / "frame_0001.png").convert("RGB"), np.float32) / 255
+    f2 = np.asarray(Image.open(out / "frame_0002.png").convert("RGB"), np.float32) / 255
+    assert f1.shape == f2.shape == (40, 48, 3)
+    assert f1.std() > 0.02  # the field is in the picture
+
+    # where the mesh is (image-space footprint of each part), from the vertices Blender evaluated
+    import neumesh_core as nm  # noqa: F401  (same conventions as the add-on)
+
+    V1, V2 = np.load(out / "verts_1.npy"), np.load(out / "verts_2.npy")
+    tip = np.load(out / "idx_tip.npy")
+    assert np.abs(V1[tip] - V2[tip]).max() > 0.3
+    root = np.setdiff1d(np.arange(len(V1)), tip)
+    np.testing.assert_allclose(V1[root], V2[root], atol=1e-5)
+    # camera of the scene script: at (0,-4.6,0.8) looking at the origin, lens 35 mm, 36 mm sensor
+    from helpers import manual_K_c2w  # noqa: F401
+    import mathutils
+
+    loc = mathutils.Vector((0.0, -4.6, 0.8))
+    rot = (mathutils.Vector((0, 0, 0)) - loc).to_track_quat("-Z", "Y").to_matrix().to_4x4()
+    M = np.array(mathutils.Matrix.Translation(loc) @ rot)
+    c2w = M @ np.diag([1.0, -1.0, -1.0, 1.0])
+    f = 35.0 / 36.0 * 48
+    K = np.array([[f, 0, 24], [0, f, 20], [0, 0, 1]])
+    # pixels farther than the field's reach from every tip vertex in both frames must not change (the
+    # neighbour radius is 2.5 mean edge lengths, ~6 px here: 7 px margin); pixels covered by the tip
+    # must change a lot
+    ys, xs = np.mgrid[0:40, 0:48]
+    pix = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], -1)
+
+    def near(uv, r):
+        d = np.min(np.linalg.norm(pix[:, None, :] - uv[None, :, :], axis=-1), axis=1)
+        return (d < r).reshape(40, 48)
+
+    tip1, tip2 = _project(K, c2w, V1[tip]), _project(K, c2w, V2[tip])
+    far = ~near(np.concatenate([tip1, tip2]), 7.0)
+    root_px = far & near(_project(K, c2w, V1[root]), 1.5)  # undeformed part of the surface
+    assert far.sum() > 200 and root_px.sum() > 40
+    diff = np.abs(f1 - f2).max(-1)
+    assert diff[far].max() <= 2.0 / 255, diff[far].max()
+    assert f1[root_px].std() > 0.02  # those pixels show the field, not background
+    tip_px = near(np.concatenate([tip1, tip2]), 3.0)
+    assert (diff[tip_px] > 0.1).sum() >= 10 and diff[tip_px].max() > 0.25

@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# Installs what the Blender side of the project needs:
+#   * the Debian `blender` binary (3.4, headless `blender -b`), used by blender_tests/test_real_blender.py
+#   * a `pip install --target` folder (<repo>/.blender_torch) with torch & co for that binary's Python.
+# The add-on finds the folder through NEUMESH_PYTHONPATH (the tests set it) or the add-on preference
+# "Existing environment". bpy==5.0.1 for the in-venv tests is installed by the top-level setup.
+#
+# Usage: bash scripts/setup_blender.sh            (idempotent; re-running is cheap)
+# Env:   PYTHON   python 3.11 with pip used to run `pip install --target` (default: .venv/bin/python)
+#        NEUMESH_BLENDER_TORCH  target folder (default: <repo>/.blender_torch)
+#        SKIP_APT=1  do not apt-get install blender
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+PY="${PYTHON:-$ROOT/.venv/bin/python}"
+TARGET="${NEUMESH_BLENDER_TORCH:-$ROOT/.blender_torch}"
+
+if ! command -v blender >/dev/null 2>&1; then
+    if [ "${SKIP_APT:-0}" != "1" ] && command -v apt-get >/dev/null 2>&1; then
+        echo "[setup_blender] installing Debian blender"
+        export DEBIAN_FRONTEND=noninteractive
+        apt-get update -qq
+        apt-get install -y -qq --no-install-recommends blender >/dev/null
+    fi
+fi
+if ! command -v blender >/dev/null 2>&1; then
+    echo "[setup_blender] no blender binary; the real-Blender test will be skipped"
+    exit 0
+fi
+
+BPYVER="$(blender -b --factory-startup --python-expr 'import sys;print("PYVER=%d.%d" % sys.version_info[:2])' 2>/dev/null | sed -n 's/^PYVER=//p' | head -1)"
+echo "[setup_blender] blender's python: ${BPYVER:-unknown}"
+if [ "$BPYVER" != "3.11" ]; then
+    echo "[setup_blender] blender's python is not 3.11; not installing torch for it (real-Blender test will skip)"
+    exit 0
+fi
+PYVER="$("$PY" -c 'import sys;print("%d.%d" % sys.version_info[:2])')"
+if [ "$PYVER" != "3.11" ]; then
+    echo "[setup_blender] $PY is python $PYVER, need 3.11 to install wheels for blender's python" >&2
+    exit 1
+fi
+
+STAMP="$TARGET/.neumesh_deps_ok"
+REQS=(torch==2.13.0 "numpy<2" scipy pykdtree trimesh safetensors pillow)
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "${REQS[*]}" ]; then
+    echo "[setup_blender] $TARGET up to date"
+else
+    echo "[setup_blender] pip install --target $TARGET ${REQS[*]}"
+    rm -rf "$TARGET"
+    # CPU wheel of torch: the local wheel cache / PyPI mirror is configured in pip.conf; add the
+    # PyTorch CPU index only when asked (NEUMESH_TORCH_INDEX=https://download.pytorch.org/whl/cpu).
+    EXTRA=()
+    if [ -n "${NEUMESH_TORCH_INDEX:-}" ]; then EXTRA+=(--extra-index-url "$NEUMESH_TORCH_INDEX"); fi
+    "$PY" -m pip install -q --no-input --target "$TARGET" "${EXTRA[@]}" "${REQS[@]}"
+    echo "${REQS[*]}" > "$STAMP"
+fi
+
+# check: blender's python imports torch from the folder
+NEUMESH_PYTHONPATH="$TARGET" blender -b --factory-startup --python-expr \
+ 'import os,sys; sys.path.insert(0, os.environ["NEUMESH_PYTHONPATH"]); import torch, numpy; print("TORCH_OK", torch.__version__, numpy.__version__)' \
+ 2>&1 | grep TORCH_OK || { echo "[setup_blender] blender cannot import torch from $TARGET" >&2; exit 1; }
