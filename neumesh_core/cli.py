@@ -233,6 +233,31 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def cmd_fit(args) -> int:
+    from .scaffold.cli import StageProgress, config_from_args
+    from .scaffold.fit import fit
+
+    print("stage 1/3: scaffold (skipped when OUT/scaffold.ply exists)", file=sys.stderr)
+    bar = ProgressBar()
+
+    def train_cb(p):
+        if p.step == 1 or p.step % args.log_every == 0 or p.step >= p.total_steps:
+            bar(p)
+        return None
+
+    tcfg = _train_config(args, os.path.join(args.out, "field.neumesh"))
+    tcfg.log_every = 1
+    summary = fit(args.data, args.out, downscale=args.downscale, background=args.background,
+                  scaffold_config=config_from_args(args), field_config=_field_config(args), train_config=tcfg,
+                  scaffold_progress=StageProgress(), train_callback=train_cb,
+                  log=lambda m: print(m, file=sys.stderr))
+    ev = summary.get("eval")
+    if ev:
+        print("stage 3/3: evaluation: " + ", ".join(f"{k} {v:.4f}" for k, v in ev.items() if k != "render_s"))
+    print(f"fit done in {summary['seconds']:.0f}s; outputs in {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="neumesh", description="NeuMesh++ editable neural radiance fields "
                                  "on mesh scaffolds (CPU-first).")
@@ -283,12 +308,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="decoder interpolation (see `neumesh train --help`)")
     p.set_defaults(func=cmd_demo)
 
-    try:
-        from .scaffold.cli import add_commands
-    except ImportError:
-        add_commands = None
-    if add_commands is not None:
-        add_commands(sub)
+    from .scaffold.cli import add_commands, add_scaffold_options
+
+    add_commands(sub)
+    p = sub.add_parser("fit", help="images alone -> scaffold -> trained field -> evaluation (resumable)",
+                       description="Build the scaffold (skipped when OUT/scaffold.ply exists), train the "
+                                   "field (resumes OUT/field.neumesh), evaluate on 'val'. Progress per stage.")
+    _add_data_options(p)
+    p.add_argument("--out", required=True, help="output folder: scaffold.ply, field.neumesh, fit.json")
+    p.add_argument("--log-every", type=int, default=25, help="steps between progress lines")
+    add_scaffold_options(p)
+    _add_field_options(p)
+    _add_train_options(p)
+    p.set_defaults(func=cmd_fit)
     return ap
 
 

@@ -54,3 +54,19 @@ def test_bad_data_path_is_a_clear_error(tmp_path, capsys):
 def test_console_script_entry_point():
     r = subprocess.run([sys.executable, "-m", "neumesh_core.cli", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "demo" in r.stdout
+
+
+def test_fit_runs_every_stage_and_resumes(tmp_path, capsys):
+    from neumesh_core.data.synthetic import make_default_scene
+
+    d = tmp_path / "s"
+    make_default_scene(str(d), resolution=32, n_train=12, n_val=2, n_test=1, mesh_subdiv=3)
+    out = tmp_path / "fit"
+    common = ["fit", "--data", str(d), "--out", str(out), "--vertices", "2000", "--resolution", "64",
+              "--rays", "256", "--no-metrics"]
+    assert main(common + ["--steps", "4"]) == 0
+    s1 = json.load(open(out / "fit.json"))
+    assert not s1["scaffold"]["reused"] and s1["train"]["steps"] == 4 and "psnr" in s1["eval"]
+    assert main(common + ["--steps", "8"]) == 0
+    s2 = json.load(open(out / "fit.json"))
+    assert s2["scaffold"]["reused"] and s2["resumed_from_step"] == 4 and s2["train"]["steps"] == 8

@@ -13,14 +13,17 @@ import torch
 
 from ..data.scene import ImageSet, Scene
 from ..errors import DataError, NeuMeshError
-from ..mesh import Mesh, load_mesh
-from .hull import OUTSIDE, ViewStack, axes_meeting_point, carve_hull, common_view_volume, mask_sdf
+from ..mesh import load_mesh
+from .hull import ViewStack, axes_meeting_point, carve_hull, common_view_volume, mask_sdf
 
-try:  # the lead may add a shared Cancelled type; fall back to our own
+try:  # one Cancelled type for the whole package (nm.Cancelled), wherever it is defined
     from ..errors import Cancelled  # type: ignore
-except ImportError:  # pragma: no cover - depends on the shared errors module
-    class Cancelled(NeuMeshError):
-        """The caller's progress callback returned False."""
+except ImportError:
+    try:
+        from ..render.renderer import Cancelled  # type: ignore
+    except ImportError:  # pragma: no cover - renderer not importable
+        class Cancelled(NeuMeshError):
+            """The caller's progress callback returned False."""
 
 
 class ScaffoldError(DataError):
@@ -34,14 +37,17 @@ METHODS = ("auto", "hull", "hull+density", "density")
 class ScaffoldConfig:
     """Settings of :func:`build_scaffold`.
 
-    method: "auto" (hull+density with masks, photometric density without), "hull" (visual hull
-        only; fastest, needs masks), "hull+density" (hull, then a density grid carves concavities;
-        needs masks), "density" (photometric density only; needs a bbox; no masks needed).
+    method: "auto" (visual hull with masks, photometric density without), "hull" (visual hull
+        only; fast and, measured on the built-in scene and lego, the most accurate; needs masks),
+        "hull+density" (hull, then a density grid fitted by volume rendering carves concavities
+        that no silhouette shows; slower; needs masks), "density" (photometric density only;
+        needs a bbox; no masks needed).
     target_vertices: vertex count the mesh is resampled to (within ~12%); 0 keeps the grid's count.
     hull_resolution: cells on the longest side of the visual-hull grid (sub-voxel surface).
     mask_tolerance: views allowed to disagree that a point is inside the mask (-1 = auto: 0 for
         anti-aliased alpha masks, which are exact renders; 2% of the views (>=1) for binary masks).
-    hull_dilate_px: grow the hull by this many pixels (protects thin parts from discretisation).
+    hull_dilate_px: grow the hull by this many pixels (protects thin parts from discretisation);
+        -1 = auto: 0.5 px at 400 px images, scaled with the image size (0.1 px minimum).
     min_view_fraction: a point must be in frame in this fraction of the views to be reconstructed.
     density_resolutions / density_iters: coarse-to-fine stages of the density grid.
     density_iso_alpha: a node is solid when one voxel of its density is at least this opaque.
@@ -52,13 +58,13 @@ class ScaffoldConfig:
     hull_resolution: int = 256
     mask_tolerance: int = -1
     mask_threshold: float = 0.5
-    hull_dilate_px: float = 0.5
+    hull_dilate_px: float = -1.0
     min_view_fraction: float = 0.6
     density_resolutions: tuple = (64, 128)
     density_iters: tuple = (300, 300)
     density_batch_rays: int = 4096
     density_lr: float = 0.1
-    density_iso_alpha: float = 0.3
+    density_iso_alpha: float = 0.1
     density_max_image_side: int = 400
     min_component_fraction: float = 0.002
     max_faces: int = 5_000_000
@@ -184,7 +190,7 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
     has_masks = images.masks is not None
     method = cfg.method
     if method == "auto":
-        method = "hull+density" if has_masks else "density"
+        method = "hull" if has_masks else "density"
         if not has_masks:
             rep.notes.append("no masks/alpha in the data: falling back to photometric-only density "
                              "fitting (slower, less accurate silhouettes); add masks for a visual hull")
@@ -229,7 +235,10 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
         t0 = time.perf_counter()
         check("hull", 0.0)
         views.sdf = torch.from_numpy(mask_sdf(images.masks, cfg.mask_threshold))[:, None]
-        coarse = carve_hull(views, lo, hi, 48, tol, min_views, dilate_px=cfg.hull_dilate_px, start_res=48)
+        dil = cfg.hull_dilate_px
+        if dil < 0:
+            dil = float(np.clip(max(cams.width, cams.height) / 800.0, 0.1, 0.5))
+        coarse = carve_hull(views, lo, hi, 48, tol, min_views, dilate_px=dil, start_res=48)
         inside = coarse.values > 0
         if not inside.any():
             raise ScaffoldError(
@@ -243,11 +252,11 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
         lo, hi = np.maximum(tlo, lo - margin), np.minimum(thi, hi + margin)
         check("hull", 0.1)
         hull_grid = carve_hull(views, lo, hi, cfg.hull_resolution, tol, min_views,
-                               dilate_px=cfg.hull_dilate_px, start_res=48,
+                               dilate_px=dil, start_res=48,
                                check=lambda f: check("hull", 0.1 + 0.9 * f))
         views.sdf = None
         occ = float((hull_grid.values > 0).mean())
-        rep.hull = {"tolerance_views": tol, "min_views": min_views, "grid": list(hull_grid.dims),
+        rep.hull = {"tolerance_views": tol, "dilate_px": dil, "min_views": min_views, "grid": list(hull_grid.dims),
                     "voxel": hull_grid.voxel, "occupied_fraction": occ, "evaluations": hull_grid.evaluated}
         say(f"visual hull: grid {'x'.join(map(str, hull_grid.dims))}, voxel {hull_grid.voxel:.4f}, "
             f"{occ:.1%} inside, tolerance {tol} views")
@@ -353,12 +362,3 @@ def _masks_are_soft(masks: np.ndarray) -> bool:
     """True for anti-aliased alpha (rendered data: exact silhouettes), False for binary masks."""
     sub = np.asarray(masks[:: max(1, len(masks) // 8)])
     return bool(((sub > 0.02) & (sub < 0.98)).mean() > 1e-4)
-
-
-def _match_shape(a: np.ndarray, shape) -> np.ndarray:
-    """Crop/pad (edge) an array to ``shape`` (grids over the same box can differ by one node)."""
-    out = a[tuple(slice(0, s) for s in shape)]
-    pad = [(0, max(0, s - o)) for s, o in zip(shape, out.shape)]
-    if any(p[1] for p in pad):
-        out = np.pad(out, pad, mode="edge")
-    return out

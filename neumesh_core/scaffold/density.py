@@ -30,11 +30,24 @@ class DensityResult:
     rays_per_sec: float
 
 
-def _sample_grid(vol: torch.Tensor, pts_norm: torch.Tensor) -> torch.Tensor:
-    """vol (1,C,nx,ny,nz); pts_norm (P,3) in [-1,1] in (x,y,z) index order -> (P,C)."""
-    g = pts_norm.flip(-1)[None, :, None, None, :]  # grid_sample wants (W,H,D) = (z,y,x) order
-    out = F.grid_sample(vol, g, mode="bilinear", padding_mode="border", align_corners=True)
-    return out[0, :, :, 0, 0].T
+_CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=torch.long)
+
+
+def trilinear(table: torch.Tensor, dims, f: torch.Tensor) -> torch.Tensor:
+    """Trilinear lookup in a node grid stored as a (nx*ny*nz, C) table (C order).
+
+    f: (P,3) continuous node coordinates.  Uses F.embedding, whose backward is a fast dense
+    scatter-add on CPU (much faster than grid_sample's 3-D backward).
+    """
+    hi = torch.tensor([d - 2 for d in dims], dtype=torch.float32)
+    i0 = torch.minimum(f.floor().clamp_min(0.0), hi)
+    w = (f - i0).clamp(0.0, 1.0)  # (P,3)
+    i0 = i0.long()
+    c = i0[:, None, :] + _CORNERS[None]  # (P,8,3)
+    lin = (c[..., 0] * dims[1] + c[..., 1]) * dims[2] + c[..., 2]
+    wc = torch.where(_CORNERS[None].bool(), w[:, None, :], 1.0 - w[:, None, :]).prod(-1)  # (P,8)
+    vals = F.embedding(lin, table)  # (P,8,C)
+    return (vals * wc[..., None]).sum(1)
 
 
 def _ray_box(o, d, lo, hi):
@@ -95,12 +108,16 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
         else:
             sig_param = F.interpolate(sig_param.detach(), size=dims, mode="trilinear", align_corners=True)
             col_param = F.interpolate(col_param.detach(), size=dims, mode="trilinear", align_corners=True)
-        sig_param.requires_grad_(True)
-        col_param.requires_grad_(True)
-        params = [{"params": [sig_param, col_param], "lr": lr}]
+        M = int(np.prod(dims))
+        table = torch.cat([sig_param, col_param], 1)[0].reshape(4, M).T.contiguous().requires_grad_(True)
+        allow_flat = allow[0, 0].reshape(M, 1).contiguous()
+        params = [{"params": [table], "lr": lr}]
         if bg_param is not None:
             params.append({"params": [bg_param], "lr": 0.01})
-        opt = torch.optim.Adam(params, betas=(0.9, 0.99))
+        try:
+            opt = torch.optim.Adam(params, betas=(0.9, 0.99), fused=True)
+        except (RuntimeError, TypeError):  # fused kernels unavailable on this build
+            opt = torch.optim.Adam(params, betas=(0.9, 0.99))
         allow_bool = allow[0, 0] > 0.5
         n_samples = int(min(512, math.ceil(1.6 * max(dims))))
         step_world = float(ext.max() * 1.8 / n_samples)
@@ -133,10 +150,11 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
             valid &= allow_bool[idx[..., 0], idx[..., 1], idx[..., 2]]
             sel = valid.nonzero(as_tuple=True)
             p_sel = pts[sel]
-            pn = (p_sel - lo_t) / (hi_t - lo_t) * 2.0 - 1.0
-            vol = torch.cat([sig_param, col_param, allow], 1)
-            q = _sample_grid(vol, pn)
-            sigma = F.softplus(q[:, 0]) * q[:, 4]
+            fc = (p_sel - lo_t) / vox_vec
+            q = trilinear(table, dims, fc)
+            with torch.no_grad():
+                a_s = trilinear(allow_flat, dims, fc)[:, 0]
+            sigma = F.softplus(q[:, 0]) * a_s
             rgb_s = torch.sigmoid(q[:, 1:4])
             dens = torch.zeros(batch_rays, S)
             dens = dens.index_put(sel, sigma * (step_world / vox))
@@ -149,8 +167,6 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
             op = w.sum(1)
             if bg_param is not None:
                 bgc = torch.sigmoid(bg_param[vi])
-            elif bg is not None and masks is not None:
-                bgc = bg.expand_as(rgb)
             elif bg is not None:
                 bgc = bg.expand_as(rgb)
             else:  # masks but real background: composite on the ground truth (only foreground counts)
@@ -162,7 +178,7 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
                 opc = op.clamp(1e-4, 1 - 1e-4)
                 loss = loss + mask_weight * F.binary_cross_entropy(opc, gm)
             if tv_weight > 0:
-                s = sig_param[0, 0]
+                s = table[:, 0].reshape(dims)
                 tv = ((s[1:] - s[:-1]) ** 2).mean() + ((s[:, 1:] - s[:, :-1]) ** 2).mean() + \
                     ((s[:, :, 1:] - s[:, :, :-1]) ** 2).mean()
                 loss = loss + tv_weight * tv
@@ -171,15 +187,18 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
             opt.step()
             rays_done += batch_rays
             done += 1
-            last_loss = float(loss)
-            last_psnr = float(-10 * math.log10(max(float(mse), 1e-10)))
+            last_loss = float(loss.detach())
+            last_psnr = float(-10 * math.log10(max(float(mse.detach()), 1e-10)))
             if log is not None and (it % 100 == 0 or it == n_it - 1):
                 log(f"density stage {stage} ({'x'.join(map(str, dims))}) it {it}/{n_it}: "
                     f"loss {last_loss:.4f} psnr {last_psnr:.2f}")
             if check is not None and (it % 10 == 0):
                 check(done / max(total_iters, 1))
+        with torch.no_grad():
+            g = table.detach().T.reshape((1, 4) + dims)
+            sig_param, col_param = g[:, :1].contiguous(), g[:, 1:].contiguous()
     with torch.no_grad():
-        sig = (F.softplus(sig_param) * allow)[0, 0].numpy()
+        sig = (F.softplus(sig_param) * allow)[0, 0].numpy()  # last stage's grid
     el = time.perf_counter() - t_start
     return DensityResult(sig.astype(np.float32), np.asarray(lo, np.float32), vox, done, last_loss,
                          last_psnr, rays_done / max(el, 1e-9))

@@ -124,11 +124,13 @@ def extract_with_target(values: np.ndarray, level: float, lo, voxel: float, targ
     for rnd in range(max_rounds):
         m = marching_cubes(cur_vals, level, cur_lo, cur_voxel)
         m = clean_mesh(m, merge_eps=cur_voxel * 1e-3)
+        faces_before = len(m.faces)
         m, ncomp, nkept = keep_large_components(m, min_fraction=min_fraction)
         nv = m.num_vertices
         info["rounds"].append({"voxel": float(cur_voxel), "grid": list(map(int, cur_vals.shape)),
                                "vertices": int(nv), "faces": int(len(m.faces)),
-                               "components": ncomp, "components_kept": nkept})
+                               "components": ncomp, "components_kept": nkept,
+                               "faces_dropped_as_floaters": int(faces_before - len(m.faces))})
         if best is None or (target_vertices and abs(nv - target_vertices) < abs(best.num_vertices - target_vertices)):
             best = m
         if check is not None:
@@ -145,6 +147,11 @@ def extract_with_target(values: np.ndarray, level: float, lo, voxel: float, targ
                 break
         cur_vals, cur_lo, cur_voxel = resample_grid(values, lo, voxel, new_voxel)
     info["final_voxel"] = float(cur_voxel)
+    # the grid cap stopped us well short of the target: split triangles (x4 vertices) if that is closer
+    if target_vertices and best is not None and best.num_vertices and \
+            abs(4 * best.num_vertices - target_vertices) < abs(best.num_vertices - target_vertices):
+        best = midpoint_subdivide(best)
+        info["subdivided"] = True
     return best, info
 
 

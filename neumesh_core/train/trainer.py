@@ -40,7 +40,7 @@ class TrainConfig:
     log_every: int = 25
     checkpoint_path: Optional[str] = None
     checkpoint_every: int = 500
-    max_seconds: Optional[float] = None  # stop after this wall time (the schedule still uses `steps`)
+    max_seconds: Optional[float] = None  # stop after this wall time (the lr schedule then follows time)
     resume: bool = True               # continue from the step stored in a loaded field
     threads: Optional[int] = None     # torch CPU threads (default: all cores)
 
@@ -109,10 +109,13 @@ def _make_optimizer(field, cfg: TrainConfig):
         return torch.optim.Adam(groups, foreach=True, **kwargs)
 
 
-def _lr_factor(step: int, cfg: TrainConfig) -> float:
+def _lr_factor(step: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> float:
+    """Warm-up then exponential decay over the budget: steps, or max_seconds when that ends first."""
     warm = min(1.0, (step + 1) / max(1, cfg.warmup_steps))
-    decay = cfg.lr_final_factor ** (min(step, cfg.steps) / max(1, cfg.steps))
-    return warm * decay
+    progress = min(step, cfg.steps) / max(1, cfg.steps)
+    if cfg.max_seconds:
+        progress = max(progress, min(1.0, elapsed_s / cfg.max_seconds))
+    return warm * cfg.lr_final_factor ** progress
 
 
 def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = None,
@@ -166,7 +169,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
 
     try:
         while step < cfg.steps:
-            f = _lr_factor(step, cfg)
+            f = _lr_factor(step, cfg, time.perf_counter() - t_begin)
             for g in opt.param_groups:
                 g["lr"] = g["base_lr"] * f
             o, d, rgb_gt, mask = batcher.sample(cfg.rays_per_batch)

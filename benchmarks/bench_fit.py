@@ -1,0 +1,114 @@
+"""Capture benchmark: images -> scaffold -> trained field within a wall-clock budget -> evaluation.
+
+    python benchmarks/bench_fit.py --data ../shared/data/nerf_synthetic/lego --budget-min 60
+    python benchmarks/bench_fit.py --data ../shared/data/dtu/scan24 --budget-min 30 --downscale 2
+
+The budget covers scaffold + training (the clock starts before the scaffold).  Snapshots are saved when
+the clock passes each --marks minute; all evaluation happens after training, so it does not eat the
+budget.  Prints the figures and writes benchmarks/results/fit_<scene>.json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import neumesh_core as nm  # noqa: E402
+from neumesh_core.scaffold import ScaffoldConfig, build_scaffold  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="dataset folder (Blender or DTU format)")
+    ap.add_argument("--out", help="work folder (default runs/fit_<scene>)")
+    ap.add_argument("--budget-min", type=float, default=60.0, help="scaffold + training wall budget")
+    ap.add_argument("--marks", default="15,30", help="minutes at which snapshots are evaluated")
+    ap.add_argument("--downscale", type=float, default=1)
+    ap.add_argument("--vertices", type=int, default=200_000, help="scaffold vertex target")
+    ap.add_argument("--scaffold-method", default="auto", help="auto | hull | hull+density | density")
+    ap.add_argument("--radius-scale", type=float, default=2.5, help="field radius / mean edge length")
+    ap.add_argument("--interpolation", default="post", choices=["post", "early"])
+    ap.add_argument("--rays", type=int, default=4096)
+    ap.add_argument("--eval-views", type=int, default=25, help="val views in the final evaluation (0 = all)")
+    ap.add_argument("--mark-views", type=int, default=10, help="val views evaluated at each mark")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(os.cpu_count() or 1)
+
+    name = os.path.basename(os.path.normpath(args.data))
+    out = args.out or os.path.join("runs", f"fit_{name}")
+    os.makedirs(out, exist_ok=True)
+    scene = nm.load_scene(args.data, downscale=args.downscale)
+    masked = scene.kind == "dtu"
+    budget = args.budget_min * 60
+    marks = [float(m) for m in args.marks.split(",") if m]
+    t0 = time.perf_counter()
+
+    mesh, report = build_scaffold(scene, ScaffoldConfig(method=args.scaffold_method,
+                                                        target_vertices=args.vertices),
+                                  progress=lambda stage, frac: print(f"\rscaffold {stage} {frac:.0%}", end=""))
+    scaffold_s = time.perf_counter() - t0
+    print(f"\nscaffold: {mesh.num_vertices} vertices in {scaffold_s:.0f}s")
+    nm.save_mesh(mesh, os.path.join(out, "scaffold.ply"))
+
+    field = nm.create_field(mesh, nm.FieldConfig(interpolation=args.interpolation,
+                                                  radius_scale=args.radius_scale))
+    print(f"field radius {field.radius:.4f}")
+    pending = list(marks)
+    snaps = {}
+    history = []
+
+    def callback(p):
+        wall = time.perf_counter() - t0
+        history.append({"step": p.step, "wall_s": wall, "train_psnr": p.psnr, "rays_per_sec": p.rays_per_sec,
+                        "samples_per_ray": p.samples_per_ray})
+        if p.step % 100 == 0:
+            print(f"step {p.step} wall {wall / 60:.1f} min psnr {p.psnr:.2f} {p.rays_per_sec:.0f} rays/s "
+                  f"{p.samples_per_ray:.1f} smp/ray occ {p.occupied_fraction:.3f}", flush=True)
+        while pending and wall >= pending[0] * 60:
+            m = pending.pop(0)
+            path = os.path.join(out, f"snapshot_{int(m)}min.neumesh")
+            nm.save_field(field, path)
+            snaps[m] = {"path": path, "step": p.step}
+        return True
+
+    cfg = nm.TrainConfig(steps=10 ** 6, rays_per_batch=args.rays, max_seconds=budget - scaffold_s, log_every=10)
+    res = nm.train(field, scene, cfg, callback=callback)
+    total_s = time.perf_counter() - t0
+    final_path = os.path.join(out, "field.neumesh")
+    nm.save_field(field, final_path)
+    print(f"trained {res.steps_done} steps; scaffold + training {total_s / 60:.1f} min")
+
+    split = "val" if "val" in scene.splits else "test"
+    val = scene.split(split)
+
+    def ev(f, n):
+        sub = val if n <= 0 or n >= len(val) else val.subset(np.linspace(0, len(val) - 1, n).astype(int))
+        r = nm.evaluate(f, sub, background=scene.background, masked=masked)
+        return {"n_views": r["n_views"], **r["headline"], "mean": r["mean"]}
+
+    result = {"scene": name, "data": os.path.abspath(args.data), "downscale": args.downscale,
+              "budget_min": args.budget_min, "scaffold_s": scaffold_s, "scaffold": report.to_dict(),
+              "train_steps": res.steps_done, "total_wall_s": total_s, "radius": field.radius,
+              "interpolation": args.interpolation, "marks": {}, "history": history}
+    for m, s in snaps.items():
+        result["marks"][f"{m:g}min"] = {"step": s["step"], **ev(nm.load_field(s["path"]), args.mark_views)}
+        print(f"at {m:g} min (step {s['step']}): {result['marks'][f'{m:g}min']}")
+    result["final"] = ev(field, args.eval_views)
+    print(f"final ({split}, {result['final']['n_views']} views): PSNR {result['final']['psnr']:.2f} "
+          f"SSIM {result['final']['ssim']:.4f} LPIPS {result['final']['lpips']}")
+    os.makedirs(os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"), exist_ok=True)
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", f"fit_{name}.json")
+    with open(path, "w") as fh:
+        json.dump(result, fh, indent=2, default=float)
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
