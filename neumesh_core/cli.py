@@ -199,6 +199,18 @@ def cmd_render(args) -> int:
     return 0
 
 
+def _comparison_figure(images, renders_dir, result, path, n=4):
+    """Reference images (top row) above the field's renders (bottom row), PSNR per view in the log."""
+    import neumesh_core as nm
+
+    n = min(n, len(images))
+    top = np.concatenate([images.images[i] for i in range(n)], 1)
+    views = result["views"][:n]
+    bottom = np.concatenate([nm.read_image(os.path.join(renders_dir, f"{v['view'].replace('/', '_')}.png"))[..., :3]
+                             for v in views], 1)
+    nm.save_image(path, np.concatenate([top, bottom], 0))
+
+
 def cmd_demo(args) -> int:
     import neumesh_core as nm
     from .evaluate import write_json
@@ -220,8 +232,12 @@ def cmd_demo(args) -> int:
         return 130
     print("3/4 evaluating on the held-out test views...", file=sys.stderr)
     split = "test" if "test" in scene.splits else "val"
-    r = nm.evaluate(field, scene.split(split), background=scene.background)
+    renders = os.path.join(args.out, "test_renders")
+    r = nm.evaluate(field, scene.split(split), background=scene.background, out_dir=renders)
     _print_eval(r)
+    fig = os.path.join(args.out, "comparison.png")
+    _comparison_figure(scene.split(split), renders, r, fig)
+    print(f"comparison figure (reference top, field bottom): {fig}", file=sys.stderr)
     write_json({"data": data, "split": split, "steps": res.steps_done, "train_s": res.seconds, **r},
                os.path.join(args.out, "eval.json"))
     print("4/4 rendering a turntable...", file=sys.stderr)

@@ -70,3 +70,16 @@ def test_fit_runs_every_stage_and_resumes(tmp_path, capsys):
     assert main(common + ["--steps", "8"]) == 0
     s2 = json.load(open(out / "fit.json"))
     assert s2["scaffold"]["reused"] and s2["resumed_from_step"] == 4 and s2["train"]["steps"] == 8
+
+
+def test_demo_main_job_end_to_end(tmp_path, monkeypatch, capsys):
+    """The README's third command, with a tiny budget (the real default trains longer)."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    out = tmp_path / "demo"
+    assert main(["demo", "--small", "--steps", "30", "--rays", "512", "--frames", "2", "--out", str(out)]) == 0
+    r = json.load(open(out / "eval.json"))
+    assert r["n_views"] >= 1 and r["mean"]["psnr"] > 10
+    assert sorted(os.listdir(out / "turntable")) == ["frame_0000.png", "frame_0001.png"]
+    assert (out / "comparison.png").exists() and (out / "field.neumesh").exists()
+    assert "test PSNR" in capsys.readouterr().out
+    assert (tmp_path / "cache" / "neumesh").exists()  # the scene was made in the cache, not in $HOME
