@@ -56,3 +56,18 @@ def test_training_a_deformed_field_is_refused(small_scene_dir):
     field.set_vertices(field.vertices * 1.1)
     with pytest.raises(ValueError, match="reset_vertices"):
         nm.train(field, scene, nm.TrainConfig(steps=1))
+
+
+def test_ctrl_c_saves_and_returns_cleanly(small_scene_dir, tmp_path):
+    scene = nm.load_scene(small_scene_dir)
+    field = nm.create_field(nm.load_mesh(scene.mesh_path))
+    path = str(tmp_path / "i.neumesh")
+
+    def press_ctrl_c(p):
+        if p.step >= 6:
+            raise KeyboardInterrupt
+
+    res = nm.train(field, scene, nm.TrainConfig(steps=50, rays_per_batch=128, log_every=3,
+                                                checkpoint_path=path), callback=press_ctrl_c)
+    assert res.interrupted and res.steps_done == 6
+    assert nm.load_field(path)._checkpoint_meta["train_state"]["step"] == 6
