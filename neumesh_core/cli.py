@@ -18,9 +18,13 @@ def _fmt_time(s: float) -> str:
 class ProgressBar:
     """Terminal consumer of the training callback (one line, refreshed in place)."""
 
-    def __init__(self, stream=sys.stderr):
-        self.stream = stream
-        self.tty = stream.isatty()
+    def __init__(self, stream=None):
+        self._stream = stream  # None: whatever sys.stderr is at write time (it can be swapped)
+        self.tty = self.stream.isatty()
+
+    @property
+    def stream(self):
+        return self._stream if self._stream is not None else sys.stderr
 
     def __call__(self, p) -> None:
         frac = p.step / max(1, p.total_steps)

@@ -76,11 +76,15 @@ def config_from_args(args):
 class StageProgress:
     """progress(stage, fraction) printer: one line per stage start/end, throttled updates between."""
 
-    def __init__(self, stream=sys.stderr):
-        self.stream = stream
+    def __init__(self, stream=None):
+        self._stream = stream  # None: whatever sys.stderr is at write time (it can be swapped)
         self.stage = None
         self.t_stage = time.perf_counter()
         self.last = 0.0
+
+    @property
+    def stream(self):
+        return self._stream if self._stream is not None else sys.stderr
 
     def __call__(self, stage: str, fraction: float) -> bool:
         now = time.perf_counter()
