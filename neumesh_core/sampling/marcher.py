@@ -77,10 +77,10 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
         pts = o[:, None, :] + d[:, None, :] * ts[..., None]
         occ = grid.lookup(pts) & in_range
         n_occ = torch.cumsum(occ, 1)
-        capped = n_occ[:, -1] > max_eval
-        occ = occ & (n_occ <= max_eval)
+        within = n_occ <= max_eval
+        occ = occ & within
         # a capped ray resumes right after its last evaluated step, the others after the window
-        last = torch.where(capped, (n_occ <= max_eval).sum(1), torch.full_like(n_occ[:, -1], window))
+        last = torch.where(n_occ[:, -1] > max_eval, within.sum(1), torch.full_like(n_occ[:, -1], window))
         sel = occ.nonzero()
         if sel.numel():
             rl, si = sel[:, 0], sel[:, 1]

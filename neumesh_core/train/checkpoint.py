@@ -10,7 +10,6 @@ import os
 import tempfile
 from typing import Optional
 
-import numpy as np
 import torch
 
 from ..errors import CheckpointError
@@ -146,7 +145,3 @@ def load_optimizer_state(field, optimizer: torch.optim.Optimizer) -> bool:
         optimizer.state.setdefault(p, {})[skey] = v.to(p.device)
     return True
 
-
-def field_mesh(path: str) -> Mesh:
-    meta, t = read_checkpoint(path)
-    return Mesh(t["buffer/rest_vertices"].numpy(), np.asarray(t["buffer/faces"].numpy()))
