@@ -9,7 +9,8 @@ Layout::
 
 The projection of the normalised scene is ``P = world_mat @ scale_mat``; decomposing ``P[:3,:4]``
 gives intrinsics K (K[2,2] = 1) and an OpenCV camera-to-world pose, so the object lies inside the
-unit sphere and ``bbox = [-1,1]^3``.
+unit sphere and ``bbox = [-1,1]^3``.  NeuS puts pixel centres at integer coordinates; the loader
+shifts the principal point by half a pixel to this project's convention (pixel i spans [i, i+1)).
 """
 from __future__ import annotations
 
@@ -170,6 +171,9 @@ def load_dtu(root: str, downscale: float = 1, holdout_every: int = 10, mask_thre
     with Image.open(img_paths[0]) as im0:  # stored size (K refers to it)
         W0, H0 = im0.size
     K = np.stack(Ks)
+    # NeuS/IDR put pixel centres at integer coordinates; here pixel i spans [i, i+1) (centre i + 0.5)
+    K[:, 0, 2] += 0.5
+    K[:, 1, 2] += 0.5
     K[:, 0, :] *= w / W0
     K[:, 1, :] *= h / H0
     cams_all = Cameras(K.astype(np.float32), np.stack(c2ws).astype(np.float32), w, h)

@@ -30,18 +30,21 @@ class ScaffoldError(DataError):
     """The scaffold cannot be built from this input (the message says what to change)."""
 
 
-METHODS = ("auto", "hull", "hull+density", "density")
+METHODS = ("auto", "hull", "hull+mvs", "hull+density", "density")
 
 
 @dataclass
 class ScaffoldConfig:
     """Settings of :func:`build_scaffold`.
 
-    method: "auto" (visual hull with masks, photometric density without), "hull" (visual hull
-        only; fast and, measured on the built-in scene and lego, the most accurate; needs masks),
-        "hull+density" (hull, then a density grid fitted by volume rendering carves concavities
-        that no silhouette shows; slower; needs masks), "density" (photometric density only;
-        needs a bbox; no masks needed).
+    method: "auto" (with masks: the visual hull, refined by multi-view stereo when the cameras see
+        the object from one side only; without masks: photometric density), "hull" (visual hull
+        only; fast and, measured on the built-in scene and lego, accurate for captures all around
+        the object; needs masks), "hull+mvs" (hull, then plane-sweep stereo depth maps fused on the
+        hull grid carve what no silhouette shows: concavities, and the depth of one-sided captures
+        such as DTU; needs masks and texture), "hull+density" (hull, then a density grid fitted by
+        volume rendering; slower; needs masks), "density" (photometric density only; needs a bbox;
+        no masks needed).
     target_vertices: vertex count the mesh is resampled to (within ~12%); 0 keeps the grid's count.
     hull_resolution: cells on the longest side of the visual-hull grid (sub-voxel surface).
     mask_tolerance: views allowed to disagree that a point is inside the mask (-1 = auto: 0 for
@@ -66,6 +69,8 @@ class ScaffoldConfig:
     density_lr: float = 0.1
     density_iso_alpha: float = 0.1
     density_max_image_side: int = 400
+    mvs: Optional["MVSConfig"] = None  # plane-sweep settings for "hull+mvs" (None: MVSConfig())
+    mvs_max_image_side: int = 400
     min_component_fraction: float = 0.002
     max_faces: int = 5_000_000
     iou_views: int = 0          # 0: all training views
@@ -87,6 +92,7 @@ class ScaffoldReport:
     chamfer: Optional[dict] = None                 # against the scene's reference mesh, if any
     hull: dict = field(default_factory=dict)
     density: dict = field(default_factory=dict)
+    mvs: dict = field(default_factory=dict)
     meshing: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
     config: dict = field(default_factory=dict)
@@ -191,10 +197,14 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
     method = cfg.method
     if method == "auto":
         method = "hull" if has_masks else "density"
+        if has_masks and one_sided_capture(images.cameras):
+            method = "hull+mvs"
+            rep.notes.append("the cameras see the object from one side: the visual hull is refined by "
+                             "multi-view stereo (method 'hull+mvs')")
         if not has_masks:
             rep.notes.append("no masks/alpha in the data: falling back to photometric-only density "
                              "fitting (slower, less accurate silhouettes); add masks for a visual hull")
-    if method in ("hull", "hull+density") and not has_masks:
+    if method in ("hull", "hull+mvs", "hull+density") and not has_masks:
         raise ScaffoldError(f"method '{method}' needs masks (alpha for Blender data, mask/ for DTU) "
                             "but the images have none; add masks or use method 'density'")
     if method == "density" and bbox is None and not has_masks:
@@ -231,7 +241,7 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
     tol = cfg.mask_tolerance
     if tol < 0:  # auto: soft (anti-aliased alpha) masks are exact renders -> no tolerance needed
         tol = 0 if has_masks and _masks_are_soft(images.masks) else max(1, int(round(0.02 * N)))
-    if method in ("hull", "hull+density"):
+    if method in ("hull", "hull+mvs", "hull+density"):
         t0 = time.perf_counter()
         check("hull", 0.0)
         views.sdf = torch.from_numpy(mask_sdf(images.masks, cfg.mask_threshold))[:, None]
@@ -272,6 +282,20 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
         px_per_voxel = hull_grid.voxel * focal / depth
         hull_vox = np.clip(hull_grid.values / max(px_per_voxel, 1e-6), -6.0, 6.0)
         field_vals, field_lo, field_voxel = hull_vox, hull_grid.lo, hull_grid.voxel
+    if method == "hull+mvs":
+        from .mvs import MVSConfig, refine_hull
+
+        t0 = time.perf_counter()
+        check("mvs", 0.0)
+        mimgs = _resize_for_density(images, cfg.mvs_max_image_side)
+        mres = refine_hull(mimgs, hull_grid, field_vals, cfg.mvs or MVSConfig(),
+                           check=lambda f: check("mvs", f), log=say)
+        seen = np.isfinite(mres.values)
+        carved = seen & (mres.values < 0) & (field_vals > 0)
+        field_vals = np.where(seen, np.minimum(field_vals, mres.values), field_vals)
+        rep.mvs = {**mres.stats, "carved_fraction_of_hull": float(carved.sum() / max((field_vals > 0).sum(), 1)),
+                   "image_size": [mimgs.cameras.width, mimgs.cameras.height]}
+        rep.timings["mvs"] = time.perf_counter() - t0
     if method in ("hull+density", "density"):
         from .density import fit_density
 
@@ -356,6 +380,16 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
     rep.timings["metrics"] = time.perf_counter() - t0
     rep.timings["total"] = time.perf_counter() - t_all
     return mesh, rep
+
+
+def one_sided_capture(cams, threshold: float = 0.7) -> bool:
+    """True when the views look at the object from one side (like DTU) rather than from all around
+    (like NeRF-synthetic): the mean unit direction from the cameras' meeting point to the camera
+    centres is long (~0 all around, ~0.5 for a hemisphere, ~0.9 for a 50-degree cone)."""
+    c, _ = axes_meeting_point(cams)
+    d = cams.centers.astype(np.float64) - c[None]
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return bool(np.linalg.norm(d.mean(0)) > threshold)
 
 
 def _masks_are_soft(masks: np.ndarray) -> bool:

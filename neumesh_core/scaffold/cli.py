@@ -30,10 +30,12 @@ def _int_list(s: str) -> tuple:
 def add_scaffold_options(p: argparse.ArgumentParser) -> None:
     """Options shared by `scaffold` (and usable by `fit`)."""
     g = p.add_argument_group("scaffold")
-    g.add_argument("--method", choices=["auto", "hull", "hull+density", "density"], default="auto",
-                   help="auto (default): visual hull from masks/alpha, or photometric density fitting when "
-                        "the data has no masks; hull: visual hull only (fast, needs masks); hull+density: "
-                        "hull then a volume-rendered density grid carves concavities (slower); density: "
+    g.add_argument("--method", choices=["auto", "hull", "hull+mvs", "hull+density", "density"], default="auto",
+                   help="auto (default): visual hull from masks/alpha, refined by multi-view stereo when the "
+                        "cameras see the object from one side (DTU), or photometric density fitting when the "
+                        "data has no masks; hull: visual hull only (fast, needs masks); hull+mvs: hull, then "
+                        "plane-sweep stereo carves concavities and one-sided depth (needs texture); "
+                        "hull+density: hull then a volume-rendered density grid (slower); density: "
                         "photometric only (needs the scene bounding box)")
     g.add_argument("--vertices", type=_positive_int, default=200_000,
                    help="target vertex count of the scaffold (default 200000; the paper uses 100k-300k; "

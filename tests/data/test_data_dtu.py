@@ -20,7 +20,8 @@ def _rot(rng):
 
 
 def make_dtu(root, n=5, masks=True, seed=0, drop_key=None):
-    """Tiny NeuS dataset; returns the ground-truth K and normalised OpenCV c2w per view."""
+    """Tiny NeuS dataset; returns the expected K (this project's pixel convention: the NeuS principal
+    point + 0.5) and normalised OpenCV c2w per view."""
     rng = np.random.default_rng(seed)
     os.makedirs(os.path.join(root, "image"), exist_ok=True)
     s, trans = 2.5, np.array([0.3, -0.2, 1.1])
@@ -38,7 +39,7 @@ def make_dtu(root, n=5, masks=True, seed=0, drop_key=None):
         factor = -1.7 if i % 2 else 3.0  # projection matrices are defined up to (signed) scale
         cams[f"world_mat_{i}"] = P * factor
         cams[f"scale_mat_{i}"] = scale_mat
-        Ks.append(K)
+        Ks.append(K + np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]))
         c2w = np.eye(4)
         c2w[:3, :3] = R.T
         c2w[:3, 3] = (C_world - trans) / s
