@@ -35,6 +35,9 @@ def main(argv=None) -> int:
     ap.add_argument("--radius-scale", type=float, default=2.5, help="field radius / mean edge length")
     ap.add_argument("--interpolation", default="post", choices=["post", "early"])
     ap.add_argument("--rays", type=int, default=4096)
+    ap.add_argument("--step-scale", type=float, default=None, help="marching step / radius (default: FieldConfig's)")
+    ap.add_argument("--lr-codes", type=float, default=None, help="default: TrainConfig's")
+    ap.add_argument("--lr-decoders", type=float, default=None, help="default: TrainConfig's")
     ap.add_argument("--eval-views", type=int, default=25, help="val views in the final evaluation (0 = all)")
     ap.add_argument("--mark-views", type=int, default=10, help="val views evaluated at each mark")
     args = ap.parse_args(argv)
@@ -56,8 +59,9 @@ def main(argv=None) -> int:
     print(f"\nscaffold: {mesh.num_vertices} vertices in {scaffold_s:.0f}s")
     nm.save_mesh(mesh, os.path.join(out, "scaffold.ply"))
 
+    fkw = {} if args.step_scale is None else {"step_scale": args.step_scale}
     field = nm.create_field(mesh, nm.FieldConfig(interpolation=args.interpolation,
-                                                  radius_scale=args.radius_scale))
+                                                  radius_scale=args.radius_scale, **fkw))
     print(f"field radius {field.radius:.4f}")
     pending = list(marks)
     snaps = {}
@@ -77,7 +81,9 @@ def main(argv=None) -> int:
             snaps[m] = {"path": path, "step": p.step}
         return True
 
-    cfg = nm.TrainConfig(steps=10 ** 6, rays_per_batch=args.rays, max_seconds=budget - scaffold_s, log_every=10)
+    tkw = {k: v for k, v in (("lr_codes", args.lr_codes), ("lr_decoders", args.lr_decoders)) if v is not None}
+    cfg = nm.TrainConfig(steps=10 ** 6, rays_per_batch=args.rays, max_seconds=budget - scaffold_s, log_every=10,
+                         **tkw)
     res = nm.train(field, scene, cfg, callback=callback)
     total_s = time.perf_counter() - t0
     final_path = os.path.join(out, "field.neumesh")
@@ -95,7 +101,8 @@ def main(argv=None) -> int:
     result = {"scene": name, "data": os.path.abspath(args.data), "downscale": args.downscale,
               "budget_min": args.budget_min, "scaffold_s": scaffold_s, "scaffold": report.to_dict(),
               "train_steps": res.steps_done, "total_wall_s": total_s, "radius": field.radius,
-              "interpolation": args.interpolation, "marks": {}, "history": history}
+              "interpolation": args.interpolation, "step_scale": field.config.step_scale,
+              "lr_codes": cfg.lr_codes, "lr_decoders": cfg.lr_decoders, "marks": {}, "history": history}
     for m, s in snaps.items():
         result["marks"][f"{m:g}min"] = {"step": s["step"], **ev(nm.load_field(s["path"]), args.mark_views)}
         print(f"at {m:g} min (step {s['step']}): {result['marks'][f'{m:g}min']}")

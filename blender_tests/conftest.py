@@ -94,4 +94,4 @@ def trained_field(tiny_dataset, tmp_path_factory):
     return path
 
 
-TRAIN_STEPS = 5
+TRAIN_STEPS = 40

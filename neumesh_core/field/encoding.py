@@ -43,18 +43,22 @@ def sh_encoding(d: torch.Tensor, degree: int = 4) -> torch.Tensor:
     return torch.stack(out, -1)
 
 
+_EXP_MAX = 15.0  # exp(15) = 3.3e6 per unit length: opaque at any step size, and never inf (inf-inf = nan)
+
+
 class _TruncExp(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x):
         ctx.save_for_backward(x)
-        return torch.exp(x)
+        return torch.exp(x.clamp(max=_EXP_MAX))
 
     @staticmethod
     def backward(ctx, g):
         (x,) = ctx.saved_tensors
-        return g * torch.exp(x.clamp(max=15.0))
+        return g * torch.exp(x.clamp(max=_EXP_MAX))
 
 
 def trunc_exp(x: torch.Tensor) -> torch.Tensor:
-    """exp with a clamped gradient (instant-NGP's density activation)."""
+    """exp with a clamped gradient (instant-NGP's density activation); the output saturates at
+    exp(15), where the gradient stays that of exp(15) so a too-dense sample can still be lowered."""
     return _TruncExp.apply(x)

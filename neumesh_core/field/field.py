@@ -43,6 +43,7 @@ class FieldConfig:
     sh_degree: int = 4          # spherical-harmonics degree of the view-direction encoding
     k_tv: int = 8               # neighbours per vertex in the total-variation loss
     grid_resolution: int = 128  # occupancy grid cells along the longest axis
+    step_scale: float = 0.5     # marching step = radius x step_scale (training and rendering)
     code_init_std: float = 1e-2
 
     def __post_init__(self) -> None:

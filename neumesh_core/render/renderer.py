@@ -19,9 +19,10 @@ class Cancelled(NeuMeshError):
 
 @dataclass
 class RenderSettings:
-    """How rays are sampled.  step_scale: marching step = field radius x step_scale."""
+    """How rays are sampled.  step_scale: marching step = field radius x step_scale; None (default)
+    uses the field's own ``FieldConfig.step_scale``, the step it was trained with."""
 
-    step_scale: float = 0.25
+    step_scale: Optional[float] = None
     window: int = 32
     early_stop_eps: float = 1e-4
     weight_threshold: float = 1e-4
@@ -30,7 +31,8 @@ class RenderSettings:
 
 
 def default_step(field, settings: RenderSettings) -> float:
-    return float(field.config.radius) * settings.step_scale
+    scale = settings.step_scale if settings.step_scale is not None else field.config.step_scale
+    return float(field.config.radius) * float(scale)
 
 
 def _as_list(fields):

@@ -109,7 +109,8 @@ def load_field(path: str, device="cpu"):
 
     meta, t = read_checkpoint(path)
     try:
-        cfg = FieldConfig.from_dict(meta["field_config"])
+        cfg = FieldConfig.from_dict({"step_scale": 0.25,  # fields saved before it was stored used 0.25
+                                     **meta["field_config"]})
         mesh = Mesh(t["buffer/rest_vertices"].numpy(), t["buffer/faces"].numpy())
         field = NeuMeshField(mesh, cfg)
         with torch.no_grad():

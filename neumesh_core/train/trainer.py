@@ -13,7 +13,7 @@ import torch
 
 from ..data.cameras import batch_pixel_rays
 from ..data.scene import ImageSet, Scene
-from ..render.renderer import RenderSettings, render_rays
+from ..render.renderer import RenderSettings, default_step, render_rays
 from .checkpoint import load_optimizer_state, save_field
 
 
@@ -34,7 +34,7 @@ class TrainConfig:
     random_background: bool = True    # composite targets on random colours (needs masks)
     occ_refresh_every: int = 16
     occ_warmup_steps: int = 200
-    step_scale: float = 0.25          # marching step = radius x step_scale
+    step_scale: Optional[float] = None  # marching step = radius x step_scale (None: the field's own)
     split: str = "train"
     seed: int = 0
     log_every: int = 25
@@ -149,7 +149,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
         start = int(meta.get("train_state", {}).get("step", 0))
         load_optimizer_state(field, opt)
     settings = RenderSettings(step_scale=cfg.step_scale)
-    step_size = field.config.radius * cfg.step_scale
+    step_size = default_step(field, settings)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
     field.train()
     t_begin = time.perf_counter()
@@ -184,6 +184,10 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
                 target = rgb_gt
             jitter = torch.rand(len(o), generator=gen).to(device)
             out = render_rays(field, o, d, background=bg, settings=settings, train=True, jitter=jitter)
+            if not bool(torch.isfinite(out["opacity"]).all()):
+                raise FloatingPointError(
+                    f"the rendered opacity became NaN/inf at step {step}; lower lr_codes/lr_decoders and "
+                    "resume from the last checkpoint")
             mse = torch.mean((out["rgb"] - target) ** 2)
             loss = mse + cfg.weight_mod * torch.mean(out["mod_rgb"] ** 2)
             if mask is not None and cfg.weight_mask > 0:

@@ -107,3 +107,13 @@ def test_auto_radius_scales_with_edges(blob_mesh):
     e = blob_mesh.edges()
     mean_edge = np.linalg.norm(blob_mesh.vertices[e[:, 0]] - blob_mesh.vertices[e[:, 1]], axis=1).mean()
     assert f.radius == pytest.approx(2.0 * mean_edge, rel=1e-5)
+
+
+def test_trunc_exp_saturates_without_inf():
+    from neumesh_core.field.encoding import trunc_exp
+
+    x = torch.tensor([0.0, 10.0, 200.0], requires_grad=True)
+    y = trunc_exp(x)
+    assert torch.isfinite(y).all() and y[2] == y[2].new_tensor(np.exp(15.0), dtype=torch.float32)
+    y.sum().backward()
+    assert torch.isfinite(x.grad).all() and (x.grad > 0).all()  # a saturated sample can still be lowered

@@ -77,3 +77,28 @@ def test_nan_parameters_are_never_saved(blob_mesh, tmp_path):
     with pytest.raises(nm.CheckpointError, match="NaN"):
         nm.save_field(f, path)
     assert open(path, "rb").read() == before  # the good file is untouched
+
+
+def test_step_scale_travels_with_the_field(blob_mesh, tmp_path):
+    """Rendering marches with the step the field was trained with (FieldConfig.step_scale); fields saved
+    before the step was stored were trained with 0.25 and load with it."""
+    import json
+
+    from safetensors.torch import load_file, save_file
+
+    from neumesh_core.render.renderer import RenderSettings, default_step
+    from neumesh_core.train.checkpoint import read_checkpoint
+
+    f = textured_field(blob_mesh)
+    assert default_step(f, RenderSettings()) == pytest.approx(f.radius * f.config.step_scale)
+    assert default_step(f, RenderSettings(step_scale=0.1)) == pytest.approx(f.radius * 0.1)
+    path = str(tmp_path / "s.neumesh")
+    nm.save_field(f, path)
+    assert nm.load_field(path).config.step_scale == f.config.step_scale
+    # an older file: field_config without step_scale
+    meta, _ = read_checkpoint(path)
+    del meta["field_config"]["step_scale"]
+    tensors = load_file(path)
+    old = str(tmp_path / "old.neumesh")
+    save_file(tensors, old, metadata={"neumesh": json.dumps(meta)})
+    assert nm.load_field(old).config.step_scale == 0.25
