@@ -73,12 +73,6 @@ def _grey(images: np.ndarray) -> torch.Tensor:
     return (im @ torch.tensor([0.299, 0.587, 0.114]))[:, None]  # (N,1,H,W)
 
 
-def _box(x: torch.Tensor, r: int) -> torch.Tensor:
-    """Separable (2r+1)^2 mean over the last two dims of (B,1,H,W), borders averaged over what exists."""
-    x = F.avg_pool2d(x, (1, 2 * r + 1), stride=1, padding=(0, r), count_include_pad=False)
-    return F.avg_pool2d(x, (2 * r + 1, 1), stride=1, padding=(r, 0), count_include_pad=False)
-
-
 def select_sources(cams: Cameras, centre: np.ndarray, n: int, max_angle_deg: float) -> list[list[int]]:
     """For every view, up to ``n`` other views with the smallest angle between their directions to
     ``centre`` (above 1 degree: a baseline is needed; below ``max_angle_deg``)."""
@@ -184,8 +178,6 @@ def sweep_depth(ref: int, sources: list[int], grey: torch.Tensor, masks: Optiona
         A = torch.stack([Ks[0, 0] * a[0] + Ks[0, 1] * a[1] + Ks[0, 2] * a[2], Ks[1, 1] * a[1] + Ks[1, 2] * a[2], a[2]])
         B = torch.stack([Ks[0, 0] * b[0] + Ks[0, 1] * b[1] + Ks[0, 2] * b[2], Ks[1, 1] * b[1] + Ks[1, 2] * b[2], b[2]])
         src.append((A, B, grey[s:s + 1]))
-    best = torch.full((h, w), -1.0)
-    best_j = torch.zeros((h, w), dtype=torch.long)
     scores = torch.full((D, h, w), -1.0)
     chunk = max(1, 2_000_000 // (h * w))
     for j0 in range(0, D, chunk):
@@ -289,7 +281,7 @@ def fuse_tsdf(depths: torch.Tensor, cams: Cameras, shape, lo: np.ndarray, voxel:
     tau = truncation * voxel
     lo_t = torch.as_tensor(np.asarray(lo, np.float32))
     dims = torch.tensor(shape)
-    views = [(*_camera(cams, i),) for i in range(N)]
+    views = [_camera(cams, i) for i in range(N)]
     for s in range(0, len(idx), 1 << 20):
         li = torch.from_numpy(idx[s:s + (1 << 20)])
         ijk = torch.stack([li // (dims[1] * dims[2]), (li // dims[2]) % dims[1], li % dims[2]], -1)
