@@ -56,8 +56,8 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
                            description="Divide the dataset image resolution by this")
     scaffold_method: EnumProperty(
         name="Scaffold method",
-        items=[("auto", "Auto", "Visual hull with masks (plus stereo for one-sided captures), "
-                                "photometric density without"),
+        items=[("auto", "Auto", "Visual hull carved by stereo with masks, photometric density "
+                                "without"),
                ("hull", "Visual hull", "Fastest; needs masks / alpha"),
                ("hull+mvs", "Hull + stereo", "Hull, then multi-view stereo carves concavities and depth"),
                ("hull+density", "Hull + density", "Hull, then a density grid carves concavities"),

@@ -37,12 +37,11 @@ METHODS = ("auto", "hull", "hull+mvs", "hull+density", "density")
 class ScaffoldConfig:
     """Settings of :func:`build_scaffold`.
 
-    method: "auto" (with masks: the visual hull, refined by multi-view stereo when the cameras see
-        the object from one side only; without masks: photometric density), "hull" (visual hull
-        only; fast and, measured on the built-in scene and lego, accurate for captures all around
-        the object; needs masks), "hull+mvs" (hull, then plane-sweep stereo depth maps fused on the
-        hull grid carve what no silhouette shows: concavities, and the depth of one-sided captures
-        such as DTU; needs masks and texture), "hull+density" (hull, then a density grid fitted by
+    method: "auto" (with masks: "hull+mvs"; without masks: photometric density), "hull" (visual
+        hull only; fastest; no concavities; needs masks), "hull+mvs" (hull, then plane-sweep stereo
+        depth maps fused on the hull grid carve what no silhouette shows: concavities, and the depth
+        of one-sided captures such as DTU; textureless parts keep the hull; needs masks. On lego it
+        lifts a 4-minute fit from 27.0 to 29.0 dB; on DTU it is what makes the scaffold usable), "hull+density" (hull, then a density grid fitted by
         volume rendering; slower; needs masks), "density" (photometric density only; needs a bbox;
         no masks needed).
     target_vertices: vertex count the mesh is resampled to (within ~12%); 0 keeps the grid's count.
@@ -196,11 +195,10 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
     has_masks = images.masks is not None
     method = cfg.method
     if method == "auto":
-        method = "hull" if has_masks else "density"
+        method = "hull+mvs" if has_masks else "density"
         if has_masks and one_sided_capture(images.cameras):
-            method = "hull+mvs"
-            rep.notes.append("the cameras see the object from one side: the visual hull is refined by "
-                             "multi-view stereo (method 'hull+mvs')")
+            rep.notes.append("the cameras see the object from one side: the visual hull says little about "
+                             "depth; multi-view stereo carves it (method 'hull+mvs')")
         if not has_masks:
             rep.notes.append("no masks/alpha in the data: falling back to photometric-only density "
                              "fitting (slower, less accurate silhouettes); add masks for a visual hull")

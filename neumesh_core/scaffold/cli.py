@@ -31,10 +31,10 @@ def add_scaffold_options(p: argparse.ArgumentParser) -> None:
     """Options shared by `scaffold` (and usable by `fit`)."""
     g = p.add_argument_group("scaffold")
     g.add_argument("--method", choices=["auto", "hull", "hull+mvs", "hull+density", "density"], default="auto",
-                   help="auto (default): visual hull from masks/alpha, refined by multi-view stereo when the "
-                        "cameras see the object from one side (DTU), or photometric density fitting when the "
-                        "data has no masks; hull: visual hull only (fast, needs masks); hull+mvs: hull, then "
-                        "plane-sweep stereo carves concavities and one-sided depth (needs texture); "
+                   help="auto (default): hull+mvs when the data has masks/alpha, photometric density fitting "
+                        "when it has none; hull: visual hull only (fastest, no concavities, needs masks); "
+                        "hull+mvs: hull, then plane-sweep stereo carves concavities and one-sided depth "
+                        "(textureless parts keep the hull); "
                         "hull+density: hull then a volume-rendered density grid (slower); density: "
                         "photometric only (needs the scene bounding box)")
     g.add_argument("--vertices", type=_positive_int, default=200_000,
