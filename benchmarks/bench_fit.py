@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     ap.add_argument("--marks", default="15,30", help="minutes at which snapshots are evaluated")
     ap.add_argument("--downscale", type=float, default=1)
     ap.add_argument("--vertices", type=int, default=200_000, help="scaffold vertex target")
-    ap.add_argument("--scaffold-method", default="auto", help="auto | hull | hull+density | density")
+    ap.add_argument("--scaffold-method", default="auto", help="auto | hull | hull+mvs | hull+density | density")
     ap.add_argument("--scaffold-downscale", type=float, default=None,
                     help="image downscale for the scaffold stage (default: --downscale); e.g. DTU trains at 4 "
                          "and builds the scaffold at 2")
@@ -107,7 +107,8 @@ def main(argv=None) -> int:
         return {"n_views": r["n_views"], **r["headline"], "mean": r["mean"]}
 
     result = {"scene": name, "data": os.path.abspath(args.data), "downscale": args.downscale,
-              "budget_min": args.budget_min, "scaffold_downscale": sd or args.downscale, "mvs_side": args.mvs_side, "scaffold_s": scaffold_s, "scaffold": report.to_dict(),
+              "budget_min": args.budget_min, "scaffold_downscale": sd or args.downscale, "mvs_side": args.mvs_side,
+              "scaffold_s": scaffold_s, "scaffold": report.to_dict(),
               "train_steps": res.steps_done, "total_wall_s": total_s, "radius": field.radius,
               "interpolation": args.interpolation, "step_scale": field.config.step_scale,
               "lr_codes": cfg.lr_codes, "lr_decoders": cfg.lr_decoders, "marks": {}, "history": history}

@@ -41,9 +41,9 @@ class ScaffoldConfig:
         hull only; fastest; no concavities; needs masks), "hull+mvs" (hull, then plane-sweep stereo
         depth maps fused on the hull grid carve what no silhouette shows: concavities, and the depth
         of one-sided captures such as DTU; textureless parts keep the hull; needs masks. On lego it
-        lifts a 4-minute fit from 27.0 to 29.0 dB; on DTU it is what makes the scaffold usable), "hull+density" (hull, then a density grid fitted by
-        volume rendering; slower; needs masks), "density" (photometric density only; needs a bbox;
-        no masks needed).
+        lifts a 4-minute fit from 27.0 to 29.0 dB; on DTU it is what makes the scaffold usable),
+        "hull+density" (hull, then a density grid fitted by volume rendering; slower; needs masks),
+        "density" (photometric density only; needs a bbox; no masks needed).
     target_vertices: vertex count the mesh is resampled to (within ~12%); 0 keeps the grid's count.
     hull_resolution: cells on the longest side of the visual-hull grid (sub-voxel surface).
     mask_tolerance: views allowed to disagree that a point is inside the mask (-1 = auto: 0 for

@@ -250,6 +250,7 @@ def consistency_filter(depths: torch.Tensor, cams: Cameras, sources: list[list[i
         ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float32) + 0.5,
                                 torch.arange(W, dtype=torch.float32) + 0.5, indexing="ij")
         count = torch.zeros(H, W, dtype=torch.int32)
+        Rr, tr = Rc.T, -Rc.T @ C
         for s in sources[i]:
             Ks, Rs, Cs = _camera(cams, s)
             Rw2c, tw2c = Rs.T, -Rs.T @ Cs
@@ -258,11 +259,9 @@ def consistency_filter(depths: torch.Tensor, cams: Cameras, sources: list[list[i
             inb = valid & (z > 0) & (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
             ds = depths[s][vi.clamp(0, H - 1), ui.clamp(0, W - 1)]
             inb &= ds > 0
-            # back-project the source depth at that pixel and bring it into the reference view
-            xs_c = (ui.float() + 0.5 - Ks[0, 2] - Ks[0, 1] * ((vi.float() + 0.5 - Ks[1, 2]) / Ks[1, 1])) / Ks[0, 0]
-            ys_c = (vi.float() + 0.5 - Ks[1, 2]) / Ks[1, 1]
-            Xs = Cs + (torch.stack([xs_c, ys_c, torch.ones_like(xs_c)], -1) * ds[..., None]) @ Rs.T
-            Rr, tr = Rc.T, -Rc.T @ C
+            # back-project the source depth at that pixel (its centre) and bring it into the reference view
+            dirs_s = _cam_dirs(Ks, W, H)[vi.clamp(0, H - 1), ui.clamp(0, W - 1)]
+            Xs = Cs + (dirs_s * ds[..., None]) @ Rs.T
             u2, v2, z2 = _project(K, Rr, tr, Xs)
             err = torch.sqrt((u2 - xs) ** 2 + (v2 - ys) ** 2)
             ok = inb & (err < 1.0) & ((z2 - d).abs() < 0.01 * d)
