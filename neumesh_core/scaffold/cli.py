@@ -43,14 +43,17 @@ def add_scaffold_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--resolution", type=int, default=256,
                    help="visual-hull grid cells along the longest side of the object box (default 256); "
                         "raise it for very thin parts, lower it for speed")
-    g.add_argument("--tolerance", type=int, default=-1,
-                   help="views allowed to disagree that a point is inside the mask (default -1 = auto: 0 "
-                        "for anti-aliased alpha, 2%% of the views for binary masks such as DTU)")
+    g.add_argument("--tolerance", type=int, default=0,
+                   help="views allowed to disagree that a point is inside the mask (default 0; raise it "
+                        "for hand-made masks that cut off parts of the object in some views)")
     g.add_argument("--dilate", type=float, default=-1.0,
                    help="grow the hull by this many pixels to protect thin parts (default -1 = auto: "
                         "0.5 px at 400 px images)")
     g.add_argument("--min-view-fraction", type=float, default=0.6,
-                   help="a point must be in frame in this fraction of the views (default 0.6)")
+                   help="the cameras must share a volume that this fraction of the views sees (default 0.6)")
+    g.add_argument("--reconstruct-view-fraction", type=float, default=0.1,
+                   help="reconstruct points in frame in at least this fraction of the views (default 0.1; "
+                        "close-up captures cut the object at the frame in most views)")
     g.add_argument("--iters", type=_int_list, default=(300, 300),
                    help="density-grid iterations per coarse-to-fine stage, comma separated (default "
                         "300,300; used by hull+density and density)")
@@ -70,6 +73,7 @@ def config_from_args(args):
     return ScaffoldConfig(
         method=args.method, target_vertices=args.vertices, hull_resolution=args.resolution,
         mask_tolerance=args.tolerance, hull_dilate_px=args.dilate, min_view_fraction=args.min_view_fraction,
+        reconstruct_view_fraction=args.reconstruct_view_fraction,
         density_iters=tuple(args.iters), density_resolutions=tuple(args.density_resolutions),
         density_iso_alpha=args.iso_alpha, iou_views=args.iou_views,
         compute_iou=not args.no_metrics, chamfer_samples=0 if args.no_metrics else 100_000)

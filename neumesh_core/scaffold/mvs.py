@@ -142,6 +142,16 @@ def _box_sum_stack(x: torch.Tensor, r: int) -> torch.Tensor:
     return x * (1.0 / (ny[:, None] * nx[None]).float())
 
 
+def _erode(mask: torch.Tensor, r: int) -> torch.Tensor:
+    """Binary erosion of an (H,W) bool mask by a (2r+1)^2 square; pixels outside the image count as
+    inside (a mask cut by the frame border is not a silhouette)."""
+    if r <= 0:
+        return mask
+    outside = (~mask).float()[None, None]
+    grown = F.max_pool2d(F.pad(outside, (r, r, r, r), value=0.0), 2 * r + 1, stride=1)
+    return grown[0, 0] < 0.5
+
+
 def sweep_depth(ref: int, sources: list[int], grey: torch.Tensor, masks: Optional[np.ndarray], cams: Cameras,
                 hull: _Hull, z_range: tuple[float, float], cfg: MVSConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """Depth (H,W) (0 = none) and best score (H,W) of view ``ref`` by a plane sweep.
@@ -226,8 +236,9 @@ def sweep_depth(ref: int, sources: list[int], grey: torch.Tensor, masks: Optiona
     step = (z1 - z0) / max(D - 1, 1)
     depth = zs[j] + off.clamp(-0.5, 0.5) * step
     ok = (best >= cfg.min_ncc) & (var_i[0].sqrt() >= cfg.min_std)
-    if masks is not None:
-        ok &= torch.from_numpy(masks[ref, y0:y1, x0:x1] > 0.5)
+    if masks is not None:  # no depth within the window radius of the silhouette: there the window
+        # straddles the background, which matches at wrong depths and would carve the object's rim
+        ok &= _erode(torch.from_numpy(masks[ref] > 0.5), r)[y0:y1, x0:x1]
     depth_full[y0:y1, x0:x1] = torch.where(ok, depth, torch.zeros_like(depth))
     best_full[y0:y1, x0:x1] = best
     return depth_full, best_full
@@ -356,3 +367,69 @@ def refine_hull(images, hull: HullGrid, hull_vox: np.ndarray, cfg: MVSConfig | N
              "fused_nodes": int(np.isfinite(fused).sum()),
              "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__}}
     return MVSResult(fused, filt.numpy(), stats)
+
+
+def keep_silhouettes(values: np.ndarray, hull_values: np.ndarray, lo: np.ndarray, voxel: float,
+                     views, masks: np.ndarray, threshold: float = 0.5, rounds: int = 2,
+                     chunk: int = 1 << 18) -> tuple[np.ndarray, dict]:
+    """Give back carved hull nodes where carving uncovered mask pixels.
+
+    ``values``: the hull after stereo carving (+ inside); ``hull_values``: the hull before it;
+    ``views``: a :class:`~neumesh_core.scaffold.hull.ViewStack` of the ``masks`` (N,H,W).  Stereo is
+    least reliable at silhouettes (the window straddles the background) and a wrong depth there
+    carves the object's rim, which the field then cannot render (it has no density far from the
+    scaffold).  Every mask pixel must stay covered: the inside nodes are splatted into every view,
+    and carved nodes that project onto a mask pixel no inside node covers are restored to their hull
+    value.  Returns the new values and counts for the report.
+    """
+    N = len(views)
+    H, W = views.height, views.width
+    m = torch.from_numpy(np.asarray(masks) > threshold)
+    lo_t = torch.as_tensor(np.asarray(lo, np.float32))
+    dims = values.shape
+    out = values.copy()
+    carved = np.flatnonzero(((hull_values > 0) & (values <= 0)).reshape(-1))
+    flat_hull = hull_values.reshape(-1)
+    flat_out = out.reshape(-1)
+
+    def nodes(idx):
+        li = torch.from_numpy(idx)
+        ijk = torch.stack([li // (dims[1] * dims[2]), (li // dims[2]) % dims[1], li % dims[2]], -1)
+        return lo_t + ijk.float() * voxel
+
+    def pixels(p):
+        u, v, z = views.project(p)
+        ok = views.in_frame(u, v, z)
+        ui = u.floor().long().clamp(0, W - 1)
+        vi = v.floor().long().clamp(0, H - 1)
+        return ok, vi * W + ui
+
+    stats = {"carved_nodes": int(len(carved)), "restored_nodes": 0, "uncovered_px": []}
+    for _ in range(rounds):
+        cover = torch.zeros(N, H * W, dtype=torch.bool)
+        inside = np.flatnonzero(flat_out > 0)
+        for s in range(0, len(inside), chunk):
+            ok, pix = pixels(nodes(inside[s:s + chunk]))
+            for n in range(N):
+                cover[n, pix[n][ok[n]]] = True
+        # a node covers the pixels its voxel spans: close the one-pixel gaps between node centres
+        cover = F.max_pool2d(cover.view(N, 1, H, W).float(), 3, stride=1, padding=1)[:, 0] > 0
+        cover = F.max_pool2d(1.0 - cover[:, None].float(), 3, stride=1, padding=1)[:, 0] < 0.5
+        missed = (m & ~cover).view(N, H * W)
+        stats["uncovered_px"].append(int(missed.sum()))
+        if not bool(missed.any()) or len(carved) == 0:
+            break
+        restore = np.zeros(len(carved), bool)
+        for s in range(0, len(carved), chunk):
+            ok, pix = pixels(nodes(carved[s:s + chunk]))
+            hit = torch.zeros(pix.shape[1], dtype=torch.bool)
+            for n in range(N):
+                hit |= ok[n] & missed[n][pix[n]]
+            restore[s:s + chunk] = hit.numpy()
+        if not restore.any():
+            break
+        idx = carved[restore]
+        flat_out[idx] = flat_hull[idx]
+        carved = carved[~restore]
+        stats["restored_nodes"] += int(len(idx))
+    return out, stats
