@@ -43,19 +43,27 @@ class ViewStack:
     def project(self, pts: torch.Tensor):
         """pts (P,3) -> u,v (N,P) pixel coordinates (pixel i spans [i, i+1)), z (N,P) depth."""
         pc = torch.einsum("nij,pj->npi", self.R, pts) + self.t[:, None, :]
-        z = pc[..., 2]
-        zs = torch.where(z.abs() < 1e-8, torch.full_like(z, 1e-8), z)
-        x, y = pc[..., 0] / zs, pc[..., 1] / zs
-        K = self.K
-        u = K[:, 0, 0, None] * x + K[:, 0, 1, None] * y + K[:, 0, 2, None]
-        v = K[:, 1, 1, None] * y + K[:, 1, 2, None]
-        return u, v, z
+        return _to_pixels(self.K[:, None], pc)
+
+    def project_view(self, i: int, pts: torch.Tensor):
+        """pts (...,3) -> u, v, z (...) in view ``i`` alone (same convention as :meth:`project`)."""
+        return _to_pixels(self.K[i], pts @ self.R[i].T + self.t[i])
 
     def in_frame(self, u, v, z, margin: float = 0.0):
         return (z > 1e-6) & (u >= -margin) & (u <= self.width + margin) & (v >= -margin) & (v <= self.height + margin)
 
     def mean_focal(self) -> float:
         return float(0.5 * (self.K[:, 0, 0] + self.K[:, 1, 1]).mean())
+
+
+def _to_pixels(K: torch.Tensor, pc: torch.Tensor):
+    """Camera-space points pc (...,3) -> u, v, z with intrinsics K (...,3,3) broadcast against pc."""
+    z = pc[..., 2]
+    zs = torch.where(z.abs() < 1e-8, torch.full_like(z, 1e-8), z)
+    x, y = pc[..., 0] / zs, pc[..., 1] / zs
+    u = K[..., 0, 0] * x + K[..., 0, 1] * y + K[..., 0, 2]
+    v = K[..., 1, 1] * y + K[..., 1, 2]
+    return u, v, z
 
 
 def mask_sdf(masks: np.ndarray, threshold: float = 0.5) -> np.ndarray:

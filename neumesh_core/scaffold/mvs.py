@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from ..data.cameras import Cameras
-from .hull import HullGrid
+from .hull import HullGrid, ViewStack
 
 
 @dataclass
@@ -115,16 +115,6 @@ def _cam_dirs(K: torch.Tensor, W: int, H: int) -> torch.Tensor:
     y = (ys - K[1, 2]) / K[1, 1]
     x = (xs - K[0, 2] - K[0, 1] * y) / K[0, 0]
     return torch.stack([x, y, torch.ones_like(x)], -1)
-
-
-def _project(K, R_w2c, t_w2c, X):
-    pc = X @ R_w2c.T + t_w2c
-    z = pc[..., 2]
-    zs = torch.where(z.abs() < 1e-8, torch.full_like(z, 1e-8), z)
-    x, y = pc[..., 0] / zs, pc[..., 1] / zs
-    u = K[0, 0] * x + K[0, 1] * y + K[0, 2]
-    v = K[1, 1] * y + K[1, 2]
-    return u, v, z
 
 
 def _box_sum_stack(x: torch.Tensor, r: int) -> torch.Tensor:
@@ -250,6 +240,7 @@ def consistency_filter(depths: torch.Tensor, cams: Cameras, sources: list[list[i
     error < 1 px and relative depth difference < 1%)."""
     N, H, W = depths.shape
     out = torch.zeros_like(depths)
+    views = ViewStack.from_cameras(cams)
     for i in range(N):
         K, Rc, C = _camera(cams, i)
         d = depths[i]
@@ -261,11 +252,9 @@ def consistency_filter(depths: torch.Tensor, cams: Cameras, sources: list[list[i
         ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float32) + 0.5,
                                 torch.arange(W, dtype=torch.float32) + 0.5, indexing="ij")
         count = torch.zeros(H, W, dtype=torch.int32)
-        Rr, tr = Rc.T, -Rc.T @ C
         for s in sources[i]:
             Ks, Rs, Cs = _camera(cams, s)
-            Rw2c, tw2c = Rs.T, -Rs.T @ Cs
-            u, v, z = _project(Ks, Rw2c, tw2c, X)
+            u, v, z = views.project_view(s, X)
             ui, vi = u.floor().long(), v.floor().long()
             inb = valid & (z > 0) & (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
             ds = depths[s][vi.clamp(0, H - 1), ui.clamp(0, W - 1)]
@@ -273,7 +262,7 @@ def consistency_filter(depths: torch.Tensor, cams: Cameras, sources: list[list[i
             # back-project the source depth at that pixel (its centre) and bring it into the reference view
             dirs_s = _cam_dirs(Ks, W, H)[vi.clamp(0, H - 1), ui.clamp(0, W - 1)]
             Xs = Cs + (dirs_s * ds[..., None]) @ Rs.T
-            u2, v2, z2 = _project(K, Rr, tr, Xs)
+            u2, v2, z2 = views.project_view(i, Xs)
             err = torch.sqrt((u2 - xs) ** 2 + (v2 - ys) ** 2)
             ok = inb & (err < 1.0) & ((z2 - d).abs() < 0.01 * d)
             count += ok.int()
@@ -291,16 +280,15 @@ def fuse_tsdf(depths: torch.Tensor, cams: Cameras, shape, lo: np.ndarray, voxel:
     tau = truncation * voxel
     lo_t = torch.as_tensor(np.asarray(lo, np.float32))
     dims = torch.tensor(shape)
-    views = [_camera(cams, i) for i in range(N)]
+    views = ViewStack.from_cameras(cams)
     for s in range(0, len(idx), 1 << 20):
         li = torch.from_numpy(idx[s:s + (1 << 20)])
         ijk = torch.stack([li // (dims[1] * dims[2]), (li // dims[2]) % dims[1], li % dims[2]], -1)
         X = lo_t + ijk.float() * voxel
         acc = torch.zeros(len(li))
         cnt = torch.zeros(len(li))
-        for i, (K, Rc, C) in enumerate(views):
-            Rw2c = Rc.T
-            u, v, z = _project(K, Rw2c, -Rw2c @ C, X)
+        for i in range(N):
+            u, v, z = views.project_view(i, X)
             ui, vi = u.floor().long(), v.floor().long()
             ok = (z > 0) & (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
             d = depths[i][vi.clamp(0, H - 1), ui.clamp(0, W - 1)]
