@@ -27,7 +27,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="folder for the mesh (default: a temp folder)")
     ap.add_argument("--name", default=None, help="result name (default: dataset folder name)")
     ap.add_argument("--downscale", type=float, default=1, help="image downscale factor (default 1)")
-    ap.add_argument("--method", default="auto", choices=["auto", "hull", "hull+density", "density"])
+    ap.add_argument("--method", default="auto", choices=["auto", "hull", "hull+mvs", "hull+density", "density"])
     ap.add_argument("--vertices", type=int, default=200_000, help="target vertex count (default 200000)")
     ap.add_argument("--resolution", type=int, default=256, help="hull grid resolution (default 256)")
     ap.add_argument("--iters", default="300,300", help="density iterations per stage (hull+density/density)")
