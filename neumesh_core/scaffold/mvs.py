@@ -117,6 +117,14 @@ def _cam_dirs(K: torch.Tensor, W: int, H: int) -> torch.Tensor:
     return torch.stack([x, y, torch.ones_like(x)], -1)
 
 
+def _node_positions(flat_idx: np.ndarray, shape, lo, voxel: float) -> torch.Tensor:
+    """World positions (P,3) of grid nodes given by flat (C-order) indices into a grid of ``shape``."""
+    li = torch.from_numpy(np.asarray(flat_idx))
+    ny, nz = int(shape[1]), int(shape[2])
+    ijk = torch.stack([li // (ny * nz), (li // nz) % ny, li % nz], -1)
+    return torch.as_tensor(np.asarray(lo, np.float32)) + ijk.float() * voxel
+
+
 def _box_sum_stack(x: torch.Tensor, r: int) -> torch.Tensor:
     """(2r+1)^2 window means over the last two dims of x (B,H,W) with running sums (separable: rows,
     then columns, which keeps float32 sums small); windows are clipped at the border and divided by
@@ -278,15 +286,11 @@ def fuse_tsdf(depths: torch.Tensor, cams: Cameras, shape, lo: np.ndarray, voxel:
     idx = np.flatnonzero(active.reshape(-1))
     out = np.full(int(np.prod(shape)), np.nan, np.float32)
     tau = truncation * voxel
-    lo_t = torch.as_tensor(np.asarray(lo, np.float32))
-    dims = torch.tensor(shape)
     views = ViewStack.from_cameras(cams)
     for s in range(0, len(idx), 1 << 20):
-        li = torch.from_numpy(idx[s:s + (1 << 20)])
-        ijk = torch.stack([li // (dims[1] * dims[2]), (li // dims[2]) % dims[1], li % dims[2]], -1)
-        X = lo_t + ijk.float() * voxel
-        acc = torch.zeros(len(li))
-        cnt = torch.zeros(len(li))
+        X = _node_positions(idx[s:s + (1 << 20)], shape, lo, voxel)
+        acc = torch.zeros(len(X))
+        cnt = torch.zeros(len(X))
         for i in range(N):
             u, v, z = views.project_view(i, X)
             ui, vi = u.floor().long(), v.floor().long()
@@ -298,7 +302,7 @@ def fuse_tsdf(depths: torch.Tensor, cams: Cameras, shape, lo: np.ndarray, voxel:
             acc += torch.where(ok, sd.clamp(-tau, tau) / voxel, torch.zeros_like(sd))
             cnt += ok.float()
         val = torch.where(cnt >= min_observations, acc / cnt.clamp_min(1.0), torch.full_like(acc, float("nan")))
-        out[idx[s:s + len(li)]] = val.numpy()
+        out[idx[s:s + len(X)]] = val.numpy()
     return out.reshape(shape)
 
 
@@ -358,12 +362,12 @@ def refine_hull(images, hull: HullGrid, hull_vox: np.ndarray, cfg: MVSConfig | N
 
 
 def keep_silhouettes(values: np.ndarray, hull_values: np.ndarray, lo: np.ndarray, voxel: float,
-                     views, masks: np.ndarray, threshold: float = 0.5, rounds: int = 2,
+                     views: ViewStack, masks: np.ndarray, threshold: float = 0.5, rounds: int = 2,
                      chunk: int = 1 << 18) -> tuple[np.ndarray, dict]:
     """Give back carved hull nodes where carving uncovered mask pixels.
 
     ``values``: the hull after stereo carving (+ inside); ``hull_values``: the hull before it;
-    ``views``: a :class:`~neumesh_core.scaffold.hull.ViewStack` of the ``masks`` (N,H,W).  Stereo is
+    ``views``: the cameras of the ``masks`` (N,H,W).  Stereo is
     least reliable at silhouettes (the window straddles the background) and a wrong depth there
     carves the object's rim, which the field then cannot render (it has no density far from the
     scaffold).  Every mask pixel must stay covered: the inside nodes are splatted into every view,
@@ -373,20 +377,13 @@ def keep_silhouettes(values: np.ndarray, hull_values: np.ndarray, lo: np.ndarray
     N = len(views)
     H, W = views.height, views.width
     m = torch.from_numpy(np.asarray(masks) > threshold)
-    lo_t = torch.as_tensor(np.asarray(lo, np.float32))
-    dims = values.shape
     out = values.copy()
     carved = np.flatnonzero(((hull_values > 0) & (values <= 0)).reshape(-1))
     flat_hull = hull_values.reshape(-1)
     flat_out = out.reshape(-1)
 
-    def nodes(idx):
-        li = torch.from_numpy(idx)
-        ijk = torch.stack([li // (dims[1] * dims[2]), (li // dims[2]) % dims[1], li % dims[2]], -1)
-        return lo_t + ijk.float() * voxel
-
-    def pixels(p):
-        u, v, z = views.project(p)
+    def pixels(idx):
+        u, v, z = views.project(_node_positions(idx, values.shape, lo, voxel))
         ok = views.in_frame(u, v, z)
         ui = u.floor().long().clamp(0, W - 1)
         vi = v.floor().long().clamp(0, H - 1)
@@ -397,7 +394,7 @@ def keep_silhouettes(values: np.ndarray, hull_values: np.ndarray, lo: np.ndarray
         cover = torch.zeros(N, H * W, dtype=torch.bool)
         inside = np.flatnonzero(flat_out > 0)
         for s in range(0, len(inside), chunk):
-            ok, pix = pixels(nodes(inside[s:s + chunk]))
+            ok, pix = pixels(inside[s:s + chunk])
             for n in range(N):
                 cover[n, pix[n][ok[n]]] = True
         # a node covers the pixels its voxel spans: close the one-pixel gaps between node centres
@@ -409,7 +406,7 @@ def keep_silhouettes(values: np.ndarray, hull_values: np.ndarray, lo: np.ndarray
             break
         restore = np.zeros(len(carved), bool)
         for s in range(0, len(carved), chunk):
-            ok, pix = pixels(nodes(carved[s:s + chunk]))
+            ok, pix = pixels(carved[s:s + chunk])
             hit = torch.zeros(pix.shape[1], dtype=torch.bool)
             for n in range(N):
                 hit |= ok[n] & missed[n][pix[n]]
