@@ -82,6 +82,34 @@ def masked_psnr(pred, gt, mask, threshold: float = 0.5) -> float:
     return psnr(pred, gt, m)
 
 
+def shading_corrected(pred, gt, mask, sigma: float = 16.0) -> np.ndarray:
+    """``pred`` (H,W,3) with its low-frequency colour corrected towards ``gt`` inside ``mask``.
+
+    Diagnostic, never a headline metric: the mask-normalised Gaussian blurs (``sigma`` px) of gt and
+    pred give a smooth per-pixel, per-channel gain gt_low / pred_low that the prediction is multiplied
+    by.  Errors that are only shading or exposure (lighting that changes with the camera, as in DTU)
+    disappear; blur, misalignment and wrong texture stay.  Pixels outside the mask are left as they are.
+    """
+    from scipy.ndimage import gaussian_filter
+
+    p = np.asarray(pred, np.float64)
+    g = np.asarray(gt, np.float64)
+    if p.shape != g.shape or p.ndim != 3:
+        raise ValueError(f"shading_corrected: pred {p.shape} and gt {g.shape} must both be (H,W,C)")
+    m = (np.asarray(mask) > 0.5).astype(np.float64)
+    if m.shape != p.shape[:2]:
+        raise ValueError(f"shading_corrected: mask {m.shape} does not match the image {p.shape[:2]}")
+    if not m.any():
+        raise ValueError("shading_corrected: the mask selects no pixels")
+    norm = np.maximum(gaussian_filter(m, sigma), 1e-6)
+    out = p.copy()
+    for c in range(p.shape[2]):
+        lo_g = gaussian_filter(g[..., c] * m, sigma) / norm
+        lo_p = gaussian_filter(p[..., c] * m, sigma) / norm
+        out[..., c] = np.where(m > 0, np.clip(p[..., c] * lo_g / np.maximum(lo_p, 1e-3), 0.0, 1.0), p[..., c])
+    return out.astype(np.float32)
+
+
 def _gaussian_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
     x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
     g = torch.exp(-(x**2) / (2 * sigma**2))

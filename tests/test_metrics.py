@@ -102,3 +102,27 @@ def test_lpips_rejects_wrong_state_dict(tmp_path):
     torch.save({"bar": torch.zeros(1)}, tmp_path / "alex.pth")
     with pytest.raises(WeightsUnavailableError, match="features.0.weight"):
         M.compute_lpips(np.zeros((64, 64, 3)), np.zeros((64, 64, 3)), cache_dir=str(tmp_path))
+
+
+def test_shading_corrected_removes_smooth_gain_but_not_blur():
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(0)
+    gt = rng.uniform(0.2, 0.8, (64, 64, 3)).astype(np.float32)
+    mask = np.zeros((64, 64), np.float32)
+    mask[8:56, 8:56] = 1
+    yy, xx = np.mgrid[0:64, 0:64] / 64.0
+    gain = (0.8 + 0.4 * xx * yy)[..., None]  # smooth shading change, as between two lightings
+    shaded = np.clip(gt * gain, 0, 1).astype(np.float32)
+    raw = M.masked_psnr(shaded, gt, mask)
+    fixed = M.masked_psnr(M.shading_corrected(shaded, gt, mask, sigma=6), gt, mask)
+    assert raw < 25 and fixed > raw + 10
+    # blur is an error of detail, not of shading: the correction leaves it
+    blurred = np.stack([gaussian_filter(gt[..., c], 1.5) for c in range(3)], -1).astype(np.float32)
+    assert M.masked_psnr(M.shading_corrected(blurred, gt, mask, sigma=6), gt, mask) == pytest.approx(
+        M.masked_psnr(blurred, gt, mask), abs=0.3)
+    # outside the mask the prediction is untouched
+    out = M.shading_corrected(shaded, gt, mask, sigma=6)
+    assert np.array_equal(out[mask == 0], shaded[mask == 0])
+    with pytest.raises(ValueError, match="no pixels"):
+        M.shading_corrected(shaded, gt, np.zeros((64, 64)))
