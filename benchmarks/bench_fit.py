@@ -1,8 +1,8 @@
 """Capture benchmark: images -> scaffold -> trained field within a wall-clock budget -> evaluation.
 
     python benchmarks/bench_fit.py --data ../shared/data/nerf_synthetic/lego --budget-min 60
-    python benchmarks/bench_fit.py --data ../shared/data/dtu/scan24 --budget-min 30 --marks 15 \
-        --downscale 4 --interpolation early --radius-scale 2.5 --vertices 1000000
+    python benchmarks/bench_fit.py --data ../shared/data/dtu/scan24 --budget-min 60 --marks 15,30,45 \
+        --downscale 4 --interpolation early --radius-scale 2.5 --vertices 2000000
 
 The budget covers scaffold + training (the clock starts before the scaffold).  Snapshots are saved when
 the clock passes each --marks minute; all evaluation happens after training, so it does not eat the

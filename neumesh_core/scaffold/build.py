@@ -45,6 +45,9 @@ class ScaffoldConfig:
         "hull+density" (hull, then a density grid fitted by volume rendering; slower; needs masks),
         "density" (photometric density only; needs a bbox; no masks needed).
     target_vertices: vertex count the mesh is resampled to (within ~12%); 0 keeps the grid's count.
+    max_mesh_grid: cap on that resampled grid (~this^3 nodes in all); beyond it the mesh is midpoint-
+        subdivided instead.  640 reaches ~2M vertices on scan24 (3.2 GB peak at 567^3; 420 stopped
+        near 1M).
     hull_resolution: cells on the longest side of the visual-hull grid (sub-voxel surface).
     mask_tolerance: views allowed to disagree that a point is inside the mask (default 0; raise it
         for hand-made masks that cut off parts of the object in some views).  On DTU's masks a
@@ -79,6 +82,7 @@ class ScaffoldConfig:
     mvs: Optional["MVSConfig"] = None  # plane-sweep settings for "hull+mvs" (None: MVSConfig())
     mvs_max_image_side: int = 400
     min_component_fraction: float = 0.002
+    max_mesh_grid: int = 640    # the grid resampled to reach target_vertices has about this^3 nodes at most
     max_faces: int = 5_000_000
     iou_views: int = 0          # 0: all training views
     compute_iou: bool = True
@@ -355,6 +359,7 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
     check("mesh", 0.0)
     mesh, info = extract_with_target(field_vals.astype(np.float32), 0.0, field_lo, field_voxel,
                                      cfg.target_vertices, cfg.min_component_fraction,
+                                     max_grid_nodes=int(cfg.max_mesh_grid) ** 3,
                                      check=lambda f: check("mesh", f))
     rep.meshing = info
     if mesh.num_vertices == 0 or len(mesh.faces) == 0:

@@ -15,6 +15,7 @@ from ..data.cameras import batch_pixel_rays
 from ..data.scene import ImageSet, Scene
 from ..render.renderer import RenderSettings, default_step, render_rays
 from .checkpoint import load_optimizer_state, save_field
+from .optim import RowSparseAdam
 
 
 @dataclass
@@ -102,11 +103,12 @@ def _make_optimizer(field, cfg: TrainConfig):
     ]
     for g in groups:
         g["base_lr"] = g["lr"]
+    # codes get row-sparse gradients while training (field.sparse_grads): lazy Adam on the rows used
     kwargs = dict(betas=(0.9, 0.99), eps=1e-15)
     try:
-        return torch.optim.Adam(groups, fused=True, **kwargs)
+        return RowSparseAdam(groups, fused=True, **kwargs)
     except (RuntimeError, TypeError, ValueError):
-        return torch.optim.Adam(groups, foreach=True, **kwargs)
+        return RowSparseAdam(groups, foreach=True, **kwargs)
 
 
 def _lr_factor(step: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> float:
@@ -152,6 +154,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
     step_size = default_step(field, settings)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
     field.train()
+    field.sparse_grads = True
     t_begin = time.perf_counter()
     history = []
     loss_v = psnr_v = float("nan")
@@ -231,6 +234,8 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
                 break
     except KeyboardInterrupt:
         interrupted = True
+    finally:
+        field.sparse_grads = False
     field.eval()
     save(step)
     return TrainResult(step, loss_v, psnr_v, time.perf_counter() - t_begin, cancelled, interrupted, history)

@@ -109,6 +109,20 @@ def test_auto_radius_scales_with_edges(blob_mesh):
     assert f.radius == pytest.approx(2.0 * mean_edge, rel=1e-5)
 
 
+def test_same_mesh_and_config_give_the_same_field(blob_mesh):
+    """Initialisation does not depend on (or disturb) the global RNG: results are reproducible."""
+    torch.manual_seed(1)
+    a = NeuMeshField(blob_mesh, FieldConfig())
+    state = torch.random.get_rng_state()
+    torch.manual_seed(2)
+    b = NeuMeshField(blob_mesh, FieldConfig())
+    for (name, pa), (_, pb) in zip(a.named_parameters(), b.named_parameters()):
+        assert torch.equal(pa, pb), name
+    torch.manual_seed(1)
+    NeuMeshField(blob_mesh, FieldConfig())
+    assert torch.equal(torch.random.get_rng_state(), state)
+
+
 def test_trunc_exp_saturates_without_inf():
     from neumesh_core.field.encoding import trunc_exp
 

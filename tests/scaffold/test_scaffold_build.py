@@ -107,6 +107,12 @@ def test_target_vertices_changes_resolution(small_scene):
                                                            chamfer_samples=0))
     assert abs(mesh.num_vertices - 40000) <= 0.15 * 40000
     assert len(rep.meshing["rounds"]) >= 2
+    # a capped meshing grid cannot get there by resampling: the mesh is subdivided instead
+    capped, rep2 = build_scaffold(small_scene, ScaffoldConfig(method="hull", target_vertices=40000,
+                                                              hull_resolution=64, max_mesh_grid=65,
+                                                              compute_iou=False, chamfer_samples=0))
+    assert rep2.meshing.get("subdivided") and np.prod(rep2.meshing["rounds"][-1]["grid"]) <= 1.1 * 65 ** 3
+    assert abs(capped.num_vertices - 40000) < abs(rep2.meshing["rounds"][0]["vertices"] - 40000)
 
 
 def test_hull_plus_density_runs_and_stays_close(small_scene):
