@@ -103,7 +103,7 @@ def _make_optimizer(field, cfg: TrainConfig):
     ]
     for g in groups:
         g["base_lr"] = g["lr"]
-    # codes get row-sparse gradients while training (field.sparse_grads): lazy Adam on the rows used
+    # codes get row-sparse gradients while training (field.sparse_grads); the update stays exactly Adam's
     kwargs = dict(betas=(0.9, 0.99), eps=1e-15)
     try:
         return RowSparseAdam(groups, fused=True, **kwargs)
