@@ -7,6 +7,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from .data.cameras import Cameras, pixel_rays
 from .data.scene import ImageSet
 from .render.renderer import RenderSettings, render_camera
 
@@ -56,6 +57,42 @@ def evaluate(field, images: ImageSet, background=(1.0, 1.0, 1.0), masked: bool =
                            "ssim": mean.get("ssim_fg", mean.get("ssim")),
                            "lpips": mean.get("lpips")}}
     return result
+
+
+def surface_points(K, c2w, depth: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """World points (P,3) where the rays through ``pixels`` (P,2) integer (x, y) of one camera meet a
+    rendered ``depth`` map (H,W; distance along the ray, as :class:`RenderOutput` gives it)."""
+    import torch
+
+    o, d = pixel_rays(K, c2w, depth.shape[1], depth.shape[0], pixels=torch.as_tensor(pixels))
+    t = depth[pixels[:, 1], pixels[:, 0]]
+    return o.numpy() + d.numpy() * t[:, None]
+
+
+def view_coverage(points: np.ndarray, cameras: Cameras, depths: np.ndarray, rel_tol: float = 0.01) -> np.ndarray:
+    """How many of ``cameras`` see each world point (P,3) unoccluded: in front, in frame, and within
+    ``rel_tol`` (relative) of that camera's depth map.  ``depths`` (N,H,W) are rendered distances along
+    the ray at the cameras' resolution (inf where empty).  Returns (P,) int counts."""
+    import torch
+
+    from .scaffold.hull import ViewStack
+
+    if depths.shape != (len(cameras), cameras.height, cameras.width):
+        raise ValueError(f"depths must be (N,H,W) = ({len(cameras)},{cameras.height},{cameras.width}), "
+                         f"got {depths.shape}")
+    views = ViewStack.from_cameras(cameras)
+    pts = torch.as_tensor(np.asarray(points, dtype=np.float32))
+    counts = np.zeros(len(pts), np.int64)
+    for i in range(len(cameras)):
+        u, v, z = (a.numpy() for a in views.project_view(i, pts))
+        seen = views.in_frame(torch.from_numpy(u), torch.from_numpy(v), torch.from_numpy(z)).numpy()
+        seen &= (u < cameras.width) & (v < cameras.height)
+        ui = np.clip(u.astype(np.int64), 0, cameras.width - 1)
+        vi = np.clip(v.astype(np.int64), 0, cameras.height - 1)
+        dist = np.linalg.norm(points - cameras.c2w[i, :3, 3], axis=1)
+        seen &= np.abs(depths[i][vi, ui] - dist) <= rel_tol * dist
+        counts += seen
+    return counts
 
 
 def write_json(obj, path: str) -> None:
