@@ -81,12 +81,13 @@ def view_coverage(points: np.ndarray, cameras: Cameras, depths: np.ndarray, rel_
         raise ValueError(f"depths must be (N,H,W) = ({len(cameras)},{cameras.height},{cameras.width}), "
                          f"got {depths.shape}")
     views = ViewStack.from_cameras(cameras)
-    pts = torch.as_tensor(np.asarray(points, dtype=np.float32))
-    counts = np.zeros(len(pts), np.int64)
+    points = np.asarray(points, dtype=np.float32)
+    pts = torch.from_numpy(points)
+    counts = np.zeros(len(points), np.int64)
     for i in range(len(cameras)):
         u, v, z = (a.numpy() for a in views.project_view(i, pts))
-        seen = views.in_frame(torch.from_numpy(u), torch.from_numpy(v), torch.from_numpy(z)).numpy()
-        seen &= (u < cameras.width) & (v < cameras.height)
+        # pixel i spans [i, i+1): in frame is 0 <= u < width (ViewStack.in_frame also admits u == width)
+        seen = (z > 1e-6) & (u >= 0) & (u < cameras.width) & (v >= 0) & (v < cameras.height)
         ui = np.clip(u.astype(np.int64), 0, cameras.width - 1)
         vi = np.clip(v.astype(np.int64), 0, cameras.height - 1)
         dist = np.linalg.norm(points - cameras.c2w[i, :3, 3], axis=1)
