@@ -7,7 +7,10 @@
 
 The budget covers scaffold + training (the clock starts before the scaffold).  Snapshots are saved when
 the clock passes each --marks minute; all evaluation happens after training, so it does not eat the
-budget.  Prints the figures and writes benchmarks/results/fit_<scene>.json.
+budget.  Evaluation renders 2 x 2 rays per pixel (--supersample: the area filter of the downscaled
+photographs) at half the training step (--eval-step-scale); the final figures of a plain render, one ray
+per pixel at the training step, are in the JSON too ("plain_render").  Prints the figures and writes
+benchmarks/results/fit_<scene>.json.
 """
 from __future__ import annotations
 
@@ -46,6 +49,11 @@ def main(argv=None) -> int:
     ap.add_argument("--lr-decoders", type=float, default=None, help="default: TrainConfig's")
     ap.add_argument("--eval-views", type=int, default=25, help="val views in the final evaluation (0 = all)")
     ap.add_argument("--mark-views", type=int, default=10, help="val views evaluated at each mark")
+    ap.add_argument("--supersample", type=int, default=2,
+                    help="evaluation renders S x S rays per pixel (default 2); figures at 1 are reported too")
+    ap.add_argument("--eval-step-scale", type=float, default=0.25,
+                    help="marching step / radius when evaluating (default 0.25; 0: the field's training step)")
+    ap.add_argument("--results-name", default=None, help="results file name (default fit_<scene>.json)")
     args = ap.parse_args(argv)
     torch.set_num_threads(os.cpu_count() or 1)
 
@@ -102,10 +110,16 @@ def main(argv=None) -> int:
     split = "val" if "val" in scene.splits else "test"
     val = scene.split(split)
 
-    def ev(f, n):
+    def ev(f, n, ss=args.supersample, step=args.eval_step_scale or None, plain=False):
         sub = val if n <= 0 or n >= len(val) else val.subset(np.linspace(0, len(val) - 1, n).astype(int))
-        r = nm.evaluate(f, sub, background=scene.background, masked=masked)
-        return {"n_views": r["n_views"], **r["headline"], "mean": r["mean"]}
+        r = nm.evaluate(f, sub, background=scene.background, masked=masked,
+                        settings=nm.RenderSettings(supersample=ss, step_scale=step))
+        out = {"n_views": r["n_views"], "supersample": ss, "step_scale": step or f.config.step_scale,
+               **r["headline"], "mean": r["mean"], "per_view": [v.get("psnr_fg", v["psnr"]) for v in r["views"]]}
+        if plain and (ss > 1 or step is not None):   # also one ray per pixel at the training step
+            out["plain_render"] = {k: v for k, v in ev(f, n, 1, None).items()
+                                   if k in ("psnr", "ssim", "per_view", "step_scale")}
+        return out
 
     result = {"scene": name, "data": os.path.abspath(args.data), "downscale": args.downscale,
               "budget_min": args.budget_min, "scaffold_downscale": sd or args.downscale, "mvs_side": args.mvs_side,
@@ -116,11 +130,12 @@ def main(argv=None) -> int:
     for m, s in snaps.items():
         result["marks"][f"{m:g}min"] = {"step": s["step"], **ev(nm.load_field(s["path"]), args.mark_views)}
         print(f"at {m:g} min (step {s['step']}): {result['marks'][f'{m:g}min']}")
-    result["final"] = ev(field, args.eval_views)
+    result["final"] = ev(field, args.eval_views, plain=True)
     print(f"final ({split}, {result['final']['n_views']} views): PSNR {result['final']['psnr']:.2f} "
           f"SSIM {result['final']['ssim']:.4f} LPIPS {result['final']['lpips']}")
     os.makedirs(os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"), exist_ok=True)
-    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", f"fit_{name}.json")
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
+                        args.results_name or f"fit_{name}.json")
     with open(path, "w") as fh:
         json.dump(result, fh, indent=2, default=float)
     print(f"wrote {path}")

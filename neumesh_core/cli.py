@@ -146,7 +146,8 @@ def cmd_eval(args) -> int:
     scene = nm.load_scene(args.data, downscale=args.downscale, background=args.background)
     masked = scene.kind == "dtu" if args.masked == "auto" else args.masked == "yes"
     r = nm.evaluate(field, scene.split(args.split), background=scene.background, masked=masked,
-                    out_dir=args.renders)
+                    out_dir=args.renders,
+                    settings=nm.RenderSettings(supersample=args.supersample, step_scale=args.step_scale))
     _print_eval(r)
     out = args.json or os.path.splitext(args.field)[0] + f"_eval_{args.split}.json"
     write_json({"field": args.field, "data": args.data, "split": args.split, **r}, out)
@@ -170,13 +171,14 @@ def turntable_cameras(center, radius: float, n: int, width: int, height: int, fo
     return nm.Cameras(np.repeat(K[None], n, 0), np.stack(c2ws), width, height)
 
 
-def _render_cameras(field, cams, out_dir, background, prefix="frame"):
+def _render_cameras(field, cams, out_dir, background, settings=None, prefix="frame"):
     import neumesh_core as nm
 
     os.makedirs(out_dir, exist_ok=True)
     times = []
     for i in range(len(cams)):
-        out = nm.render_camera(field, cams.K[i], cams.c2w[i], cams.width, cams.height, background=background)
+        out = nm.render_camera(field, cams.K[i], cams.c2w[i], cams.width, cams.height, background=background,
+                               settings=settings)
         nm.save_image(os.path.join(out_dir, f"{prefix}_{i:04d}.png"), out.rgba(background))
         times.append(out.seconds)
         print(f"\rrendered {i + 1}/{len(cams)} ({out.seconds:.2f}s)", end="", file=sys.stderr, flush=True)
@@ -198,7 +200,8 @@ def cmd_render(args) -> int:
         center = bb.mean(0)
         dist = float(np.linalg.norm(bb[1] - bb[0])) * 1.3
         cams = turntable_cameras(center, dist, args.frames, w, h)
-    times = _render_cameras(field, cams, args.out, bg)
+    times = _render_cameras(field, cams, args.out, bg,
+                            nm.RenderSettings(supersample=args.supersample, step_scale=args.step_scale))
     print(f"wrote {len(times)} images to {args.out}; mean {np.mean(times):.2f}s per frame")
     return 0
 
@@ -304,6 +307,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=36, help="turntable frames (default 36)")
     p.add_argument("--resolution", default="400x400", help="turntable image size WxH (default 400x400)")
     p.add_argument("--background", choices=["white", "black"], default="white", help="background colour")
+    p.add_argument("--supersample", type=int, default=1,
+                   help="S x S rays per pixel, averaged (anti-aliasing; S^2 times slower; default 1)")
+    p.add_argument("--step-scale", type=float, default=None,
+                   help="marching step / field radius (default: the step the field was trained with; "
+                        "half of it renders finer, twice as slowly)")
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("eval", help="PSNR/SSIM(/LPIPS) of a field over a dataset split; prints a table, "
@@ -315,6 +323,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="foreground (mask) metrics: auto = yes for DTU")
     p.add_argument("--json", help="JSON output path (default: next to the field)")
     p.add_argument("--renders", help="also write the rendered images to this folder")
+    p.add_argument("--supersample", type=int, default=1,
+                   help="S x S rays per pixel, averaged (anti-aliasing; S^2 times slower; default 1)")
+    p.add_argument("--step-scale", type=float, default=None,
+                   help="marching step / field radius (default: the step the field was trained with; "
+                        "half of it renders finer, twice as slowly)")
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("demo", help="the main job on the built-in scene: make it, train, evaluate, render a "

@@ -31,8 +31,13 @@ def test_train_render_eval_on_the_small_scene(small_scene_dir, tmp_path, capsys)
                  "--json", str(tmp_path / "e.json")]) == 0
     r = json.load(open(tmp_path / "e.json"))
     assert r["n_views"] == 4 and r["mean"]["psnr"] > 10 and r["lpips_available"] in (True, False)
+    assert main(["eval", "--field", field, "--data", small_scene_dir, "--split", "val", "--supersample", "2",
+                 "--step-scale", "0.2", "--json", str(tmp_path / "e2.json")]) == 0
+    r2 = json.load(open(tmp_path / "e2.json"))
+    p1, p2 = r["mean"]["psnr"], r2["mean"]["psnr"]
+    assert r2["n_views"] == 4 and p2 != p1 and abs(p2 - p1) < 3
     assert main(["render", "--field", field, "--out", str(tmp_path / "tt"), "--frames", "2",
-                 "--resolution", "24x16"]) == 0
+                 "--resolution", "24x16", "--supersample", "2"]) == 0
     assert sorted(os.listdir(tmp_path / "tt")) == ["frame_0000.png", "frame_0001.png"]
 
 

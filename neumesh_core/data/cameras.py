@@ -72,11 +72,14 @@ class Cameras:
         return self.c2w[:, :3, 3]
 
 
-def pixel_rays(K, c2w, width: int, height: int, device="cpu", pixels: torch.Tensor | None = None):
+def pixel_rays(K, c2w, width: int, height: int, device="cpu", pixels: torch.Tensor | None = None,
+               offset: tuple = (0.5, 0.5)):
     """Rays through pixel centres of one camera.
 
     Returns ``(origins, directions)`` as float32 tensors of shape (H*W,3) (row-major, y then x), or
     (P,3) when ``pixels`` (P,2) integer (x, y) coordinates are given. Directions are unit length.
+    ``offset``: where in each pixel the rays pass, (x, y) in [0, 1) (the centre by default); sub-pixel
+    offsets give the rays of a supersampled render.
     """
     K = torch.as_tensor(np.asarray(K), dtype=torch.float32, device=device)
     c2w = torch.as_tensor(np.asarray(c2w), dtype=torch.float32, device=device)
@@ -89,8 +92,8 @@ def pixel_rays(K, c2w, width: int, height: int, device="cpu", pixels: torch.Tens
         xs, ys = xs.reshape(-1), ys.reshape(-1)
     else:
         xs, ys = pixels[:, 0].to(device, torch.float32), pixels[:, 1].to(device, torch.float32)
-    y = (ys + 0.5 - K[1, 2]) / K[1, 1]
-    x = (xs + 0.5 - K[0, 2] - K[0, 1] * y) / K[0, 0]  # K[0,1] is the skew (0 for most cameras)
+    y = (ys + float(offset[1]) - K[1, 2]) / K[1, 1]
+    x = (xs + float(offset[0]) - K[0, 2] - K[0, 1] * y) / K[0, 0]  # K[0,1] is the skew (0 for most cameras)
     d_cam = torch.stack([x, y, torch.ones_like(x)], -1)
     d = d_cam @ c2w[:3, :3].T
     d = d / d.norm(dim=-1, keepdim=True)

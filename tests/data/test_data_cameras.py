@@ -72,3 +72,19 @@ def test_cameras_scaled_keeps_rays():
     avg = (full[0::2, 0::2] + full[1::2, 1::2]) / 2
     avg = avg / avg.norm(dim=-1, keepdim=True)
     np.testing.assert_allclose(d_half.reshape(24, 32, 3).numpy(), avg.numpy(), atol=1e-4)
+
+
+def test_sub_pixel_offsets_match_a_finer_grid():
+    """Rays at offset ((i+0.5)/S, (j+0.5)/S) of each pixel are the centre rays of the S-times finer
+    image (K scaled by S): the rays a supersampled render averages."""
+    rng = np.random.default_rng(3)
+    c2w = _random_pose(rng)
+    K = intrinsics_from_fov(0.9, 8, 6)
+    K2 = K.copy()
+    K2[:2] *= 2
+    _, fine = pixel_rays(K2, c2w, 16, 12)
+    fine = fine.view(6, 2, 8, 2, 3)
+    for j in range(2):
+        for i in range(2):
+            _, d = pixel_rays(K, c2w, 8, 6, offset=((i + 0.5) / 2, (j + 0.5) / 2))
+            assert torch.allclose(d.view(6, 8, 3), fine[:, j, :, i], atol=1e-6)
