@@ -154,7 +154,8 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
                 self.update_progress(float(f))
                 return not self.test_break()
 
-            rgba = render.render_items(items, K, c2w, W, H, transparent, progress=prog)
+            rgba = render.render_items(items, K, c2w, W, H, transparent, progress=prog,
+                                       supersample=scene.neumesh.render_samples)
         except Exception as exc:  # noqa: BLE001 - reported to the user, no (wrong) image written
             if type(exc).__name__ == "Cancelled":
                 return

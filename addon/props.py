@@ -76,6 +76,10 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
                                ("DATASET", "Dataset cameras", "Render every camera of the imported dataset")],
         default="ACTIVE",
     )
+    render_samples: IntProperty(name="Anti-aliasing", default=1, min=1, max=4,
+                                description="Final renders (F12, Render to images) average S x S rays per "
+                                            "pixel: smoother edges and fine texture, S^2 times the render "
+                                            "time. The viewport uses 1")
     viewport_preview: BoolProperty(name="Progressive viewport", default=True,
                                    description="Rendered viewport shading draws low-resolution previews first")
 

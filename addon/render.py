@@ -101,9 +101,10 @@ def _apply_vertices(item: Item):
 
 
 def render_items(items: list[Item], K, c2w, width: int, height: int, transparent: bool = False,
-                 progress=None) -> np.ndarray:
+                 progress=None, supersample: int = 1) -> np.ndarray:
     """Render (H,W,4) float32 display-referred RGBA (sRGB-encoded like the field's training images).
 
+    ``supersample``: S x S rays per pixel, averaged (anti-aliasing).
     Transparent: straight alpha = opacity, rgb composited on black (premultiplied).
     Otherwise: composited on white, alpha = 1.
     """
@@ -121,7 +122,7 @@ def render_items(items: list[Item], K, c2w, width: int, height: int, transparent
             fields.append(_apply_vertices(it))
         out = nm.render_camera(fields if len(fields) > 1 else fields[0], np.asarray(K, np.float32),
                                np.asarray(c2w, np.float32), int(width), int(height), background=bg,
-                               progress=progress)
+                               settings=nm.RenderSettings(supersample=int(supersample)), progress=progress)
     core.guard_torch_namespaces()  # torch may have imported more modules lazily
     rgb = np.asarray(out.rgb, dtype=np.float32).reshape(height, width, 3)
     alpha = np.asarray(out.opacity, dtype=np.float32).reshape(height, width, 1) if transparent else \

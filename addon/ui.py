@@ -66,6 +66,7 @@ class NEUMESH_PT_field(_Sidebar, bpy.types.Panel):
         s = context.scene.neumesh
         col.separator()
         col.prop(s, "render_cameras")
+        col.prop(s, "render_samples")
         col.prop(s, "output_dir")
         col.operator("neumesh.render_images", icon="RENDER_STILL")
         col.label(text=f"{len(operators.dataset_cameras())} dataset camera(s)")
@@ -101,6 +102,7 @@ class NEUMESH_PT_render(bpy.types.Panel):
         scene = context.scene
         col = self.layout.column()
         col.prop(scene.render, "film_transparent")
+        col.prop(scene.neumesh, "render_samples")
         vs = scene.view_settings
         if vs.view_transform != "Standard" or scene.render.dither_intensity != 0:
             col.label(text="Exact field colours: view transform 'Standard', dither 0", icon="INFO")

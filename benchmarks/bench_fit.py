@@ -1,7 +1,7 @@
 """Capture benchmark: images -> scaffold -> trained field within a wall-clock budget -> evaluation.
 
     python benchmarks/bench_fit.py --data ../shared/data/nerf_synthetic/lego --budget-min 60 \
-        --interpolation early --radius-scale 3 --eval-views 0
+        --interpolation early --radius-scale 3 --eval-views 0 --supersample 1 --eval-step-scale 0
     python benchmarks/bench_fit.py --data ../shared/data/dtu/scan24 --budget-min 60 --marks 15,30,45 \
         --downscale 4 --interpolation early --radius-scale 2.5 --vertices 2000000
 

@@ -59,7 +59,7 @@ def _deformed_scene(addon, field_path, angle=50.0):
     return obj, cam, idx_root, idx_tip
 
 
-def _reference(field_path, obj, cam, transparent=False):
+def _reference(field_path, obj, cam, transparent=False, supersample=1):
     """Core render with world-space evaluated vertices taken independently of the add-on's sync."""
     import neumesh_core as nm
 
@@ -74,7 +74,8 @@ def _reference(field_path, obj, cam, transparent=False):
     field.set_vertices(world)
     K, c2w = manual_K_c2w(cam, W, H)
     bg = None if transparent else (1.0, 1.0, 1.0)
-    return nm.render_camera(field, K, c2w, W, H, background=bg), world
+    return nm.render_camera(field, K, c2w, W, H, background=bg,
+                            settings=nm.RenderSettings(supersample=supersample)), world
 
 
 def test_f12_matches_core_render_of_armature_deformed_mesh(addon, trained_field, tmp_path):
@@ -107,6 +108,21 @@ def test_f12_matches_core_render_of_armature_deformed_mesh(addon, trained_field,
     K, c2w = manual_K_c2w(cam, W, H)
     undeformed = nm.render_camera(rest, K, c2w, W, H)
     assert np.abs(undeformed.rgb - png[..., :3]).max() > 0.2
+
+
+def test_f12_anti_aliasing_matches_core_supersampled_render(addon, trained_field, tmp_path):
+    obj, cam, _r, _t = _deformed_scene(addon, trained_field)
+    scene = bpy.context.scene
+    scene.neumesh.render_samples = 2
+    ref2, _ = _reference(trained_field, obj, cam, supersample=2)
+    ref1, _ = _reference(trained_field, obj, cam)
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    scene.render.filepath = str(tmp_path / "aa.exr")
+    bpy.ops.render.render(write_still=True)
+    got = _linear_to_srgb(_read_exr(str(tmp_path / "aa.exr"))[..., :3])
+    assert np.abs(got - ref2.rgb).max() <= 1e-4
+    assert np.abs(got - ref1.rgb).max() > 0.02   # the edges really are averaged over sub-pixel rays
 
 
 def test_film_transparent_alpha_is_opacity(addon, trained_field, tmp_path):
