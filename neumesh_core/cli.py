@@ -95,6 +95,20 @@ def _field_config(args):
                           radius=args.radius, grid_resolution=args.grid_res)
 
 
+def _add_render_options(ap) -> None:
+    ap.add_argument("--supersample", type=int, default=1,
+                    help="S x S rays per pixel, averaged (anti-aliasing; S^2 times slower; default 1)")
+    ap.add_argument("--step-scale", type=float, default=None,
+                    help="marching step / field radius (default: the step the field was trained with; "
+                         "half of it renders finer, twice as slowly)")
+
+
+def _render_settings(args):
+    import neumesh_core as nm
+
+    return nm.RenderSettings(supersample=args.supersample, step_scale=args.step_scale)
+
+
 def _scene_background(scene):
     return scene.background if scene.background is not None else (0.0, 0.0, 0.0)
 
@@ -146,8 +160,7 @@ def cmd_eval(args) -> int:
     scene = nm.load_scene(args.data, downscale=args.downscale, background=args.background)
     masked = scene.kind == "dtu" if args.masked == "auto" else args.masked == "yes"
     r = nm.evaluate(field, scene.split(args.split), background=scene.background, masked=masked,
-                    out_dir=args.renders,
-                    settings=nm.RenderSettings(supersample=args.supersample, step_scale=args.step_scale))
+                    out_dir=args.renders, settings=_render_settings(args))
     _print_eval(r)
     out = args.json or os.path.splitext(args.field)[0] + f"_eval_{args.split}.json"
     write_json({"field": args.field, "data": args.data, "split": args.split, **r}, out)
@@ -200,8 +213,7 @@ def cmd_render(args) -> int:
         center = bb.mean(0)
         dist = float(np.linalg.norm(bb[1] - bb[0])) * 1.3
         cams = turntable_cameras(center, dist, args.frames, w, h)
-    times = _render_cameras(field, cams, args.out, bg,
-                            nm.RenderSettings(supersample=args.supersample, step_scale=args.step_scale))
+    times = _render_cameras(field, cams, args.out, bg, _render_settings(args))
     print(f"wrote {len(times)} images to {args.out}; mean {np.mean(times):.2f}s per frame")
     return 0
 
@@ -307,11 +319,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=36, help="turntable frames (default 36)")
     p.add_argument("--resolution", default="400x400", help="turntable image size WxH (default 400x400)")
     p.add_argument("--background", choices=["white", "black"], default="white", help="background colour")
-    p.add_argument("--supersample", type=int, default=1,
-                   help="S x S rays per pixel, averaged (anti-aliasing; S^2 times slower; default 1)")
-    p.add_argument("--step-scale", type=float, default=None,
-                   help="marching step / field radius (default: the step the field was trained with; "
-                        "half of it renders finer, twice as slowly)")
+    _add_render_options(p)
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("eval", help="PSNR/SSIM(/LPIPS) of a field over a dataset split; prints a table, "
@@ -323,11 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="foreground (mask) metrics: auto = yes for DTU")
     p.add_argument("--json", help="JSON output path (default: next to the field)")
     p.add_argument("--renders", help="also write the rendered images to this folder")
-    p.add_argument("--supersample", type=int, default=1,
-                   help="S x S rays per pixel, averaged (anti-aliasing; S^2 times slower; default 1)")
-    p.add_argument("--step-scale", type=float, default=None,
-                   help="marching step / field radius (default: the step the field was trained with; "
-                        "half of it renders finer, twice as slowly)")
+    _add_render_options(p)
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("demo", help="the main job on the built-in scene: make it, train, evaluate, render a "
