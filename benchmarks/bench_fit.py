@@ -47,6 +47,11 @@ def main(argv=None) -> int:
     ap.add_argument("--step-scale", type=float, default=None, help="marching step / radius (default: FieldConfig's)")
     ap.add_argument("--lr-codes", type=float, default=None, help="default: TrainConfig's")
     ap.add_argument("--lr-decoders", type=float, default=None, help="default: TrainConfig's")
+    ap.add_argument("--lr-final", type=float, default=None,
+                    help="learning rate at the end of the budget / at the start (default: TrainConfig's)")
+    ap.add_argument("--average-from", type=float, default=None,
+                    help="average the parameters from this fraction of the training budget on (SWA; "
+                         "default off). A mark just before the end keeps the plain weights to compare")
     ap.add_argument("--eval-views", type=int, default=25, help="val views in the final evaluation (0 = all)")
     ap.add_argument("--mark-views", type=int, default=10, help="val views evaluated at each mark")
     ap.add_argument("--supersample", type=int, default=2,
@@ -98,7 +103,9 @@ def main(argv=None) -> int:
             snaps[m] = {"path": path, "step": p.step}
         return True
 
-    tkw = {k: v for k, v in (("lr_codes", args.lr_codes), ("lr_decoders", args.lr_decoders)) if v is not None}
+    tkw = {k: v for k, v in (("lr_codes", args.lr_codes), ("lr_decoders", args.lr_decoders),
+                             ("lr_final_factor", args.lr_final), ("average_from", args.average_from))
+           if v is not None}
     cfg = nm.TrainConfig(steps=10 ** 6, rays_per_batch=args.rays, max_seconds=budget - scaffold_s, log_every=10,
                          **tkw)
     res = nm.train(field, scene, cfg, callback=callback)
@@ -126,7 +133,9 @@ def main(argv=None) -> int:
               "scaffold_s": scaffold_s, "scaffold": report.to_dict(),
               "train_steps": res.steps_done, "total_wall_s": total_s, "radius": field.radius,
               "interpolation": args.interpolation, "step_scale": field.config.step_scale,
-              "lr_codes": cfg.lr_codes, "lr_decoders": cfg.lr_decoders, "marks": {}, "history": history}
+              "lr_codes": cfg.lr_codes, "lr_decoders": cfg.lr_decoders, "lr_final_factor": cfg.lr_final_factor,
+              "average_from": cfg.average_from, "averaged_snapshots": res.averaged, "marks": {},
+              "history": history}
     for m, s in snaps.items():
         result["marks"][f"{m:g}min"] = {"step": s["step"], **ev(nm.load_field(s["path"]), args.mark_views)}
         print(f"at {m:g} min (step {s['step']}): {result['marks'][f'{m:g}min']}")

@@ -58,6 +58,11 @@ def _add_train_options(ap):
     g.add_argument("--lr-codes", type=float, default=1e-2, help="Adam learning rate of vertex codes")
     g.add_argument("--lr-decoders", type=float, default=2e-3, help="Adam learning rate of the decoders")
     g.add_argument("--tv", type=float, default=1e-3, help="weight of the total-variation loss on codes")
+    g.add_argument("--lr-final", type=float, default=0.1,
+                   help="learning rate at the end of the budget, as a fraction of the start (default 0.1)")
+    g.add_argument("--average-from", type=float, default=None, metavar="FRACTION",
+                   help="average the weights over the end of training, from this fraction of the budget "
+                        "(e.g. 0.5; default off): sharper on new views, free at render time")
     g.add_argument("--mask-weight", type=float, default=0.05,
                    help="weight of the mask BCE (used only when the data has alpha/masks)")
     g.add_argument("--max-minutes", type=float, default=None,
@@ -83,6 +88,7 @@ def _train_config(args, checkpoint_path):
 
     return nm.TrainConfig(steps=args.steps, rays_per_batch=args.rays, lr_codes=args.lr_codes,
                           lr_decoders=args.lr_decoders, weight_tv=args.tv, weight_mask=args.mask_weight,
+                          lr_final_factor=args.lr_final, average_from=args.average_from,
                           max_seconds=None if args.max_minutes is None else args.max_minutes * 60,
                           checkpoint_path=checkpoint_path, checkpoint_every=args.checkpoint_every,
                           threads=args.threads, seed=args.seed)
@@ -133,8 +139,9 @@ def cmd_train(args) -> int:
               file=sys.stderr)
     res = nm.train(field, scene, _train_config(args, args.out), callback=ProgressBar())
     state = "interrupted (Ctrl-C)" if res.interrupted else ("stopped" if res.cancelled else "done")
+    avg = f" (weights averaged over {res.averaged} snapshots)" if res.averaged else ""
     print(f"{state} at step {res.steps_done}: train psnr {res.final_psnr:.2f} in {res.seconds:.0f}s; "
-          f"saved {args.out}", file=sys.stderr)
+          f"saved {args.out}{avg}", file=sys.stderr)
     if "val" in scene.splits and not res.interrupted and args.eval:
         r = nm.evaluate(field, scene.split("val"), background=scene.background,
                         masked=scene.kind == "dtu")

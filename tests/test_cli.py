@@ -25,8 +25,9 @@ def test_help_explains_every_option(cmd, capsys):
 def test_train_render_eval_on_the_small_scene(small_scene_dir, tmp_path, capsys):
     field = str(tmp_path / "f.neumesh")
     assert main(["train", "--data", small_scene_dir, "--out", field, "--steps", "30", "--rays", "512",
-                 "--no-eval"]) == 0
+                 "--lr-final", "0.3", "--average-from", "0.5", "--no-eval"]) == 0
     assert os.path.exists(field)
+    assert "weights averaged over" in capsys.readouterr().err
     assert main(["eval", "--field", field, "--data", small_scene_dir, "--split", "val",
                  "--json", str(tmp_path / "e.json")]) == 0
     r = json.load(open(tmp_path / "e.json"))

@@ -71,3 +71,23 @@ def test_field_lookups_are_sparse_only_while_training(blob_mesh):
         grads[sparse] = f.tex_codes.grad.to_dense()
     f.sparse_grads = False
     assert torch.allclose(grads[False], grads[True], atol=1e-6)
+
+
+def test_parameter_average_is_the_mean_of_its_snapshots():
+    from neumesh_core.train.trainer import ParameterAverage
+
+    g = torch.Generator().manual_seed(3)
+    p = torch.nn.Parameter(torch.randn(20, 4, generator=g))
+    frozen = torch.nn.Parameter(torch.randn(3), requires_grad=False)
+    avg = ParameterAverage([p, frozen])
+    snaps = []
+    for _ in range(7):
+        with torch.no_grad():
+            p.add_(torch.randn(20, 4, generator=g))
+        snaps.append(p.detach().clone())
+        avg.update()
+    before = frozen.detach().clone()
+    avg.apply()
+    assert avg.count == 7
+    assert torch.allclose(p, torch.stack(snaps).mean(0), atol=1e-6)
+    assert torch.equal(frozen, before)  # only trained parameters are averaged

@@ -71,3 +71,29 @@ def test_ctrl_c_saves_and_returns_cleanly(small_scene_dir, tmp_path):
                                                 checkpoint_path=path), callback=press_ctrl_c)
     assert res.interrupted and res.steps_done == 6
     assert nm.load_field(path)._checkpoint_meta["train_state"]["step"] == 6
+
+
+def test_weight_averaging_gives_the_mean_of_the_late_weights(small_scene_dir, tmp_path):
+    """average_from=0.5 of 40 steps, every 10: the result is the mean of the weights at steps 20, 30
+    and 40 (the callback sees them right after each joins the mean), and that is what gets saved."""
+    import torch
+
+    scene = nm.load_scene(small_scene_dir)
+    field = nm.create_field(nm.load_mesh(scene.mesh_path))
+    seen = {}
+
+    def cb(p):
+        seen[p.step] = (field.tex_codes.detach().clone(), field.rad_decoder[0].weight.detach().clone())
+
+    path = str(tmp_path / "avg.neumesh")
+    res = nm.train(field, scene, nm.TrainConfig(steps=40, rays_per_batch=512, log_every=10, average_from=0.5,
+                                                average_every=10, checkpoint_path=path), callback=cb)
+    assert res.averaged == 3
+    for j, name in enumerate(("tex_codes", "rad_decoder")):
+        mean = torch.stack([seen[s][j] for s in (20, 30, 40)]).mean(0)
+        got = field.tex_codes if j == 0 else field.rad_decoder[0].weight
+        assert torch.allclose(got, mean, atol=1e-6), name
+        assert not torch.allclose(got, seen[40][j], atol=1e-6)  # not just the last weights
+    assert torch.allclose(nm.load_field(path).tex_codes, field.tex_codes)
+    with pytest.raises(ValueError, match="average_from"):
+        nm.TrainConfig(average_from=1.5)
