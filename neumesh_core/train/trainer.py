@@ -204,6 +204,10 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
     step_size = default_step(field, settings)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
     averager = ParameterAverage(field.parameters()) if cfg.average_from is not None else None
+
+    def density(x):  # what the occupancy grid is refreshed from
+        return field.query(x, with_rgb=False)[0]
+
     field.train()
     field.sparse_grads = True
     t_begin = time.perf_counter()
@@ -264,7 +268,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
             loss_v = float(loss.detach())
             psnr_v = float(-10.0 * torch.log10(mse.detach().clamp_min(1e-10)))
             if step > cfg.occ_warmup_steps and step % cfg.occ_refresh_every == 0:
-                field.grid.refresh(lambda x: field.query(x, with_rgb=False)[0], step_size, generator=gen)
+                field.grid.refresh(density, step_size, generator=gen)
             last = step >= cfg.steps
             elapsed = time.perf_counter() - t_begin
             if (averager is not None and step % max(1, cfg.average_every) == 0
@@ -297,8 +301,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
         averaged = averager.count
         # the occupancy grid follows the averaged density (every cell, not a random subset)
         with torch.no_grad():
-            field.grid.refresh(lambda x: field.query(x, with_rgb=False)[0], step_size, max_cells=None,
-                               generator=gen)
+            field.grid.refresh(density, step_size, max_cells=None, generator=gen)
     save(step)
     return TrainResult(step, loss_v, psnr_v, time.perf_counter() - t_begin, cancelled, interrupted, history,
                        averaged)
