@@ -74,7 +74,7 @@ def test_field_lookups_are_sparse_only_while_training(blob_mesh):
 
 
 def test_parameter_average_is_the_mean_of_its_snapshots():
-    from neumesh_core.train.trainer import ParameterAverage
+    from neumesh_core.train.optim import ParameterAverage
 
     g = torch.Generator().manual_seed(3)
     p = torch.nn.Parameter(torch.randn(20, 4, generator=g))
