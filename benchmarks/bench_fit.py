@@ -52,6 +52,11 @@ def main(argv=None) -> int:
     ap.add_argument("--average-from", type=float, default=None,
                     help="average the parameters from this fraction of the training budget on (SWA; "
                          "default off). A mark just before the end keeps the plain weights to compare")
+    ap.add_argument("--weight-tv", type=float, default=None, help="total variation weight (default: TrainConfig's)")
+    ap.add_argument("--tv-samples", type=int, default=None,
+                    help="vertices sampled per step for the TV loss (default: TrainConfig's)")
+    ap.add_argument("--tv-vertices", default=None, choices=["random", "batch"],
+                    help="TV over random vertices or the ones each batch looked up (default: TrainConfig's)")
     ap.add_argument("--eval-views", type=int, default=25, help="val views in the final evaluation (0 = all)")
     ap.add_argument("--mark-views", type=int, default=10, help="val views evaluated at each mark")
     ap.add_argument("--supersample", type=int, default=2,
@@ -104,7 +109,9 @@ def main(argv=None) -> int:
         return True
 
     tkw = {k: v for k, v in (("lr_codes", args.lr_codes), ("lr_decoders", args.lr_decoders),
-                             ("lr_final_factor", args.lr_final), ("average_from", args.average_from))
+                             ("lr_final_factor", args.lr_final), ("average_from", args.average_from),
+                             ("weight_tv", args.weight_tv), ("tv_samples", args.tv_samples),
+                             ("tv_vertices", args.tv_vertices))
            if v is not None}
     cfg = nm.TrainConfig(steps=10 ** 6, rays_per_batch=args.rays, max_seconds=budget - scaffold_s, log_every=10,
                          **tkw)
@@ -134,7 +141,9 @@ def main(argv=None) -> int:
               "train_steps": res.steps_done, "total_wall_s": total_s, "radius": field.radius,
               "interpolation": args.interpolation, "step_scale": field.config.step_scale,
               "lr_codes": cfg.lr_codes, "lr_decoders": cfg.lr_decoders, "lr_final_factor": cfg.lr_final_factor,
-              "average_from": cfg.average_from, "averaged_snapshots": res.averaged, "marks": {},
+              "average_from": cfg.average_from, "weight_tv": cfg.weight_tv, "tv_samples": cfg.tv_samples,
+              "tv_vertices": cfg.tv_vertices,
+              "averaged_snapshots": res.averaged, "marks": {},
               "history": history}
     for m, s in snaps.items():
         result["marks"][f"{m:g}min"] = {"step": s["step"], **ev(nm.load_field(s["path"]), args.mark_views)}

@@ -58,6 +58,8 @@ def _add_train_options(ap):
     g.add_argument("--lr-codes", type=float, default=1e-2, help="Adam learning rate of vertex codes")
     g.add_argument("--lr-decoders", type=float, default=2e-3, help="Adam learning rate of the decoders")
     g.add_argument("--tv", type=float, default=1e-3, help="weight of the total-variation loss on codes")
+    g.add_argument("--tv-vertices", choices=["random", "batch"], default="random",
+                   help="TV over random vertices each step (default) or over the vertices each batch looked up")
     g.add_argument("--lr-final", type=float, default=0.1,
                    help="learning rate at the end of the budget, as a fraction of the start (default 0.1)")
     g.add_argument("--average-from", type=float, default=None, metavar="FRACTION",
@@ -87,7 +89,8 @@ def _train_config(args, checkpoint_path):
     import neumesh_core as nm
 
     return nm.TrainConfig(steps=args.steps, rays_per_batch=args.rays, lr_codes=args.lr_codes,
-                          lr_decoders=args.lr_decoders, weight_tv=args.tv, weight_mask=args.mask_weight,
+                          lr_decoders=args.lr_decoders, weight_tv=args.tv, tv_vertices=args.tv_vertices,
+                          weight_mask=args.mask_weight,
                           lr_final_factor=args.lr_final, average_from=args.average_from,
                           max_seconds=None if args.max_minutes is None else args.max_minutes * 60,
                           checkpoint_path=checkpoint_path, checkpoint_every=args.checkpoint_every,

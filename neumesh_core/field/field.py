@@ -378,10 +378,23 @@ class NeuMeshField(nn.Module):
         return sigma, nb
 
     # ------------------------------------------------------------------ regularisers
-    def tv_loss(self, n_samples: int = 16384, generator: Optional[torch.Generator] = None) -> torch.Tensor:
-        """Total variation between each (sampled) vertex's codes and its k_tv nearest vertices."""
+    def tv_loss(self, n_samples: int = 16384, generator: Optional[torch.Generator] = None,
+                vertices: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Total variation between each (sampled) vertex's codes and its k_tv nearest vertices.
+
+        ``vertices`` (1-D indices) restricts the term to those vertices, e.g. the ones a training batch
+        looked up, so that a vertex is smoothed on the steps its photometric gradient arrives.  Without
+        it ``n_samples`` random vertices are drawn (all vertices when ``n_samples`` is 0 or >= N).
+        """
         n = self.num_vertices
-        if n_samples and n_samples < n:
+        if vertices is not None:
+            i = vertices.to(device=self.geo_codes.device, dtype=torch.long).reshape(-1)
+            if len(i) == 0:
+                return self.geo_codes.sum() * 0.0
+            if int(i.min()) < 0 or int(i.max()) >= n:
+                raise IndexError(f"tv_loss: vertex indices must lie in [0, {n}), got "
+                                 f"[{int(i.min())}, {int(i.max())}]")
+        elif n_samples and n_samples < n:
             i = torch.randint(0, n, (n_samples,), device=self.geo_codes.device, generator=generator)
         else:
             i = torch.arange(n, device=self.geo_codes.device)

@@ -31,7 +31,8 @@ class TrainConfig:
     weight_mod: float = 0.01          # x mean squared rendered modification colour
     weight_mask: float = 0.05         # mask BCE (only when the scene has masks/alpha)
     weight_tv: float = 1e-3           # total variation between neighbouring vertex codes
-    tv_samples: int = 8192            # vertices sampled per step for the TV loss
+    tv_samples: int = 8192            # vertices sampled per step for the TV loss ("random")
+    tv_vertices: str = "random"       # TV over "random" vertices or the ones the "batch" looked up
     random_background: bool = True    # composite targets on random colours (needs masks)
     occ_refresh_every: int = 16
     occ_warmup_steps: int = 200
@@ -56,6 +57,8 @@ class TrainConfig:
                              f"not {self.average_from}; None turns averaging off")
         if self.average_every < 1:
             raise ValueError(f"average_every must be at least 1 step, not {self.average_every}")
+        if self.tv_vertices not in ("random", "batch"):
+            raise ValueError(f"tv_vertices must be 'random' or 'batch', not {self.tv_vertices!r}")
         if not self.lr_final_factor > 0:
             raise ValueError(f"lr_final_factor must be > 0 (e.g. 0.1), not {self.lr_final_factor}")
 
@@ -222,7 +225,8 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
                 op = out["opacity"].clamp(1e-4, 1 - 1e-4)
                 loss = loss + cfg.weight_mask * torch.nn.functional.binary_cross_entropy(op, mask)
             if cfg.weight_tv > 0:
-                loss = loss + cfg.weight_tv * field.tv_loss(cfg.tv_samples, generator=gen)
+                touched = out["vertex_ids"][0] if cfg.tv_vertices == "batch" else None
+                loss = loss + cfg.weight_tv * field.tv_loss(cfg.tv_samples, generator=gen, vertices=touched)
             opt.zero_grad(set_to_none=True)
             if loss.requires_grad:
                 loss.backward()

@@ -131,3 +131,24 @@ def test_trunc_exp_saturates_without_inf():
     assert torch.isfinite(y).all() and y[2] == y[2].new_tensor(np.exp(15.0), dtype=torch.float32)
     y.sum().backward()
     assert torch.isfinite(x.grad).all() and (x.grad > 0).all()  # a saturated sample can still be lowered
+
+
+def test_tv_loss_over_given_vertices(blob_mesh):
+    """``vertices`` restricts TV to those vertices: the value matches the formula, and only they and
+    their TV neighbours receive gradient."""
+    f = textured_field(blob_mesh)
+    with torch.no_grad():
+        f.geo_codes.normal_(generator=torch.Generator().manual_seed(2))
+    ids = torch.tensor([3, 17, 40, 41])
+    j = f.tv_neighbours[ids]
+    ref = ((f.geo_codes[ids][:, None] - f.geo_codes[j]).pow(2).sum(-1).mean()
+           + (f.tex_codes[ids][:, None] - f.tex_codes[j]).pow(2).sum(-1).mean())
+    tv = f.tv_loss(vertices=ids)
+    assert float(tv.detach()) == pytest.approx(float(ref.detach()), rel=1e-6) and float(tv.detach()) > 0
+    tv.backward()
+    rows = set(f.geo_codes.grad.abs().sum(1).nonzero().squeeze(1).tolist())
+    assert rows and rows <= set(ids.tolist()) | set(j.reshape(-1).tolist())
+    assert set(ids.tolist()) <= rows
+    assert float(f.tv_loss(vertices=torch.zeros(0, dtype=torch.long))) == 0.0
+    with pytest.raises(IndexError, match="vertex indices"):
+        f.tv_loss(vertices=torch.tensor([f.num_vertices]))

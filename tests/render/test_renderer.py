@@ -42,3 +42,22 @@ def test_supersample_is_the_box_average_of_a_finer_render(blob_mesh):
 def test_supersample_must_be_a_positive_whole_number(bad):
     with pytest.raises(ValueError, match="supersample"):
         nm.RenderSettings(supersample=bad)
+
+
+def test_training_render_lists_the_vertices_it_looked_up(blob_mesh):
+    """``vertex_ids`` (train=True) are the scaffold vertices behind the samples: every code row that
+    gets a gradient from the rendered colour is in it, and it is far from the whole scaffold."""
+    import torch
+
+    f = textured_field(blob_mesh)
+    f.grid.refresh(lambda x: f.query(x, with_rgb=False)[0], f.radius * 0.25)
+    g = torch.Generator().manual_seed(0)
+    o = torch.tensor([[0.0, 0.0, -3.5]]).expand(64, 3)
+    d = torch.nn.functional.normalize(torch.tensor([0.0, 0.0, 1.0]) + 0.08 * torch.randn(64, 3, generator=g), dim=-1)
+    out = nm.render_rays(f, o, d, train=True)
+    (ids,) = out["vertex_ids"]
+    assert len(ids) > 0 and torch.equal(ids, torch.unique(ids)) and len(ids) < f.num_vertices // 2
+    out["rgb"].sum().backward()
+    grad_rows = set(f.tex_codes.grad.abs().sum(1).nonzero().squeeze(1).tolist())
+    assert grad_rows and grad_rows <= set(ids.tolist())
+    assert "vertex_ids" not in nm.render_rays(f, o, d)

@@ -97,3 +97,26 @@ def test_weight_averaging_gives_the_mean_of_the_late_weights(small_scene_dir, tm
     assert torch.allclose(nm.load_field(path).tex_codes, field.tex_codes)
     with pytest.raises(ValueError, match="average_from"):
         nm.TrainConfig(average_from=1.5)
+
+
+def test_tv_over_the_batch_vertices_smooths_only_what_the_batch_saw(small_scene_dir, monkeypatch):
+    """tv_vertices="batch": each step's TV term covers exactly the vertices its rays looked up."""
+    from neumesh_core.field.field import NeuMeshField
+
+    scene = nm.load_scene(small_scene_dir)
+    field = nm.create_field(nm.load_mesh(scene.mesh_path))
+    calls = []
+    orig = NeuMeshField.tv_loss
+
+    def spy(self, n_samples=16384, generator=None, vertices=None):
+        calls.append(vertices)
+        return orig(self, n_samples, generator, vertices)
+
+    monkeypatch.setattr(NeuMeshField, "tv_loss", spy)
+    nm.train(field, scene, nm.TrainConfig(steps=5, rays_per_batch=256, log_every=5, tv_vertices="batch"))
+    assert len(calls) == 5 and all(v is not None and 0 < len(v) < field.num_vertices for v in calls)
+    calls.clear()
+    nm.train(field, scene, nm.TrainConfig(steps=2, rays_per_batch=256, log_every=5))
+    assert calls == [None, None]
+    with pytest.raises(ValueError, match="tv_vertices"):
+        nm.TrainConfig(tv_vertices="all")
