@@ -48,14 +48,14 @@ def _as_list(fields):
 
 def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=None,
                 settings: Optional[RenderSettings] = None, train: bool = False,
-                jitter: Optional[torch.Tensor] = None) -> dict:
+                jitter: Optional[torch.Tensor] = None, vertex_ids: bool = False) -> dict:
     """Render rays (R,3) through one field or a list of fields (composited jointly, sorted by depth).
 
     Returns tensors: rgb (R,3), opacity (R,), depth (R,) (expected distance, normalised by opacity;
-    inf where empty), mod_rgb (R,3), n_samples (int).  With ``train`` the decoders run with autograd,
-    and ``vertex_ids`` lists, per field, the sorted unique scaffold vertices the samples looked up
-    (for regularisers over the touched vertices); otherwise colours are decoded only for samples that
-    survive marching.
+    inf where empty), mod_rgb (R,3), n_samples (int).  With ``train`` the decoders run with autograd;
+    otherwise colours are decoded only for samples that survive marching.  With ``vertex_ids`` the
+    output also lists, per field, the sorted unique scaffold vertices the samples looked up (for
+    regularisers over the touched vertices; off by default, it costs a sort per call).
     ``background``: None (black / premultiplied), an (3,) colour, or (R,3) per-ray colours.
     """
     settings = settings or RenderSettings()
@@ -67,13 +67,13 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
         s = march_rays(origins, dirs, f.grid, f.sigma_fn, default_step(f, settings), near=settings.near,
                        window=settings.window, early_stop_eps=settings.early_stop_eps,
                        weight_threshold=settings.weight_threshold, jitter=jitter)
+        if vertex_ids:
+            touched.append(torch.unique(s.aux.idx[s.aux.valid]) if len(s) else
+                           torch.zeros(0, dtype=torch.long, device=origins.device))
         if len(s) == 0:
-            if train:
-                touched.append(torch.zeros(0, dtype=torch.long, device=origins.device))
             continue
         d = dirs[s.ray_indices]
         if train:
-            touched.append(torch.unique(s.aux.idx[s.aux.valid]))
             sigma, rgb, mod = f.decode(s.aux, d, with_rgb=True)
         else:
             with torch.no_grad():
@@ -98,7 +98,7 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
                             torch.full_like(c["depth"], float("inf")))
         out = {"rgb": c["rgb"], "opacity": c["opacity"], "depth": depth, "mod_rgb": c["mod_rgb"],
                "n_samples": int(ri.shape[0])}
-    if train:
+    if vertex_ids:
         out["vertex_ids"] = touched
     if background is not None:
         bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)

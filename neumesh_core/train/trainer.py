@@ -214,7 +214,8 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
                 bg = batcher.scene_bg if batcher.scene_bg is not None else torch.zeros(3, device=device)
                 target = rgb_gt
             jitter = torch.rand(len(o), generator=gen).to(device)
-            out = render_rays(field, o, d, background=bg, settings=settings, train=True, jitter=jitter)
+            out = render_rays(field, o, d, background=bg, settings=settings, train=True, jitter=jitter,
+                              vertex_ids=cfg.weight_tv > 0 and cfg.tv_vertices == "batch")
             if not bool(torch.isfinite(out["opacity"]).all()):
                 raise FloatingPointError(
                     f"the rendered opacity became NaN/inf at step {step}; lower lr_codes/lr_decoders and "

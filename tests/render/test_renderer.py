@@ -45,8 +45,9 @@ def test_supersample_must_be_a_positive_whole_number(bad):
 
 
 def test_training_render_lists_the_vertices_it_looked_up(blob_mesh):
-    """``vertex_ids`` (train=True) are the scaffold vertices behind the samples: every code row that
-    gets a gradient from the rendered colour is in it, and it is far from the whole scaffold."""
+    """``vertex_ids`` are the scaffold vertices behind the samples: every code row that gets a
+    gradient from the rendered colour is in it, and it is far from the whole scaffold.  Off by
+    default (it costs a sort per training step)."""
     import torch
 
     f = textured_field(blob_mesh)
@@ -54,10 +55,11 @@ def test_training_render_lists_the_vertices_it_looked_up(blob_mesh):
     g = torch.Generator().manual_seed(0)
     o = torch.tensor([[0.0, 0.0, -3.5]]).expand(64, 3)
     d = torch.nn.functional.normalize(torch.tensor([0.0, 0.0, 1.0]) + 0.08 * torch.randn(64, 3, generator=g), dim=-1)
-    out = nm.render_rays(f, o, d, train=True)
+    out = nm.render_rays(f, o, d, train=True, vertex_ids=True)
     (ids,) = out["vertex_ids"]
     assert len(ids) > 0 and torch.equal(ids, torch.unique(ids)) and len(ids) < f.num_vertices // 2
     out["rgb"].sum().backward()
     grad_rows = set(f.tex_codes.grad.abs().sum(1).nonzero().squeeze(1).tolist())
     assert grad_rows and grad_rows <= set(ids.tolist())
     assert "vertex_ids" not in nm.render_rays(f, o, d)
+    assert "vertex_ids" not in nm.render_rays(f, o, d, train=True)
