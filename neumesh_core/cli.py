@@ -65,6 +65,10 @@ def _add_train_options(ap):
     g.add_argument("--average-from", type=float, default=None, metavar="FRACTION",
                    help="average the weights over the end of training, from this fraction of the budget "
                         "(e.g. 0.5; default off): sharper on new views, free at render time")
+    g.add_argument("--code-levels", type=int, default=None, metavar="N",
+                   help="coarse code levels while training (each 4x sparser; baked into the vertex codes at "
+                        "the end, so the field stays a plain per-vertex field): surfaces that few views see "
+                        "inherit their surroundings' appearance. 0 = off (default: TrainConfig's)")
     g.add_argument("--mask-weight", type=float, default=0.05,
                    help="weight of the mask BCE (used only when the data has alpha/masks)")
     g.add_argument("--max-minutes", type=float, default=None,
@@ -88,13 +92,14 @@ def _add_data_options(ap, required=True):
 def _train_config(args, checkpoint_path):
     import neumesh_core as nm
 
+    extra = {} if args.code_levels is None else {"code_levels": args.code_levels}
     return nm.TrainConfig(steps=args.steps, rays_per_batch=args.rays, lr_codes=args.lr_codes,
                           lr_decoders=args.lr_decoders, weight_tv=args.tv, tv_vertices=args.tv_vertices,
                           weight_mask=args.mask_weight,
                           lr_final_factor=args.lr_final, average_from=args.average_from,
                           max_seconds=None if args.max_minutes is None else args.max_minutes * 60,
                           checkpoint_path=checkpoint_path, checkpoint_every=args.checkpoint_every,
-                          threads=args.threads, seed=args.seed)
+                          threads=args.threads, seed=args.seed, **extra)
 
 
 def _field_config(args):

@@ -137,6 +137,9 @@ class NeuMeshField(nn.Module):
         self.sem_codes = nn.Parameter(torch.zeros(n, cfg.sem_dim), requires_grad=False)
         # True while training: code lookups give row-sparse gradients (see :meth:`rows`)
         self.sparse_grads = False
+        # training-time coarse code levels added to geo/tex codes (field.pyramid.CodePyramid); not a
+        # submodule, never saved: the trainer bakes it into the codes
+        object.__setattr__(self, "_code_prior", None)
 
         # --- decoders
         pe = 1 + 2 * cfg.pos_freqs
@@ -278,6 +281,24 @@ class NeuMeshField(nn.Module):
             return torch.nn.functional.embedding(idx, table, sparse=True)
         return table[idx]
 
+    @property
+    def code_prior(self):
+        """The attached training-time coarse code levels (a CodePyramid) or None."""
+        return self._code_prior
+
+    def set_code_prior(self, prior) -> None:
+        """Attach (or with None detach) coarse code levels.  Kept outside the module tree on purpose
+        (``nn.Module`` would register a module attribute as a submodule and save it)."""
+        object.__setattr__(self, "_code_prior", prior)
+
+    def codes(self, names, idx: torch.Tensor):
+        """Per-vertex codes of vertices ``idx`` for each of ``names`` ("geo" and/or "tex"), as a list,
+        including the training-time coarse levels when a :attr:`code_prior` is attached."""
+        out = [self.rows(self.geo_codes if n == "geo" else self.tex_codes, idx) for n in names]
+        if self._code_prior is not None:
+            out = [a if b is None else a + b for a, b in zip(out, self._code_prior.lookup(names, idx))]
+        return out
+
     def neighbourhood(self, x: torch.Tensor) -> Neighbourhood:
         """K nearest vertices within the radius and the local indicators h_k = (p_k, w_k)."""
         idx, dist = self.index.query(x)
@@ -328,13 +349,13 @@ class NeuMeshField(nn.Module):
         pe = self._p_encoding(pk)
         sigma = None
         if with_sigma:
-            geo_in = torch.cat([self.rows(self.geo_codes, vid), pe, wk[:, None]], -1)
+            geo_in = torch.cat([self.codes(("geo",), vid)[0], pe, wk[:, None]], -1)
             sigma = reduce(trunc_exp(self.geo_decoder(geo_in))).squeeze(-1)
         if not with_rgb:
             return sigma, None, None
         d = dirs[:, None, :].expand(m, k, 3).reshape(-1, 3) if sample is None else dirs[sample]
         d = self._rest_dirs(vid, d)
-        rad_in = torch.cat([self.rows(self.tex_codes, vid), pe, wk[:, None], sh_encoding(d, self.config.sh_degree),
+        rad_in = torch.cat([self.codes(("tex",), vid)[0], pe, wk[:, None], sh_encoding(d, self.config.sh_degree),
                             self.rest_normals[vid]], -1)
         mod_k = self.rows(self.mod_colors, vid)
         c_k = torch.sigmoid(self.rad_decoder(rad_in)) + mod_k
@@ -346,14 +367,16 @@ class NeuMeshField(nn.Module):
         p = (nb.p * nb.w).sum(1)
         wi = (nb.w * nb.w).sum(1)
         pe = self._p_encoding(p)
+        names = (("geo",) if with_sigma else ()) + (("tex",) if with_rgb else ())
+        codes = dict(zip(names, self.codes(names, nb.idx)))
         sigma = None
         if with_sigma:
-            geo = (self.rows(self.geo_codes, nb.idx) * w).sum(1)
+            geo = (codes["geo"] * w).sum(1)
             sigma = trunc_exp(self.geo_decoder(torch.cat([geo, pe, wi[:, None]], -1)).squeeze(-1))
             sigma = torch.where(nb.valid.any(1), sigma, torch.zeros_like(sigma))
         if not with_rgb:
             return sigma, None, None
-        tex = (self.rows(self.tex_codes, nb.idx) * w).sum(1)
+        tex = (codes["tex"] * w).sum(1)
         n = (self.rest_normals[nb.idx] * w).sum(1)
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         if self.to_rest is None:

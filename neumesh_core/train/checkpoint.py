@@ -59,6 +59,8 @@ def save_field(field, path: str, optimizer: Optional[torch.optim.Optimizer] = No
         names = {id(p): n for n, p in field.named_parameters()}
         for group in optimizer.param_groups:
             for p in group["params"]:
+                if id(p) not in names:   # training-only parameters (e.g. a CodePyramid's) are not kept
+                    continue
                 st = optimizer.state.get(p, {})
                 for k, v in st.items():
                     if torch.is_tensor(v):

@@ -2,6 +2,7 @@
 progress/cancel callback, periodic atomic checkpoints, resume, Ctrl-C safe."""
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
@@ -33,6 +34,11 @@ class TrainConfig:
     weight_tv: float = 1e-3           # total variation between neighbouring vertex codes
     tv_samples: int = 8192            # vertices sampled per step for the TV loss ("random")
     tv_vertices: str = "random"       # TV over "random" vertices or the ones the "batch" looked up
+    # coarse-to-fine codes while training (field.pyramid.CodePyramid): this many coarse levels, each
+    # code_level_factor times sparser than the last; baked into the per-vertex codes at the end.  0 = off
+    code_levels: int = 0
+    code_level_factor: float = 4.0
+    code_level_kinds: tuple = ("geo", "tex")   # which codes get coarse levels
     random_background: bool = True    # composite targets on random colours (needs masks)
     occ_refresh_every: int = 16
     occ_warmup_steps: int = 200
@@ -59,6 +65,9 @@ class TrainConfig:
             raise ValueError(f"average_every must be at least 1 step, not {self.average_every}")
         if self.tv_vertices not in ("random", "batch"):
             raise ValueError(f"tv_vertices must be 'random' or 'batch', not {self.tv_vertices!r}")
+        if self.code_levels < 0 or not self.code_level_factor > 1:
+            raise ValueError(f"code_levels must be >= 0 and code_level_factor > 1, not "
+                             f"{self.code_levels} / {self.code_level_factor}")
         if not self.lr_final_factor > 0:
             raise ValueError(f"lr_final_factor must be > 0 (e.g. 0.1), not {self.lr_final_factor}")
 
@@ -113,9 +122,10 @@ class _Batcher:
         return o, d, rgb, mask
 
 
-def _make_optimizer(field, cfg: TrainConfig):
+def _make_optimizer(field, cfg: TrainConfig, extra_codes=()):
     groups = [
-        {"params": [field.geo_codes, field.tex_codes, field.mod_colors], "lr": cfg.lr_codes, "name": "codes"},
+        {"params": [field.geo_codes, field.tex_codes, field.mod_colors, *extra_codes], "lr": cfg.lr_codes,
+         "name": "codes"},
         {"params": list(field.geo_decoder.parameters()) + list(field.rad_decoder.parameters()),
          "lr": cfg.lr_decoders, "name": "decoders"},
     ]
@@ -167,7 +177,12 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
         raise ValueError("the field is deformed; call field.reset_vertices() before training")
     device = field.rest_vertices.device
     batcher = _Batcher(images, scene_bg, device, cfg.seed)
-    opt = _make_optimizer(field, cfg)
+    pyramid = None
+    if cfg.code_levels > 0:
+        from ..field.pyramid import CodePyramid
+
+        pyramid = CodePyramid(field, cfg.code_levels, cfg.code_level_factor, kinds=cfg.code_level_kinds)
+    opt = _make_optimizer(field, cfg, () if pyramid is None else list(pyramid.parameters()))
     start = 0
     meta = getattr(field, "_checkpoint_meta", None)
     if cfg.resume and meta:
@@ -176,13 +191,16 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
     settings = RenderSettings(step_scale=cfg.step_scale)
     step_size = default_step(field, settings)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
-    averager = ParameterAverage(field.parameters()) if cfg.average_from is not None else None
+    averaged_params = list(field.parameters()) + ([] if pyramid is None else list(pyramid.parameters()))
+    averager = ParameterAverage(averaged_params) if cfg.average_from is not None else None
 
     def density(x):  # what the occupancy grid is refreshed from
         return field.query(x, with_rgb=False)[0]
 
     field.train()
     field.sparse_grads = True
+    if pyramid is not None:
+        field.set_code_prior(pyramid)
     t_begin = time.perf_counter()
     history = []
     loss_v = psnr_v = float("nan")
@@ -195,8 +213,10 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
 
     def save(step_now):
         if cfg.checkpoint_path:
-            save_field(field, cfg.checkpoint_path, optimizer=opt,
-                       train_state={"step": step_now, "steps": cfg.steps, "loss": loss_v, "psnr": psnr_v})
+            # a checkpoint is a plain field: the coarse code levels are folded into the codes it stores
+            with (pyramid.baked_into(field) if field.code_prior is not None else contextlib.nullcontext()):
+                save_field(field, cfg.checkpoint_path, optimizer=opt,
+                           train_state={"step": step_now, "steps": cfg.steps, "loss": loss_v, "psnr": psnr_v})
 
     try:
         while step < cfg.steps:
@@ -267,6 +287,11 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
                 break
     except KeyboardInterrupt:
         interrupted = True
+    except BaseException:
+        if pyramid is not None:   # leave a plain field behind (it renders what was learned)
+            pyramid.bake(field)
+            field.set_code_prior(None)
+        raise
     finally:
         field.sparse_grads = False
     field.eval()
@@ -274,6 +299,10 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
     if averager is not None and averager.count > 0:
         averager.apply()
         averaged = averager.count
+    if pyramid is not None:
+        pyramid.bake(field)
+        field.set_code_prior(None)
+    if averaged:
         # the occupancy grid follows the averaged density (every cell, not a random subset)
         with torch.no_grad():
             field.grid.refresh(density, step_size, max_cells=None, generator=gen)

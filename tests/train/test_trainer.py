@@ -120,3 +120,29 @@ def test_tv_over_the_batch_vertices_smooths_only_what_the_batch_saw(small_scene_
     assert calls == [None, None]
     with pytest.raises(ValueError, match="tv_vertices"):
         nm.TrainConfig(tv_vertices="all")
+
+
+def test_coarse_code_levels_train_and_leave_a_plain_field(small_scene_dir, tmp_path):
+    """code_levels=2: the coarse levels learn, the result (and every checkpoint) is a plain field with
+    them folded into its per-vertex codes, and the training loss falls as without them."""
+    import torch
+
+    scene = nm.load_scene(small_scene_dir)
+    field = nm.create_field(nm.load_mesh(scene.mesh_path))
+    path = str(tmp_path / "pyr.neumesh")
+    seen = []
+    res = nm.train(field, scene, nm.TrainConfig(steps=60, rays_per_batch=512, log_every=20, code_levels=2,
+                                                code_level_factor=3.0, checkpoint_path=path),
+                   callback=lambda p: seen.append((p.step, field.code_prior,
+                                                   float(field.code_prior.tex.detach().abs().sum()))))
+    assert all(prior is not None for _, prior, _ in seen)   # attached while training ...
+    assert seen[-1][2] > 0                                  # ... and learning
+    assert field.code_prior is None                          # detached and baked at the end
+    assert res.history[-1].psnr > res.history[0].psnr + 1
+    g = nm.load_field(path)
+    assert torch.allclose(g.tex_codes, field.tex_codes) and torch.allclose(g.geo_codes, field.geo_codes)
+    with pytest.raises(ValueError, match="code_levels"):
+        nm.TrainConfig(code_levels=-1)
+    with pytest.raises(ValueError, match="code_level_factor"):
+        nm.TrainConfig(code_levels=1, code_level_factor=1.0)
+
