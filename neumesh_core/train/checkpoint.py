@@ -39,8 +39,14 @@ def save_field(field, path: str, optimizer: Optional[torch.optim.Optimizer] = No
                train_state: Optional[dict] = None) -> None:
     """Write ``field`` (mesh, codes, decoders, occupancy grid, config) to ``path`` atomically.
 
-    With ``optimizer`` its moments are stored too, so training can resume exactly.
+    With ``optimizer`` its moments are stored too, so training can resume exactly.  A field that trains
+    with coarse code levels (``field.code_prior``) is written as a plain field: the levels are folded
+    into the per-vertex codes it stores, and the field in memory is left as it was.
     """
+    prior = getattr(field, "code_prior", None)
+    if prior is not None:
+        with prior.baked_into(field):
+            return save_field(field, path, optimizer=optimizer, train_state=train_state)
     from dataclasses import asdict
 
     from safetensors.torch import save_file

@@ -2,7 +2,6 @@
 progress/cancel callback, periodic atomic checkpoints, resume, Ctrl-C safe."""
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import time
@@ -213,10 +212,9 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
 
     def save(step_now):
         if cfg.checkpoint_path:
-            # a checkpoint is a plain field: the coarse code levels are folded into the codes it stores
-            with (pyramid.baked_into(field) if field.code_prior is not None else contextlib.nullcontext()):
-                save_field(field, cfg.checkpoint_path, optimizer=opt,
-                           train_state={"step": step_now, "steps": cfg.steps, "loss": loss_v, "psnr": psnr_v})
+            # a checkpoint is a plain field: save_field folds the coarse code levels into the codes it stores
+            save_field(field, cfg.checkpoint_path, optimizer=opt,
+                       train_state={"step": step_now, "steps": cfg.steps, "loss": loss_v, "psnr": psnr_v})
 
     try:
         while step < cfg.steps:

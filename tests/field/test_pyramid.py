@@ -106,3 +106,26 @@ def test_a_texture_only_pyramid_leaves_the_geometry_codes_alone(blob_mesh):
     assert torch.equal(f.geo_codes, geo0)
     with pytest.raises(ValueError, match="kinds"):
         CodePyramid(f, levels=1, kinds=("sem",))
+
+
+def test_saving_a_field_with_coarse_levels_writes_a_plain_field(blob_mesh, tmp_path):
+    # snapshots taken from a training callback call save_field on the live field: the file must render
+    # what the field renders, without the (training-only) levels, and the live split must survive
+    from neumesh_core.train.checkpoint import load_field, save_field
+
+    f = textured_field(blob_mesh, interpolation="early")
+    p = CodePyramid(f, levels=2, factor=3.0)
+    f.set_code_prior(p)
+    with torch.no_grad():
+        p.geo.normal_(0, 0.3)
+        p.tex.normal_(0, 0.3)
+    x = f.rest_vertices[:300] + 0.3 * f.radius * torch.randn(300, 3, generator=torch.Generator().manual_seed(2))
+    d = torch.nn.functional.normalize(torch.randn(300, 3, generator=torch.Generator().manual_seed(3)), dim=-1)
+    sigma, rgb, _ = f.query(x, d)
+    geo_before, coarse_before = f.geo_codes.detach().clone(), p.geo.detach().clone()
+    save_field(f, str(tmp_path / "snap.neumesh"))
+    assert f.code_prior is p and torch.equal(f.geo_codes, geo_before) and torch.equal(p.geo, coarse_before)
+    g = load_field(str(tmp_path / "snap.neumesh"))
+    assert g.code_prior is None
+    sigma2, rgb2, _ = g.query(x, d)
+    assert torch.allclose(sigma2, sigma, rtol=1e-5, atol=1e-6) and torch.allclose(rgb2, rgb, atol=1e-6)
