@@ -291,10 +291,14 @@ class NeuMeshField(nn.Module):
         (``nn.Module`` would register a module attribute as a submodule and save it)."""
         object.__setattr__(self, "_code_prior", prior)
 
+    def code_table(self, name: str) -> torch.Tensor:
+        """The per-vertex code table called ``name`` ("geo" or "tex")."""
+        return self.geo_codes if name == "geo" else self.tex_codes
+
     def codes(self, names, idx: torch.Tensor):
         """Per-vertex codes of vertices ``idx`` for each of ``names`` ("geo" and/or "tex"), as a list,
         including the training-time coarse levels when a :attr:`code_prior` is attached."""
-        out = [self.rows(self.geo_codes if n == "geo" else self.tex_codes, idx) for n in names]
+        out = [self.rows(self.code_table(n), idx) for n in names]
         if self._code_prior is not None:
             out = [a if b is None else a + b for a, b in zip(out, self._code_prior.lookup(names, idx))]
         return out

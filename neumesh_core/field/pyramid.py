@@ -103,8 +103,7 @@ class CodePyramid(nn.Module):
         self.register_buffer("parents", torch.from_numpy(np.concatenate(par, 1)).to(dev))
         self.register_buffer("weights", torch.from_numpy(np.concatenate(wts, 1)).to(dev))
         for k in kinds:
-            dim = field.config.geo_dim if k == "geo" else field.config.tex_dim
-            setattr(self, k, nn.Parameter(torch.zeros(offset, dim, device=dev)))
+            setattr(self, k, nn.Parameter(torch.zeros(offset, field.code_table(k).shape[1], device=dev)))
 
     def lookup(self, names, idx: torch.Tensor):
         """Coarse contributions to the codes named in ``names`` (a tuple of "geo"/"tex") of vertices
@@ -139,26 +138,28 @@ class CodePyramid(nn.Module):
             parts.append(torch.bmm(self.weights[s:e, None, :], table[self.parents[s:e]]).squeeze(1))
         return torch.cat(parts)
 
-    @staticmethod
-    def _codes_of(field, kind: str) -> torch.Tensor:
-        return field.geo_codes if kind == "geo" else field.tex_codes
+    @torch.no_grad()
+    def _fold_into(self, field) -> None:
+        for k in self.kinds:
+            field.code_table(k).add_(self.dense(k))
 
     @torch.no_grad()
     def bake(self, field) -> None:
-        """Fold the coarse levels into the field's per-vertex codes and zero them (the field renders the
-        same before and after)."""
+        """Fold the coarse levels into the field's per-vertex codes, zero them and detach them from the
+        field: what is left is a plain field that renders the same as before."""
+        self._fold_into(field)
         for k in self.kinds:
-            self._codes_of(field, k).add_(self.dense(k))
             getattr(self, k).zero_()
+        if field.code_prior is self:
+            field.set_code_prior(None)
 
     @contextlib.contextmanager
     def baked_into(self, field):
         """Inside the block the field's codes include the coarse levels (to save a checkpoint that is a
         plain field); afterwards the split is restored exactly as it was."""
         with torch.no_grad():
-            kept = {k: self._codes_of(field, k).detach().clone() for k in self.kinds}
-            for k in self.kinds:
-                self._codes_of(field, k).add_(self.dense(k))
+            kept = {k: field.code_table(k).detach().clone() for k in self.kinds}
+        self._fold_into(field)
         prior = field.code_prior
         field.set_code_prior(None)
         try:
@@ -167,4 +168,4 @@ class CodePyramid(nn.Module):
             field.set_code_prior(prior)
             with torch.no_grad():
                 for k, v in kept.items():
-                    self._codes_of(field, k).copy_(v)
+                    field.code_table(k).copy_(v)

@@ -288,7 +288,6 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
     except BaseException:
         if pyramid is not None:   # leave a plain field behind (it renders what was learned)
             pyramid.bake(field)
-            field.set_code_prior(None)
         raise
     finally:
         field.sparse_grads = False
@@ -299,7 +298,6 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
         averaged = averager.count
     if pyramid is not None:
         pyramid.bake(field)
-        field.set_code_prior(None)
     if averaged:
         # the occupancy grid follows the averaged density (every cell, not a random subset)
         with torch.no_grad():

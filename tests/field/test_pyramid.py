@@ -66,7 +66,7 @@ def test_an_attached_pyramid_renders_the_same_until_trained_and_bakes_exactly(bl
     assert f.code_prior is p and torch.equal(f.tex_codes, codes_before)
     assert torch.allclose(sigma3, sigma2, rtol=1e-5) and torch.allclose(rgb3, rgb2, atol=1e-6)
     p.bake(f)
-    f.set_code_prior(None)
+    assert f.code_prior is None                  # baking detaches the levels from the field
     sigma4, rgb4, _ = f.query(x, d)
     assert torch.allclose(sigma4, sigma2, rtol=1e-5) and torch.allclose(rgb4, rgb2, atol=1e-6)
     assert float(p.tex.detach().abs().sum()) == 0.0
