@@ -9,6 +9,13 @@ from neumesh_core.field.pyramid import CodePyramid, parent_weights, subsample_ve
 from ..conftest import textured_field
 
 
+def _queries(f, n, seed):
+    """``n`` points within a third of the radius of the first ``n`` vertices, and random unit directions."""
+    x = f.rest_vertices[:n] + 0.3 * f.radius * torch.randn(n, 3, generator=torch.Generator().manual_seed(seed))
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=torch.Generator().manual_seed(seed + 1)), dim=-1)
+    return x, d
+
+
 def test_subsample_keeps_one_vertex_per_cell():
     g = np.random.default_rng(0)
     v = g.uniform(0, 1, (5000, 3))
@@ -40,8 +47,7 @@ def test_parent_weights_are_normalised_and_never_cross_to_a_surface_facing_away(
 
 def test_an_attached_pyramid_renders_the_same_until_trained_and_bakes_exactly(blob_mesh):
     f = textured_field(blob_mesh, interpolation="early")
-    x = f.rest_vertices[:400] + 0.3 * f.radius * torch.randn(400, 3, generator=torch.Generator().manual_seed(0))
-    d = torch.nn.functional.normalize(torch.randn(400, 3, generator=torch.Generator().manual_seed(1)), dim=-1)
+    x, d = _queries(f, 400, seed=0)
     sigma0, rgb0, _ = f.query(x, d)
     p = CodePyramid(f, levels=2, factor=3.0)
     assert p.levels == 2 and p.sizes[0] > p.sizes[1] > 1 and p.sizes[0] < f.num_vertices
@@ -119,8 +125,7 @@ def test_saving_a_field_with_coarse_levels_writes_a_plain_field(blob_mesh, tmp_p
     with torch.no_grad():
         p.geo.normal_(0, 0.3)
         p.tex.normal_(0, 0.3)
-    x = f.rest_vertices[:300] + 0.3 * f.radius * torch.randn(300, 3, generator=torch.Generator().manual_seed(2))
-    d = torch.nn.functional.normalize(torch.randn(300, 3, generator=torch.Generator().manual_seed(3)), dim=-1)
+    x, d = _queries(f, 300, seed=2)
     sigma, rgb, _ = f.query(x, d)
     geo_before, coarse_before = f.geo_codes.detach().clone(), p.geo.detach().clone()
     save_field(f, str(tmp_path / "snap.neumesh"))
