@@ -59,6 +59,9 @@ def main(argv=None) -> int:
                     help="TV over random vertices or the ones each batch looked up (default: TrainConfig's)")
     ap.add_argument("--code-levels", type=int, default=None,
                     help="coarse code levels while training (default: TrainConfig's; 0 = off)")
+    ap.add_argument("--code-levels-until", type=float, default=None,
+                    help="bake the coarse levels into the vertex codes at this fraction of the budget and "
+                         "train plain codes from there (default: keep them to the end)")
     ap.add_argument("--eval-views", type=int, default=25, help="val views in the final evaluation (0 = all)")
     ap.add_argument("--mark-views", type=int, default=10, help="val views evaluated at each mark")
     ap.add_argument("--supersample", type=int, default=2,
@@ -113,7 +116,8 @@ def main(argv=None) -> int:
     tkw = {k: v for k, v in (("lr_codes", args.lr_codes), ("lr_decoders", args.lr_decoders),
                              ("lr_final_factor", args.lr_final), ("average_from", args.average_from),
                              ("weight_tv", args.weight_tv), ("tv_samples", args.tv_samples),
-                             ("tv_vertices", args.tv_vertices), ("code_levels", args.code_levels))
+                             ("tv_vertices", args.tv_vertices), ("code_levels", args.code_levels),
+                             ("code_levels_until", args.code_levels_until))
            if v is not None}
     cfg = nm.TrainConfig(steps=10 ** 6, rays_per_batch=args.rays, max_seconds=budget - scaffold_s, log_every=10,
                          **tkw)
@@ -145,6 +149,7 @@ def main(argv=None) -> int:
               "lr_codes": cfg.lr_codes, "lr_decoders": cfg.lr_decoders, "lr_final_factor": cfg.lr_final_factor,
               "average_from": cfg.average_from, "weight_tv": cfg.weight_tv, "tv_samples": cfg.tv_samples,
               "tv_vertices": cfg.tv_vertices, "code_levels": cfg.code_levels,
+              "code_levels_until": cfg.code_levels_until,
               "averaged_snapshots": res.averaged, "marks": {},
               "history": history}
     for m, s in snaps.items():

@@ -69,6 +69,9 @@ def _add_train_options(ap):
                    help="coarse code levels while training (each 4x sparser; baked into the vertex codes at "
                         "the end, so the field stays a plain per-vertex field): surfaces that few views see "
                         "inherit their surroundings' appearance. 0 = off (default: TrainConfig's)")
+    g.add_argument("--code-levels-until", type=float, default=None, metavar="FRACTION",
+                   help="with --code-levels: bake the levels into the vertex codes at this fraction of the "
+                        "budget (e.g. 0.3) and train plain per-vertex codes from there (default: to the end)")
     g.add_argument("--mask-weight", type=float, default=0.05,
                    help="weight of the mask BCE (used only when the data has alpha/masks)")
     g.add_argument("--max-minutes", type=float, default=None,
@@ -92,7 +95,8 @@ def _add_data_options(ap, required=True):
 def _train_config(args, checkpoint_path):
     import neumesh_core as nm
 
-    extra = {} if args.code_levels is None else {"code_levels": args.code_levels}
+    extra = {k: v for k, v in (("code_levels", args.code_levels), ("code_levels_until", args.code_levels_until))
+             if v is not None}
     return nm.TrainConfig(steps=args.steps, rays_per_batch=args.rays, lr_codes=args.lr_codes,
                           lr_decoders=args.lr_decoders, weight_tv=args.tv, tv_vertices=args.tv_vertices,
                           weight_mask=args.mask_weight,

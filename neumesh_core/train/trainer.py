@@ -38,6 +38,9 @@ class TrainConfig:
     code_levels: int = 0
     code_level_factor: float = 4.0
     code_level_kinds: tuple = ("geo", "tex")   # which codes get coarse levels
+    # bake the coarse levels into the vertex codes once this fraction of the budget is used, and train
+    # plain per-vertex codes from there (None: keep the levels to the end)
+    code_levels_until: Optional[float] = None
     random_background: bool = True    # composite targets on random colours (needs masks)
     occ_refresh_every: int = 16
     occ_warmup_steps: int = 200
@@ -67,6 +70,9 @@ class TrainConfig:
         if self.code_levels < 0 or not self.code_level_factor > 1:
             raise ValueError(f"code_levels must be >= 0 and code_level_factor > 1, not "
                              f"{self.code_levels} / {self.code_level_factor}")
+        if self.code_levels_until is not None and not 0.0 <= self.code_levels_until < 1.0:
+            raise ValueError(f"code_levels_until must be a fraction of the budget in [0, 1) (e.g. 0.3), "
+                             f"not {self.code_levels_until}; None keeps the levels to the end")
         if not self.lr_final_factor > 0:
             raise ValueError(f"lr_final_factor must be > 0 (e.g. 0.1), not {self.lr_final_factor}")
 
@@ -218,6 +224,10 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
 
     try:
         while step < cfg.steps:
+            if (pyramid is not None and field.code_prior is pyramid and cfg.code_levels_until is not None
+                    and _progress(step, cfg, time.perf_counter() - t_begin) >= cfg.code_levels_until):
+                pyramid.bake(field)   # plain per-vertex codes from here (a running average stays valid:
+                #                       it is linear, and the baked levels are zero from now on)
             f = _lr_factor(step, cfg, time.perf_counter() - t_begin)
             for g in opt.param_groups:
                 g["lr"] = g["base_lr"] * f

@@ -146,3 +146,25 @@ def test_coarse_code_levels_train_and_leave_a_plain_field(small_scene_dir, tmp_p
     with pytest.raises(ValueError, match="code_level_factor"):
         nm.TrainConfig(code_levels=1, code_level_factor=1.0)
 
+
+
+def test_code_levels_until_bakes_midway_and_trains_plain_codes_after(small_scene_dir):
+    """code_levels_until=0.5: the levels are attached for the first half of the steps, then folded into
+    the vertex codes, and the plain codes go on learning."""
+    import torch
+
+    scene = nm.load_scene(small_scene_dir)
+    field = nm.create_field(nm.load_mesh(scene.mesh_path))
+    seen = []
+    nm.train(field, scene, nm.TrainConfig(steps=60, rays_per_batch=512, log_every=1, code_levels=2,
+                                          code_level_factor=3.0, code_levels_until=0.5, average_from=0.2,
+                                          average_every=1),
+             callback=lambda p: seen.append((p.step, field.code_prior is not None,
+                                             field.tex_codes.detach().clone())))
+    attached = [s for s, a, _ in seen if a]
+    assert attached and max(attached) < 31 and min(s for s, a, _ in seen if not a) <= 31
+    after = [c for s, a, c in seen if not a]
+    assert not torch.equal(after[0], after[-1])   # the plain codes still learn after the bake
+    assert field.code_prior is None
+    with pytest.raises(ValueError, match="code_levels_until"):
+        nm.TrainConfig(code_levels=2, code_levels_until=1.0)
