@@ -224,11 +224,12 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
 
     try:
         while step < cfg.steps:
+            elapsed = time.perf_counter() - t_begin
             if (pyramid is not None and field.code_prior is pyramid and cfg.code_levels_until is not None
-                    and _progress(step, cfg, time.perf_counter() - t_begin) >= cfg.code_levels_until):
+                    and _progress(step, cfg, elapsed) >= cfg.code_levels_until):
                 pyramid.bake(field)   # plain per-vertex codes from here (a running average stays valid:
                 #                       it is linear, and the baked levels are zero from now on)
-            f = _lr_factor(step, cfg, time.perf_counter() - t_begin)
+            f = _lr_factor(step, cfg, elapsed)
             for g in opt.param_groups:
                 g["lr"] = g["base_lr"] * f
             o, d, rgb_gt, mask = batcher.sample(cfg.rays_per_batch)

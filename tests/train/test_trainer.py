@@ -147,7 +147,6 @@ def test_coarse_code_levels_train_and_leave_a_plain_field(small_scene_dir, tmp_p
         nm.TrainConfig(code_levels=1, code_level_factor=1.0)
 
 
-
 def test_code_levels_until_bakes_midway_and_trains_plain_codes_after(small_scene_dir):
     """code_levels_until=0.5: the levels are attached for the first half of the steps, then folded into
     the vertex codes, and the plain codes go on learning."""
