@@ -36,6 +36,11 @@ def main(argv=None) -> int:
     ap.add_argument("--marks", default="15,30", help="minutes at which snapshots are evaluated")
     ap.add_argument("--downscale", type=float, default=1)
     ap.add_argument("--vertices", type=int, default=200_000, help="scaffold vertex target")
+    ap.add_argument("--max-mesh-grid", type=int, default=None,
+                    help="ScaffoldConfig.max_mesh_grid (default: its own, 640): raise it (e.g. 760) for more "
+                         "than ~2M vertices")
+    ap.add_argument("--max-faces", type=int, default=None,
+                    help="ScaffoldConfig.max_faces (default: its own, 5M); a 3M-vertex scaffold has ~6M faces")
     ap.add_argument("--scaffold-method", default="auto", help="auto | hull | hull+mvs | hull+density | density")
     ap.add_argument("--scaffold-downscale", type=float, default=None,
                     help="image downscale for the scaffold stage (default: --downscale); e.g. DTU trains at 4 "
@@ -85,6 +90,10 @@ def main(argv=None) -> int:
     scaffold_scene = scene if sd is None or sd == args.downscale else nm.load_scene(args.data, downscale=sd)
     mesh, report = build_scaffold(scaffold_scene, ScaffoldConfig(method=args.scaffold_method,
                                                                  target_vertices=args.vertices,
+                                                                 **({} if args.max_mesh_grid is None else
+                                                                    {"max_mesh_grid": args.max_mesh_grid}),
+                                                                 **({} if args.max_faces is None else
+                                                                    {"max_faces": args.max_faces}),
                                                                  mvs_max_image_side=args.mvs_side),
                                   progress=lambda stage, frac: print(f"\rscaffold {stage} {frac:.0%}", end=""))
     scaffold_s = time.perf_counter() - t0

@@ -97,13 +97,16 @@ def _train_config(args, checkpoint_path):
 
     extra = {k: v for k, v in (("code_levels", args.code_levels), ("code_levels_until", args.code_levels_until))
              if v is not None}
-    return nm.TrainConfig(steps=args.steps, rays_per_batch=args.rays, lr_codes=args.lr_codes,
-                          lr_decoders=args.lr_decoders, weight_tv=args.tv, tv_vertices=args.tv_vertices,
-                          weight_mask=args.mask_weight,
-                          lr_final_factor=args.lr_final, average_from=args.average_from,
-                          max_seconds=None if args.max_minutes is None else args.max_minutes * 60,
-                          checkpoint_path=checkpoint_path, checkpoint_every=args.checkpoint_every,
-                          threads=args.threads, seed=args.seed, **extra)
+    try:
+        return nm.TrainConfig(steps=args.steps, rays_per_batch=args.rays, lr_codes=args.lr_codes,
+                              lr_decoders=args.lr_decoders, weight_tv=args.tv, tv_vertices=args.tv_vertices,
+                              weight_mask=args.mask_weight,
+                              lr_final_factor=args.lr_final, average_from=args.average_from,
+                              max_seconds=None if args.max_minutes is None else args.max_minutes * 60,
+                              checkpoint_path=checkpoint_path, checkpoint_every=args.checkpoint_every,
+                              threads=args.threads, seed=args.seed, **extra)
+    except ValueError as exc:   # a config check: say it as an option error, not a traceback
+        raise nm.NeuMeshError(f"training options: {exc}") from exc
 
 
 def _field_config(args):

@@ -22,6 +22,15 @@ def test_help_explains_every_option(cmd, capsys):
     assert "--" in out
 
 
+def test_bad_training_options_are_an_error_not_a_traceback(small_scene_dir, tmp_path, capsys):
+    field = str(tmp_path / "f.neumesh")
+    assert main(["train", "--data", small_scene_dir, "--out", field, "--steps", "5",
+                 "--code-levels-until", "0.3"]) == 2
+    err = capsys.readouterr().err
+    assert "error: training options:" in err and "code_levels is 0" in err
+    assert not os.path.exists(field)
+
+
 def test_train_render_eval_on_the_small_scene(small_scene_dir, tmp_path, capsys):
     field = str(tmp_path / "f.neumesh")
     assert main(["train", "--data", small_scene_dir, "--out", field, "--steps", "30", "--rays", "512",

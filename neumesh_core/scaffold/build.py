@@ -371,7 +371,8 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
     if len(mesh.faces) > cfg.max_faces:
         raise ScaffoldError(
             f"the scaffold has {len(mesh.faces)} faces (> max_faces={cfg.max_faces}); lower "
-            "target_vertices (--vertices) or hull_resolution (--resolution)")
+            "target_vertices (--vertices) or hull_resolution (--resolution), or raise max_faces "
+            "(--max-faces) if you want a scaffold this large (about 2 faces per vertex)")
     rep.num_vertices, rep.num_faces = int(mesh.num_vertices), int(len(mesh.faces))
     rep.timings["mesh"] = time.perf_counter() - t0
     check("mesh", 1.0)

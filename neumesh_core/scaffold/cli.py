@@ -40,6 +40,11 @@ def add_scaffold_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--vertices", type=_positive_int, default=200_000,
                    help="target vertex count of the scaffold (default 200000; the paper uses 100k-300k; "
                         "reached within ~12%%; 0 keeps the marching-cubes count of the grid)")
+    g.add_argument("--max-grid", type=_positive_int, default=None,
+                   help="cap on the grid the mesh is re-extracted on to reach --vertices (about this^3 nodes; "
+                        "default 640, ~2M vertices on DTU scan24 at 3.2 GB peak); raise it for more vertices")
+    g.add_argument("--max-faces", type=_positive_int, default=None,
+                   help="refuse scaffolds with more faces than this (default 5000000, ~2.5M vertices)")
     g.add_argument("--resolution", type=int, default=256,
                    help="visual-hull grid cells along the longest side of the object box (default 256); "
                         "raise it for very thin parts, lower it for speed")
@@ -76,7 +81,9 @@ def config_from_args(args):
         reconstruct_view_fraction=args.reconstruct_view_fraction,
         density_iters=tuple(args.iters), density_resolutions=tuple(args.density_resolutions),
         density_iso_alpha=args.iso_alpha, iou_views=args.iou_views,
-        compute_iou=not args.no_metrics, chamfer_samples=0 if args.no_metrics else 100_000)
+        compute_iou=not args.no_metrics, chamfer_samples=0 if args.no_metrics else 100_000,
+        **({} if args.max_grid is None else {"max_mesh_grid": args.max_grid}),
+        **({} if args.max_faces is None else {"max_faces": args.max_faces}))
 
 
 class StageProgress:

@@ -73,6 +73,10 @@ class TrainConfig:
         if self.code_levels_until is not None and not 0.0 <= self.code_levels_until < 1.0:
             raise ValueError(f"code_levels_until must be a fraction of the budget in [0, 1) (e.g. 0.3), "
                              f"not {self.code_levels_until}; None keeps the levels to the end")
+        if self.code_levels_until is not None and self.code_levels == 0:
+            raise ValueError("code_levels_until folds the coarse code levels into the vertex codes, but "
+                             "code_levels is 0 (no levels): set code_levels (e.g. 3) or leave "
+                             "code_levels_until unset")
         if not self.lr_final_factor > 0:
             raise ValueError(f"lr_final_factor must be > 0 (e.g. 0.1), not {self.lr_final_factor}")
 

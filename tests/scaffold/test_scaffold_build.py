@@ -115,6 +115,18 @@ def test_target_vertices_changes_resolution(small_scene):
     assert abs(capped.num_vertices - 40000) < abs(rep2.meshing["rounds"][0]["vertices"] - 40000)
 
 
+def test_cli_grid_and_face_caps_reach_the_config():
+    import argparse
+
+    from neumesh_core.scaffold.cli import add_scaffold_options, config_from_args
+
+    p = argparse.ArgumentParser()
+    add_scaffold_options(p)
+    assert config_from_args(p.parse_args([])).max_mesh_grid == ScaffoldConfig().max_mesh_grid
+    assert config_from_args(p.parse_args(["--max-grid", "760"])).max_mesh_grid == 760
+    assert config_from_args(p.parse_args(["--max-faces", "8000000"])).max_faces == 8_000_000
+
+
 def test_hull_plus_density_runs_and_stays_close(small_scene):
     cfg = ScaffoldConfig(method="hull+density", target_vertices=3000, hull_resolution=48,
                          density_resolutions=(24,), density_iters=(25,), density_batch_rays=512,
