@@ -88,13 +88,11 @@ def main(argv=None) -> int:
 
     sd = args.scaffold_downscale
     scaffold_scene = scene if sd is None or sd == args.downscale else nm.load_scene(args.data, downscale=sd)
+    skw = {k: v for k, v in (("max_mesh_grid", args.max_mesh_grid), ("max_faces", args.max_faces))
+           if v is not None}
     mesh, report = build_scaffold(scaffold_scene, ScaffoldConfig(method=args.scaffold_method,
                                                                  target_vertices=args.vertices,
-                                                                 **({} if args.max_mesh_grid is None else
-                                                                    {"max_mesh_grid": args.max_mesh_grid}),
-                                                                 **({} if args.max_faces is None else
-                                                                    {"max_faces": args.max_faces}),
-                                                                 mvs_max_image_side=args.mvs_side),
+                                                                 mvs_max_image_side=args.mvs_side, **skw),
                                   progress=lambda stage, frac: print(f"\rscaffold {stage} {frac:.0%}", end=""))
     scaffold_s = time.perf_counter() - t0
     print(f"\nscaffold: {mesh.num_vertices} vertices in {scaffold_s:.0f}s")

@@ -75,15 +75,14 @@ def add_scaffold_options(p: argparse.ArgumentParser) -> None:
 def config_from_args(args):
     from .build import ScaffoldConfig
 
+    caps = {k: v for k, v in (("max_mesh_grid", args.max_grid), ("max_faces", args.max_faces)) if v is not None}
     return ScaffoldConfig(
         method=args.method, target_vertices=args.vertices, hull_resolution=args.resolution,
         mask_tolerance=args.tolerance, hull_dilate_px=args.dilate, min_view_fraction=args.min_view_fraction,
         reconstruct_view_fraction=args.reconstruct_view_fraction,
         density_iters=tuple(args.iters), density_resolutions=tuple(args.density_resolutions),
         density_iso_alpha=args.iso_alpha, iou_views=args.iou_views,
-        compute_iou=not args.no_metrics, chamfer_samples=0 if args.no_metrics else 100_000,
-        **({} if args.max_grid is None else {"max_mesh_grid": args.max_grid}),
-        **({} if args.max_faces is None else {"max_faces": args.max_faces}))
+        compute_iou=not args.no_metrics, chamfer_samples=0 if args.no_metrics else 100_000, **caps)
 
 
 class StageProgress:

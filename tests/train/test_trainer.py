@@ -154,26 +154,25 @@ def test_code_levels_until_bakes_midway_and_trains_plain_codes_after(small_scene
 
     scene = nm.load_scene(small_scene_dir)
     field = nm.create_field(nm.load_mesh(scene.mesh_path))
-    seen, effective = [], []
+    seen = []
 
     def record(p):
-        prior = field.code_prior
-        seen.append((p.step, prior is not None, field.tex_codes.detach().clone()))
         # the codes the field renders with at this step: vertex codes + coarse levels while attached
-        effective.append((p.step, {k: field.code_table(k).detach().clone()
-                                   + (0 if prior is None else prior.dense(k)) for k in ("geo", "tex")}))
+        prior = field.code_prior
+        seen.append((p.step, prior is not None, {k: field.code_table(k).detach().clone()
+                                                 + (0 if prior is None else prior.dense(k)) for k in ("geo", "tex")}))
 
     nm.train(field, scene, nm.TrainConfig(steps=60, rays_per_batch=512, log_every=1, code_levels=2,
                                           code_level_factor=3.0, code_levels_until=0.5, average_from=0.2,
                                           average_every=1), callback=record)
     attached = [s for s, a, _ in seen if a]
     assert attached and max(attached) < 31 and min(s for s, a, _ in seen if not a) <= 31
-    after = [c for s, a, c in seen if not a]
+    after = [c["tex"] for s, a, c in seen if not a]   # plain codes: what the field renders with
     assert not torch.equal(after[0], after[-1])   # the plain codes still learn after the bake
     assert field.code_prior is None
     # the weight average spans the fold and stays exact: the final codes are the mean of the codes
     # rendered at every averaged step (progress >= 0.2: steps 12..60), levels included before the fold
-    averaged = [c for s, c in effective if s >= 12]
+    averaged = [c for s, _, c in seen if s >= 12]
     assert len(averaged) == 49 and any(a for s, a, _ in seen if s >= 12)
     for k in ("geo", "tex"):
         mean = torch.stack([c[k] for c in averaged]).mean(0)
