@@ -37,10 +37,11 @@ def main(argv=None) -> int:
     ap.add_argument("--downscale", type=float, default=1)
     ap.add_argument("--vertices", type=int, default=200_000, help="scaffold vertex target")
     ap.add_argument("--max-mesh-grid", type=int, default=None,
-                    help="ScaffoldConfig.max_mesh_grid (default: its own, 640): raise it (e.g. 760) for more "
-                         "than ~2M vertices")
+                    help=f"ScaffoldConfig.max_mesh_grid (default {ScaffoldConfig.max_mesh_grid}): raise it "
+                         "(e.g. 760) for more than ~2M vertices")
     ap.add_argument("--max-faces", type=int, default=None,
-                    help="ScaffoldConfig.max_faces (default: its own, 5M); a 3M-vertex scaffold has ~6M faces")
+                    help=f"ScaffoldConfig.max_faces (default {ScaffoldConfig.max_faces}); a 3M-vertex scaffold "
+                         "has ~6M faces")
     ap.add_argument("--scaffold-method", default="auto", help="auto | hull | hull+mvs | hull+density | density")
     ap.add_argument("--scaffold-downscale", type=float, default=None,
                     help="image downscale for the scaffold stage (default: --downscale); e.g. DTU trains at 4 "

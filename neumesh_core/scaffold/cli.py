@@ -9,6 +9,8 @@ import os
 import sys
 import time
 
+from .build import ScaffoldConfig
+
 
 def _positive_int(s: str) -> int:
     v = int(s)
@@ -41,10 +43,12 @@ def add_scaffold_options(p: argparse.ArgumentParser) -> None:
                    help="target vertex count of the scaffold (default 200000; the paper uses 100k-300k; "
                         "reached within ~12%%; 0 keeps the marching-cubes count of the grid)")
     g.add_argument("--max-grid", type=_positive_int, default=None,
-                   help="cap on the grid the mesh is re-extracted on to reach --vertices (about this^3 nodes; "
-                        "default 640, ~2M vertices on DTU scan24 at 3.2 GB peak); raise it for more vertices")
+                   help="cap on the grid the mesh is re-extracted on to reach --vertices (about this^3 "
+                        f"nodes; default {ScaffoldConfig.max_mesh_grid}; on DTU scan24, 640 gives ~2M vertices "
+                        "at 3.2 GB peak); raise it for more vertices")
     g.add_argument("--max-faces", type=_positive_int, default=None,
-                   help="refuse scaffolds with more faces than this (default 5000000, ~2.5M vertices)")
+                   help=f"refuse scaffolds with more faces than this (default {ScaffoldConfig.max_faces}; "
+                        "about 2 faces per vertex)")
     g.add_argument("--resolution", type=int, default=256,
                    help="visual-hull grid cells along the longest side of the object box (default 256); "
                         "raise it for very thin parts, lower it for speed")
@@ -73,8 +77,6 @@ def add_scaffold_options(p: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args):
-    from .build import ScaffoldConfig
-
     caps = {k: v for k, v in (("max_mesh_grid", args.max_grid), ("max_faces", args.max_faces)) if v is not None}
     return ScaffoldConfig(
         method=args.method, target_vertices=args.vertices, hull_resolution=args.resolution,
