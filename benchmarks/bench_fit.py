@@ -74,9 +74,16 @@ def main(argv=None) -> int:
                     help="evaluation renders S x S rays per pixel (default 2); figures at 1 are reported too")
     ap.add_argument("--eval-step-scale", type=float, default=0.25,
                     help="marching step / radius when evaluating (default 0.25; 0: the field's training step)")
+    ap.add_argument("--device", default="cpu", help="cpu (default) | cuda | auto: where the field trains")
+    ap.add_argument("--results-dir", default=None,
+                    help="folder for the results JSON (default benchmarks/results; on a borrowed GPU "
+                         "machine point it at a folder that comes back)")
     ap.add_argument("--results-name", default=None, help="results file name (default fit_<scene>.json)")
     args = ap.parse_args(argv)
     torch.set_num_threads(os.cpu_count() or 1)
+    from neumesh_core.device import resolve_device
+
+    device = resolve_device(args.device)
 
     name = os.path.basename(os.path.normpath(args.data))
     out = args.out or os.path.join("runs", f"fit_{name}")
@@ -101,7 +108,7 @@ def main(argv=None) -> int:
 
     fkw = {} if args.step_scale is None else {"step_scale": args.step_scale}
     field = nm.create_field(mesh, nm.FieldConfig(interpolation=args.interpolation,
-                                                  radius_scale=args.radius_scale, **fkw))
+                                                  radius_scale=args.radius_scale, **fkw), device=device)
     print(f"field radius {field.radius:.4f}")
     pending = list(marks)
     snaps = {}
@@ -150,6 +157,8 @@ def main(argv=None) -> int:
         return out
 
     result = {"scene": name, "data": os.path.abspath(args.data), "downscale": args.downscale,
+              "device": str(device), "cpu_threads": torch.get_num_threads(),
+              "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
               "budget_min": args.budget_min, "scaffold_downscale": sd or args.downscale, "mvs_side": args.mvs_side,
               "scaffold_s": scaffold_s, "scaffold": report.to_dict(),
               "train_steps": res.steps_done, "total_wall_s": total_s, "radius": field.radius,
@@ -161,14 +170,15 @@ def main(argv=None) -> int:
               "averaged_snapshots": res.averaged, "marks": {},
               "history": history}
     for m, s in snaps.items():
-        result["marks"][f"{m:g}min"] = {"step": s["step"], **ev(nm.load_field(s["path"]), args.mark_views)}
+        snap = nm.load_field(s["path"], device=device)
+        result["marks"][f"{m:g}min"] = {"step": s["step"], **ev(snap, args.mark_views)}
         print(f"at {m:g} min (step {s['step']}): {result['marks'][f'{m:g}min']}")
     result["final"] = ev(field, args.eval_views, plain=True)
     print(f"final ({split}, {result['final']['n_views']} views): PSNR {result['final']['psnr']:.2f} "
           f"SSIM {result['final']['ssim']:.4f} LPIPS {result['final']['lpips']}")
-    os.makedirs(os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"), exist_ok=True)
-    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
-                        args.results_name or f"fit_{name}.json")
+    results_dir = args.results_dir or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+    os.makedirs(results_dir, exist_ok=True)
+    path = os.path.join(results_dir, args.results_name or f"fit_{name}.json")
     with open(path, "w") as fh:
         json.dump(result, fh, indent=2, default=float)
     print(f"wrote {path}")

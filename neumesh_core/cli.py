@@ -124,6 +124,20 @@ def _add_render_options(ap) -> None:
                          "half of it renders finer, twice as slowly)")
 
 
+def _add_device_option(ap) -> None:
+    from .device import DEVICE_CHOICES
+
+    ap.add_argument("--device", default="cpu", metavar="|".join(DEVICE_CHOICES),
+                    help="torch device to train/render on: cpu (default), cuda, cuda:N, or auto "
+                         "(CUDA when torch sees a GPU)")
+
+
+def _device(args):
+    from .device import resolve_device
+
+    return resolve_device(getattr(args, "device", "cpu"))
+
+
 def _render_settings(args):
     import neumesh_core as nm
 
@@ -137,9 +151,10 @@ def _scene_background(scene):
 def cmd_train(args) -> int:
     import neumesh_core as nm
 
+    device = _device(args)
     scene = nm.load_scene(args.data, downscale=args.downscale, background=args.background)
     if args.resume and os.path.exists(args.out):
-        field = nm.load_field(args.out)
+        field = nm.load_field(args.out, device=device)
         done = field._checkpoint_meta.get("train_state", {}).get("step", 0)
         print(f"resuming {args.out} from step {done}", file=sys.stderr)
     else:
@@ -149,7 +164,7 @@ def cmd_train(args) -> int:
                   "--data DIR --out mesh.ply` (or run `neumesh fit`, which does both).", file=sys.stderr)
             return 2
         mesh = nm.load_mesh(mesh_path)
-        field = nm.create_field(mesh, _field_config(args))
+        field = nm.create_field(mesh, _field_config(args), device=device)
         print(f"scaffold {mesh_path}: {mesh.num_vertices} vertices, radius {field.radius:.4g}",
               file=sys.stderr)
     res = nm.train(field, scene, _train_config(args, args.out), callback=ProgressBar())
@@ -178,7 +193,7 @@ def cmd_eval(args) -> int:
     import neumesh_core as nm
     from .evaluate import write_json
 
-    field = nm.load_field(args.field)
+    field = nm.load_field(args.field, device=_device(args))
     scene = nm.load_scene(args.data, downscale=args.downscale, background=args.background)
     masked = scene.kind == "dtu" if args.masked == "auto" else args.masked == "yes"
     r = nm.evaluate(field, scene.split(args.split), background=scene.background, masked=masked,
@@ -224,7 +239,7 @@ def _render_cameras(field, cams, out_dir, background, settings=None, prefix="fra
 def cmd_render(args) -> int:
     import neumesh_core as nm
 
-    field = nm.load_field(args.field)
+    field = nm.load_field(args.field, device=_device(args))
     bg = (1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0)
     if args.data:
         scene = nm.load_scene(args.data, downscale=args.downscale, background=args.background)
@@ -307,7 +322,7 @@ def cmd_fit(args) -> int:
     summary = fit(args.data, args.out, downscale=args.downscale, background=args.background,
                   scaffold_config=config_from_args(args), field_config=_field_config(args), train_config=tcfg,
                   scaffold_progress=StageProgress(), train_callback=train_cb,
-                  log=lambda m: print(m, file=sys.stderr))
+                  log=lambda m: print(m, file=sys.stderr), device=_device(args))
     ev = summary.get("eval")
     if ev:
         print("stage 3/3: evaluation: " + ", ".join(f"{k} {v:.4f}" for k, v in ev.items() if k != "render_s"))
@@ -330,6 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-eval", dest="eval", action="store_false", help="skip evaluation on 'val'")
     _add_field_options(p)
     _add_train_options(p)
+    _add_device_option(p)
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("render", help="render a field to PNG images (dataset cameras or a turntable)")
@@ -342,6 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", default="400x400", help="turntable image size WxH (default 400x400)")
     p.add_argument("--background", choices=["white", "black"], default="white", help="background colour")
     _add_render_options(p)
+    _add_device_option(p)
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("eval", help="PSNR/SSIM(/LPIPS) of a field over a dataset split; prints a table, "
@@ -354,6 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="JSON output path (default: next to the field)")
     p.add_argument("--renders", help="also write the rendered images to this folder")
     _add_render_options(p)
+    _add_device_option(p)
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("demo", help="the main job on the built-in scene: make it, train, evaluate, render a "
@@ -379,6 +397,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_scaffold_options(p)
     _add_field_options(p)
     _add_train_options(p)
+    _add_device_option(p)
     p.set_defaults(func=cmd_fit)
     return ap
 

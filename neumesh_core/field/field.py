@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..device import draw_device
 from ..errors import VertexMismatchError
 from ..mesh import Mesh, unique_edges, vertex_normals
 from .encoding import frequency_encoding, sh_encoding, trunc_exp
@@ -422,7 +423,9 @@ class NeuMeshField(nn.Module):
                 raise IndexError(f"tv_loss: vertex indices must lie in [0, {n}), got "
                                  f"[{int(i.min())}, {int(i.max())}]")
         elif n_samples and n_samples < n:
-            i = torch.randint(0, n, (n_samples,), device=self.geo_codes.device, generator=generator)
+            # drawn on the generator's device (a CPU generator draws the same vertices on any device)
+            i = torch.randint(0, n, (n_samples,), device=draw_device(generator, self.geo_codes),
+                              generator=generator).to(self.geo_codes.device)
         else:
             i = torch.arange(n, device=self.geo_codes.device)
         j = self.tv_neighbours[i]

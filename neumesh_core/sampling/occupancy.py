@@ -12,6 +12,8 @@ from typing import Callable, Optional
 import torch
 import torch.nn.functional as F
 
+from ..device import draw_device
+
 
 class OccupancyGrid:
     """A dense boolean grid over an axis-aligned box.
@@ -153,12 +155,13 @@ class OccupancyGrid:
         if len(cand) == 0:
             return
         if max_cells is not None and len(cand) > max_cells:
-            pick = torch.randperm(len(cand), device=cand.device, generator=generator)[:max_cells]
-            cand = cand[pick]
+            # draws come from the generator's device (a CPU generator gives the same cells on any device)
+            pick = torch.randperm(len(cand), device=draw_device(generator, cand), generator=generator)
+            cand = cand[pick[:max_cells].to(cand.device)]
         dens = self.density.reshape(-1)
         for s in range(0, len(cand), chunk):
             c = cand[s:s + chunk]
-            jitter = torch.rand(len(c), 3, device=c.device, generator=generator) - 0.5
+            jitter = torch.rand(len(c), 3, device=draw_device(generator, c), generator=generator).to(c.device) - 0.5
             x = self.cell_centers(c) + jitter * self.cell
             sigma = sigma_fn(x).float()
             old = dens[c]

@@ -17,8 +17,11 @@ from .build import ScaffoldConfig, build_scaffold
 def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, background="white",
         scaffold_config: Optional[ScaffoldConfig] = None, field_config=None, train_config=None,
         scaffold_progress: Optional[Callable[[str, float], object]] = None,
-        train_callback=None, evaluate_split: str = "val", log: Callable[[str], None] = print) -> dict:
-    """Run the whole pipeline on a dataset folder; returns a summary dict (also written to fit.json)."""
+        train_callback=None, evaluate_split: str = "val", log: Callable[[str], None] = print,
+        device="cpu") -> dict:
+    """Run the whole pipeline on a dataset folder; returns a summary dict (also written to fit.json).
+
+    ``device``: where the field trains and is evaluated (the scaffold is built on the CPU)."""
     import neumesh_core as nm
 
     os.makedirs(out_dir, exist_ok=True)
@@ -45,7 +48,7 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
     if getattr(tcfg, "checkpoint_path", None) is None:
         tcfg.checkpoint_path = field_path
     if os.path.isfile(field_path):
-        field = nm.load_field(field_path)
+        field = nm.load_field(field_path, device=device)
         if field.num_vertices != mesh.num_vertices:
             raise nm.VertexMismatchError(
                 f"{field_path} has {field.num_vertices} vertices but {mesh_path} has {mesh.num_vertices}; "
@@ -54,7 +57,7 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
         log(f"training: resuming {field_path} from step {done}")
         summary["resumed_from_step"] = done
     else:
-        field = nm.create_field(mesh, field_config or nm.FieldConfig())
+        field = nm.create_field(mesh, field_config or nm.FieldConfig(), device=device)
     res = nm.train(field, scene, tcfg, callback=train_callback)
     if os.path.abspath(tcfg.checkpoint_path) != os.path.abspath(field_path):
         nm.save_field(field, field_path)  # (the trainer already wrote field_path with its step/optimiser)
