@@ -74,6 +74,8 @@ def main(argv=None) -> int:
                     help="evaluation renders S x S rays per pixel (default 2); figures at 1 are reported too")
     ap.add_argument("--eval-step-scale", type=float, default=0.25,
                     help="marching step / radius when evaluating (default 0.25; 0: the field's training step)")
+    ap.add_argument("--seed", type=int, default=None,
+                    help="seed of the ray batches and TV samples (default: TrainConfig's; the field's init is fixed)")
     ap.add_argument("--device", default="cpu", help="cpu (default) | cuda | auto: where the field trains")
     ap.add_argument("--results-dir", default=None,
                     help="folder for the results JSON (default benchmarks/results; on a borrowed GPU "
@@ -132,7 +134,7 @@ def main(argv=None) -> int:
                              ("lr_final_factor", args.lr_final), ("average_from", args.average_from),
                              ("weight_tv", args.weight_tv), ("tv_samples", args.tv_samples),
                              ("tv_vertices", args.tv_vertices), ("code_levels", args.code_levels),
-                             ("code_levels_until", args.code_levels_until))
+                             ("code_levels_until", args.code_levels_until), ("seed", args.seed))
            if v is not None}
     cfg = nm.TrainConfig(steps=10 ** 6, rays_per_batch=args.rays, max_seconds=budget - scaffold_s, log_every=10,
                          **tkw)
@@ -166,7 +168,7 @@ def main(argv=None) -> int:
               "lr_codes": cfg.lr_codes, "lr_decoders": cfg.lr_decoders, "lr_final_factor": cfg.lr_final_factor,
               "average_from": cfg.average_from, "weight_tv": cfg.weight_tv, "tv_samples": cfg.tv_samples,
               "tv_vertices": cfg.tv_vertices, "code_levels": cfg.code_levels,
-              "code_levels_until": cfg.code_levels_until,
+              "code_levels_until": cfg.code_levels_until, "seed": cfg.seed,
               "averaged_snapshots": res.averaged, "marks": {},
               "history": history}
     for m, s in snaps.items():
