@@ -20,6 +20,7 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import neumesh_core as nm  # noqa: E402
+from _results import RESULTS_DIR, write_results  # noqa: E402
 
 
 def matmul_peak(seconds: float = 2.0) -> float:
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
     ap.add_argument("--timed-steps", type=int, default=20)
     ap.add_argument("--frames", type=int, default=2, help="frames timed per resolution")
     ap.add_argument("--interpolation", nargs="+", default=["post", "early"])
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"))
+    ap.add_argument("--out", default=RESULTS_DIR)
     args = ap.parse_args(argv)
     torch.set_num_threads(os.cpu_count() or 1)
 
@@ -137,11 +138,7 @@ def main(argv=None) -> int:
               f"({r400['mlp_gflops_achieved']:.1f} GFLOP/s = {run['fraction_of_peak_render400']:.0%} of peak); "
               f"800^2: {r800['seconds_per_frame']:.2f} s/frame")
         print(f"[{interp}] PSNR after {args.train_steps} steps ({train_s:.0f}s): {ev['mean']['psnr']:.2f} dB")
-    os.makedirs(args.out, exist_ok=True)
-    path = os.path.join(args.out, f"core_{name}.json")
-    with open(path, "w") as fh:
-        json.dump(result, fh, indent=2)
-    print(f"wrote {path}")
+    write_results(result, f"core_{name}.json", args.out)
     return 0
 
 

@@ -26,6 +26,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.scaffold import ScaffoldConfig, build_scaffold  # noqa: E402
+from _results import write_results  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -76,6 +77,8 @@ def main(argv=None) -> int:
                     help="marching step / radius when evaluating (default 0.25; 0: the field's training step)")
     ap.add_argument("--seed", type=int, default=None,
                     help="seed of the ray batches and TV samples (default: TrainConfig's; the field's init is fixed)")
+    ap.add_argument("--knn", default="kdtree", choices=["kdtree", "hashgrid"],
+                    help="neighbour search: kdtree (pykdtree on the CPU) or hashgrid (torch, on the field's device)")
     ap.add_argument("--device", default="cpu", help="cpu (default) | cuda | auto: where the field trains")
     ap.add_argument("--results-dir", default=None,
                     help="folder for the results JSON (default benchmarks/results; on a borrowed GPU "
@@ -110,7 +113,8 @@ def main(argv=None) -> int:
 
     fkw = {} if args.step_scale is None else {"step_scale": args.step_scale}
     field = nm.create_field(mesh, nm.FieldConfig(interpolation=args.interpolation,
-                                                  radius_scale=args.radius_scale, **fkw), device=device)
+                                                  radius_scale=args.radius_scale, knn=args.knn, **fkw),
+                             device=device)
     print(f"field radius {field.radius:.4f}")
     pending = list(marks)
     snaps = {}
@@ -168,7 +172,7 @@ def main(argv=None) -> int:
               "lr_codes": cfg.lr_codes, "lr_decoders": cfg.lr_decoders, "lr_final_factor": cfg.lr_final_factor,
               "average_from": cfg.average_from, "weight_tv": cfg.weight_tv, "tv_samples": cfg.tv_samples,
               "tv_vertices": cfg.tv_vertices, "code_levels": cfg.code_levels,
-              "code_levels_until": cfg.code_levels_until, "seed": cfg.seed,
+              "code_levels_until": cfg.code_levels_until, "seed": cfg.seed, "knn": field.config.knn,
               "averaged_snapshots": res.averaged, "marks": {},
               "history": history}
     for m, s in snaps.items():
@@ -178,12 +182,7 @@ def main(argv=None) -> int:
     result["final"] = ev(field, args.eval_views, plain=True)
     print(f"final ({split}, {result['final']['n_views']} views): PSNR {result['final']['psnr']:.2f} "
           f"SSIM {result['final']['ssim']:.4f} LPIPS {result['final']['lpips']}")
-    results_dir = args.results_dir or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
-    os.makedirs(results_dir, exist_ok=True)
-    path = os.path.join(results_dir, args.results_name or f"fit_{name}.json")
-    with open(path, "w") as fh:
-        json.dump(result, fh, indent=2, default=float)
-    print(f"wrote {path}")
+    write_results(result, args.results_name or f"fit_{name}.json", args.results_dir, default=float)
     return 0
 
 

@@ -11,7 +11,6 @@ benchmarks/results/scaffold_<name>.json (the mesh itself goes to --out, default 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -19,6 +18,7 @@ import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
+from _results import write_results  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -70,12 +70,9 @@ def main(argv=None) -> int:
         "machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
                     "torch": torch.__version__, "python": platform.python_version()},
     }
-    os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
-    jpath = os.path.join(HERE, "results", f"scaffold_{name}.json")
-    with open(jpath, "w") as fh:
-        json.dump(res, fh, indent=2, default=str)
     print(f"vertices {rep.num_vertices}, build {rep.timings['total']:.1f}s, silhouette IoU "
-          f"{(rep.silhouette_iou or {}).get('mean', float('nan')):.4f}; wrote {jpath}")
+          f"{(rep.silhouette_iou or {}).get('mean', float('nan')):.4f}")
+    write_results(res, f"scaffold_{name}.json", default=str)
     return 0
 
 

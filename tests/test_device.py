@@ -57,6 +57,23 @@ def test_cuda_render_matches_cpu(blob_mesh, small_scene_dir):
 
 
 @cuda
+def test_cuda_hashgrid_field_renders_like_the_cpu_kdtree(blob_mesh, small_scene_dir):
+    from neumesh_core.field.knn import HashGridIndex
+
+    scene = nm.load_scene(small_scene_dir)
+    f_cpu = textured_field(blob_mesh)
+    f_gpu = textured_field(blob_mesh)
+    f_gpu.config.knn = "hashgrid"
+    f_gpu = f_gpu.to("cuda")
+    f_gpu.set_vertices(f_gpu.rest_vertices)       # rebuilds the index on the GPU
+    assert isinstance(f_gpu.index, HashGridIndex) and f_gpu.index.v.is_cuda
+    a = nm.render_camera(f_cpu, *_camera(scene), background=(1.0, 1.0, 1.0))
+    b = nm.render_camera(f_gpu, *_camera(scene), background=(1.0, 1.0, 1.0))
+    d = np.abs(a.rgb - b.rgb)
+    assert a.opacity.max() > 0.5 and d.mean() < 1e-3 and d.max() < 0.05, (d.mean(), d.max())
+
+
+@cuda
 def test_cuda_random_draws_match_cpu(blob_mesh):
     """A CPU generator picks the same TV vertices and occupancy cells on either device."""
     f_cpu = textured_field(blob_mesh)

@@ -25,7 +25,7 @@ from ..device import draw_device
 from ..errors import VertexMismatchError
 from ..mesh import Mesh, unique_edges, vertex_normals
 from .encoding import frequency_encoding, sh_encoding, trunc_exp
-from .knn import VertexIndex, vertex_neighbours
+from .knn import KNN_BACKENDS, HashGridIndex, VertexIndex, make_index, vertex_neighbours
 
 
 @dataclass
@@ -46,8 +46,11 @@ class FieldConfig:
     grid_resolution: int = 128  # occupancy grid cells along the longest axis
     step_scale: float = 0.5     # marching step = radius x step_scale (training and rendering)
     code_init_std: float = 1e-2
+    knn: str = "kdtree"         # neighbour search: "kdtree" (pykdtree, CPU) or "hashgrid" (torch, any device)
 
     def __post_init__(self) -> None:
+        if self.knn not in KNN_BACKENDS:
+            raise ValueError(f"knn must be one of {', '.join(KNN_BACKENDS)}, not {self.knn!r}")
         if self.interpolation not in ("post", "early"):
             raise ValueError(f"interpolation must be 'post' or 'early', not {self.interpolation!r}")
         if self.k < 1 or self.hidden < 1:
@@ -164,7 +167,7 @@ class NeuMeshField(nn.Module):
         self.register_buffer("rest_normals", torch.zeros_like(verts), persistent=False)
         self.register_buffer("rest_frames", torch.zeros(n, 3, 3), persistent=False)
         self.to_rest: Optional[torch.Tensor] = None  # (N,3,3) current->rest rotation; None at rest
-        self.index: Optional[VertexIndex] = None
+        self.index = None  # VertexIndex or HashGridIndex (config.knn)
         self._update_rest_geometry()
         from ..sampling.occupancy import OccupancyGrid
 
@@ -195,7 +198,7 @@ class NeuMeshField(nn.Module):
             self.vertices_.copy_(self.rest_vertices)
             self.normals.copy_(self.rest_normals)
         self.to_rest = None
-        self.index = VertexIndex(self.rest_vertices, self.config.k, self.config.radius)
+        self.index = make_index(self.rest_vertices, self.config.k, self.config.radius, self.config.knn)
 
     @property
     def num_vertices(self) -> int:
@@ -245,7 +248,7 @@ class NeuMeshField(nn.Module):
                 frames = _tangent_frames(v, self.normals, self.tangent_ref)
                 # rotation current -> rest: R = F_rest F_cur^T
                 self.to_rest = self.rest_frames @ frames.transpose(1, 2)
-        self.index = VertexIndex(v, self.config.k, self.config.radius)
+        self.index = make_index(v, self.config.k, self.config.radius, self.config.knn)
         # the grid refined from densities is valid in the rest pose only: keep it aside while deformed,
         # and carry its occupied cells along with the surface (each moves rigidly with its nearest vertex)
         if self.to_rest is None:
@@ -443,4 +446,8 @@ class NeuMeshField(nn.Module):
             self.to_rest = fn(self.to_rest)
         if hasattr(self, "grid"):
             self.grid.to(self.rest_vertices.device)
+        if self.config.knn == "hashgrid" and getattr(self, "index", None) is not None and (
+                not isinstance(self.index, HashGridIndex) or self.index.v.device != self.vertices_.device):
+            # the torch index lives with the vertices (and follows a backend chosen after construction)
+            self.index = make_index(self.vertices_, self.config.k, self.config.radius, self.config.knn)
         return self

@@ -35,6 +35,26 @@ def test_local_indicators_match_brute_force(blob_mesh):
             assert got[i][1] == pytest.approx(p, abs=1e-5)
 
 
+def test_hashgrid_backend_gives_the_same_field(blob_mesh):
+    f = textured_field(blob_mesh)
+    h = textured_field(blob_mesh)
+    h.config.knn = "hashgrid"
+    h = h.to("cpu")  # moving the field rebuilds its index with the configured backend
+    assert type(h.index).__name__ == "HashGridIndex"
+    h.set_vertices(h.rest_vertices * 1.1)  # and so does deforming it
+    f.set_vertices(f.rest_vertices * 1.1)
+    assert type(h.index).__name__ == "HashGridIndex"
+    g = torch.Generator().manual_seed(2)
+    x = f.vertices_[torch.randint(0, f.num_vertices, (2000,), generator=g)]
+    x = x + 0.5 * f.radius * torch.randn(2000, 3, generator=g)
+    d = torch.nn.functional.normalize(torch.randn(2000, 3, generator=g), dim=-1)
+    sf, cf = f.query(x, d)[:2]
+    sh, ch = h.query(x, d)[:2]
+    assert torch.allclose(sf, sh, atol=1e-4) and torch.allclose(cf, ch, atol=1e-5)
+    with pytest.raises(ValueError, match="knn must be one of"):
+        FieldConfig(knn="octree")
+
+
 def test_post_interpolation_is_weighted_mean_of_per_neighbour_decodes(blob_mesh):
     f = textured_field(blob_mesh)
     x = f.rest_vertices[:50] + 0.01
