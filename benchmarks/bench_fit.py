@@ -25,6 +25,7 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import neumesh_core as nm  # noqa: E402
+from neumesh_core.field.knn import KNN_BACKENDS  # noqa: E402
 from neumesh_core.scaffold import ScaffoldConfig, build_scaffold  # noqa: E402
 from _results import write_results  # noqa: E402
 
@@ -77,7 +78,7 @@ def main(argv=None) -> int:
                     help="marching step / radius when evaluating (default 0.25; 0: the field's training step)")
     ap.add_argument("--seed", type=int, default=None,
                     help="seed of the ray batches and TV samples (default: TrainConfig's; the field's init is fixed)")
-    ap.add_argument("--knn", default="kdtree", choices=["kdtree", "hashgrid"],
+    ap.add_argument("--knn", default="kdtree", choices=KNN_BACKENDS,
                     help="neighbour search: kdtree (pykdtree on the CPU) or hashgrid (torch, on the field's device)")
     ap.add_argument("--device", default="cpu", help="cpu (default) | cuda | auto: where the field trains")
     ap.add_argument("--results-dir", default=None,

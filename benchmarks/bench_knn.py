@@ -17,7 +17,6 @@ import platform
 import sys
 import time
 
-import numpy as np
 import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
@@ -25,7 +24,7 @@ import neumesh_core as nm  # noqa: E402
 from neumesh_core.data.synthetic import default_mesh  # noqa: E402
 from neumesh_core.device import resolve_device  # noqa: E402
 from neumesh_core.field.knn import KNN_BACKENDS, make_index  # noqa: E402
-from neumesh_core.mesh import unique_edges  # noqa: E402
+from neumesh_core.mesh import mean_edge_length  # noqa: E402
 from _results import RESULTS_DIR, write_results  # noqa: E402
 
 
@@ -66,8 +65,7 @@ def main(argv=None) -> int:
     device = resolve_device(args.device)
     mesh = nm.load_mesh(args.mesh) if args.mesh else default_mesh(args.subdiv)
     name = os.path.splitext(os.path.basename(args.mesh))[0] if args.mesh else f"blob{args.subdiv}"
-    e = unique_edges(mesh.faces)
-    edge = float(np.linalg.norm(mesh.vertices[e[:, 0]] - mesh.vertices[e[:, 1]], axis=1).mean())
+    edge = mean_edge_length(mesh.vertices, mesh.edges())
     radius = args.radius_scale * edge
     g = torch.Generator().manual_seed(0)
     v = torch.as_tensor(mesh.vertices, dtype=torch.float32)

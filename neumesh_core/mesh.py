@@ -64,6 +64,12 @@ def unique_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0)
 
 
+def mean_edge_length(vertices: np.ndarray, edges: np.ndarray) -> float:
+    """Mean length of the (E,2) ``edges`` of ``vertices`` (the unit of the field's search radius)."""
+    v = np.asarray(vertices)
+    return float(np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1).mean())
+
+
 def load_mesh(path: str) -> Mesh:
     """Load a triangle mesh (.ply, .obj, .off, .stl, .glb ...) keeping vertex order as stored."""
     if not os.path.isfile(path):

@@ -24,13 +24,13 @@ def blob_mesh():
     return default_mesh(subdiv=4)
 
 
-def textured_field(mesh, interpolation="post", seed=0):
+def textured_field(mesh, interpolation="post", seed=0, **config):
     """An untrained field made deterministic and visibly textured: random codes, a colour per vertex
     (x>0 red, else blue) in the modification colour, dense shell."""
     from neumesh_core.field.field import FieldConfig, NeuMeshField
 
     torch.manual_seed(seed)
-    f = NeuMeshField(mesh, FieldConfig(interpolation=interpolation))
+    f = NeuMeshField(mesh, FieldConfig(interpolation=interpolation, **config))
     with torch.no_grad():
         f.geo_codes.normal_(0, 0.5)
         f.tex_codes.normal_(0, 0.5)

@@ -62,10 +62,7 @@ def test_cuda_hashgrid_field_renders_like_the_cpu_kdtree(blob_mesh, small_scene_
 
     scene = nm.load_scene(small_scene_dir)
     f_cpu = textured_field(blob_mesh)
-    f_gpu = textured_field(blob_mesh)
-    f_gpu.config.knn = "hashgrid"
-    f_gpu = f_gpu.to("cuda")
-    f_gpu.set_vertices(f_gpu.rest_vertices)       # rebuilds the index on the GPU
+    f_gpu = textured_field(blob_mesh, knn="hashgrid").to("cuda")   # moving the field moves its index
     assert isinstance(f_gpu.index, HashGridIndex) and f_gpu.index.v.is_cuda
     a = nm.render_camera(f_cpu, *_camera(scene), background=(1.0, 1.0, 1.0))
     b = nm.render_camera(f_gpu, *_camera(scene), background=(1.0, 1.0, 1.0))

@@ -23,7 +23,7 @@ from torch import nn
 
 from ..device import draw_device
 from ..errors import VertexMismatchError
-from ..mesh import Mesh, unique_edges, vertex_normals
+from ..mesh import Mesh, mean_edge_length, unique_edges, vertex_normals
 from .encoding import frequency_encoding, sh_encoding, trunc_exp
 from .knn import KNN_BACKENDS, HashGridIndex, VertexIndex, make_index, vertex_neighbours
 
@@ -125,8 +125,7 @@ class NeuMeshField(nn.Module):
         edges = unique_edges(mesh.faces) if len(mesh.faces) else np.zeros((0, 2), np.int64)
         if cfg.radius <= 0:
             if len(edges):
-                el = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1)
-                mean_edge = float(el.mean())
+                mean_edge = mean_edge_length(mesh.vertices, edges)
             else:  # point cloud: use nearest-neighbour spacing
                 nb = vertex_neighbours(mesh.vertices, 1)
                 mean_edge = float(np.linalg.norm(mesh.vertices - mesh.vertices[nb[:, 0]], axis=1).mean())
@@ -446,8 +445,7 @@ class NeuMeshField(nn.Module):
             self.to_rest = fn(self.to_rest)
         if hasattr(self, "grid"):
             self.grid.to(self.rest_vertices.device)
-        if self.config.knn == "hashgrid" and getattr(self, "index", None) is not None and (
-                not isinstance(self.index, HashGridIndex) or self.index.v.device != self.vertices_.device):
-            # the torch index lives with the vertices (and follows a backend chosen after construction)
+        if isinstance(getattr(self, "index", None), HashGridIndex) and self.index.v.device != self.vertices_.device:
+            # the torch index lives with the vertices
             self.index = make_index(self.vertices_, self.config.k, self.config.radius, self.config.knn)
         return self
