@@ -234,6 +234,7 @@ def test_render_images_operator_writes_dataset_cameras(addon, trained_field, tin
     one = addon.operators.dataset_cameras()[1].name
     assert bpy.ops.neumesh.render_images(directory=str(tmp_path / "one"), camera=one) == {"FINISHED"}
     assert os.listdir(tmp_path / "one") == [one + ".png"]
+    # exact on purpose: the same camera through the same render path in one process
     assert np.array_equal(_read_png(str(tmp_path / "one" / (one + ".png"))), _read_png(str(out / (one + ".png"))))
     with pytest.raises(RuntimeError, match="no camera object named"):
         bpy.ops.neumesh.render_images(directory=str(tmp_path / "x"), camera="nope")

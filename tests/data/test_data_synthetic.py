@@ -134,6 +134,7 @@ def test_reference_render_matches_mesh_silhouette_and_is_deterministic():
         assert ((alpha > 0) & (alpha < 1)).sum() > 20  # anti-aliased, soft edges
         np.testing.assert_allclose(rgb[alpha == 0], 1.0)  # white background
         rgb2, alpha2 = S.render_reference(K, c2w, res, res)
+        # exact on purpose: determinism of one function called twice in one process on one machine
         np.testing.assert_array_equal(rgb, rgb2)
         np.testing.assert_array_equal(alpha, alpha2)
         black, _ = S.render_reference(K, c2w, res, res, background=(0, 0, 0))
@@ -183,6 +184,8 @@ def test_small_scene_round_trip(small_scene):
 def test_make_default_scene_is_deterministic(tmp_path, small_scene):
     path, _ = small_scene
     out = S.make_default_scene(str(tmp_path / "again"), **S.SMALL_SCENE_KWARGS)
+    # byte equality on purpose: both scenes are generated in this process on this machine (the fixture
+    # is not a file committed from another CPU), so the same code must give the same bytes
     for name in ("transforms_train.json", "transforms_test.json", "scene.json", "train/r_0.png",
                  "test/r_3.png", "mesh.ply"):
         with open(os.path.join(out, name), "rb") as a, open(os.path.join(path, name), "rb") as b:

@@ -135,7 +135,7 @@ def test_same_mesh_and_config_give_the_same_field(blob_mesh):
     torch.manual_seed(2)
     b = NeuMeshField(blob_mesh, FieldConfig())
     for (name, pa), (_, pb) in zip(a.named_parameters(), b.named_parameters()):
-        assert torch.equal(pa, pb), name
+        assert torch.equal(pa, pb), name  # seeded draws on one machine: exact by construction
     torch.manual_seed(1)
     NeuMeshField(blob_mesh, FieldConfig())
     assert torch.equal(torch.random.get_rng_state(), state)
@@ -146,7 +146,12 @@ def test_trunc_exp_saturates_without_inf():
 
     x = torch.tensor([0.0, 10.0, 200.0], requires_grad=True)
     y = trunc_exp(x)
-    assert torch.isfinite(y).all() and y[2] == y[2].new_tensor(np.exp(15.0), dtype=torch.float32)
+    # what it protects: a huge input saturates at exp(15) (finite, not inf), and its gradient is finite
+    # and positive.  torch's vectorised exp and numpy's libm may differ by an ulp or two between CPUs,
+    # so the saturation value is compared with a relative tolerance of a few float32 ulps, not exactly.
+    assert torch.isfinite(y).all()
+    assert float(y[2]) == pytest.approx(float(np.exp(15.0)), rel=1e-6)
+    assert float(y[1]) == pytest.approx(float(np.exp(10.0)), rel=1e-6) and float(y[0]) == pytest.approx(1.0, rel=1e-6)
     y.sum().backward()
     assert torch.isfinite(x.grad).all() and (x.grad > 0).all()  # a saturated sample can still be lowered
 

@@ -54,6 +54,7 @@ def test_an_attached_pyramid_renders_the_same_until_trained_and_bakes_exactly(bl
     f.set_code_prior(p)
     assert "code_prior" not in dict(f.named_modules()) and not any("geo" == n for n, _ in f.named_parameters())
     sigma1, rgb1, _ = f.query(x, d)
+    # exact on purpose: codes + 0.0 are the same floats and the decode path is the same, in one process
     assert torch.equal(sigma0, sigma1) and torch.equal(rgb0, rgb1)      # zero coarse codes: no change
     with torch.no_grad():
         p.geo.normal_(0, 0.3)

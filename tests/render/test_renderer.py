@@ -20,6 +20,7 @@ def test_supersample_is_the_box_average_of_a_finer_render(blob_mesh):
     f.grid.refresh(lambda x: f.query(x, with_rgb=False)[0], f.radius * 0.25)
     K, c2w = _cam()
     one = nm.render_camera(f, K, c2w, 20, 16)
+    # exact on purpose: supersample=1 is the default, the very same code path in the same process
     assert np.array_equal(one.rgb, nm.render_camera(f, K, c2w, 20, 16, settings=nm.RenderSettings(supersample=1)).rgb)
     ss = nm.render_camera(f, K, c2w, 20, 16, settings=nm.RenderSettings(supersample=2))
     K2 = K.copy()

@@ -24,6 +24,8 @@ def test_round_trip_renders_identical_pixels(blob_mesh, tmp_path):
     nm.save_field(f, path)
     g = nm.load_field(path)
     a, b = _render(f), _render(g)
+    # exact on purpose: the loaded tensors are bit copies and both renders take the same path in one
+    # process on one machine, so the floats are guaranteed identical
     assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.opacity, b.opacity)
     assert torch.equal(f.grid.occ, g.grid.occ)
     assert g.config == f.config
@@ -38,7 +40,7 @@ def test_saving_a_deformed_field_keeps_rest_pose(blob_mesh, tmp_path):
     nm.save_field(f, path)
     g = nm.load_field(path)
     assert np.allclose(g.vertices, f.rest_vertices.numpy())
-    assert np.array_equal(_render(g).rgb, rest.rgb)
+    assert np.array_equal(_render(g).rgb, rest.rgb)  # bit copies, same path, same process: exact
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "empty"])

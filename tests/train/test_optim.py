@@ -31,8 +31,10 @@ def test_matches_adam(lazy, every_row):
             ((rows - target) ** 2).sum().backward()
             assert p.grad.is_sparse == sparse
             o.step()
-    assert torch.allclose(a, b, atol=1e-6)
-    assert torch.allclose(ref.state[a]["exp_avg_sq"], opt.state[b]["exp_avg_sq"], atol=1e-9)
+    # RowSparseAdam is Adam computed by another kernel (fused, row-sparse input), so the two agree to
+    # float32 rounding, not bit for bit: a relative tolerance of ~100 ulps over 20 steps
+    assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
+    assert torch.allclose(ref.state[a]["exp_avg_sq"], opt.state[b]["exp_avg_sq"], rtol=1e-5, atol=1e-9)
 
 
 def test_lazy_rows_not_looked_up_keep_values_and_moments():
