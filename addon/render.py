@@ -55,6 +55,15 @@ def get_field(key: str, path: str):
         return field
 
 
+def adopt(key: str, path: str, field):
+    """Make the cache hold ``field`` (already in memory, just saved to ``path``) for object ``key``, so
+    an edit shows at once without reloading the file it wrote."""
+    with _LOCK:
+        e = _CACHE.get(key)
+        last = e.last_vertices if e is not None and e.field is field else None
+        _CACHE[key] = _Entry(path, _stamp(path), field, last)
+
+
 def clear_cache():
     with _LOCK:
         _CACHE.clear()

@@ -107,3 +107,35 @@ def exact_colour_settings(scene, width, height, filepath=None, depth="16"):
     scene.render.image_settings.color_depth = depth
     if filepath:
         scene.render.filepath = filepath
+
+
+def read_exr(path):
+    """(H,W,4) float32 pixels of an image file, top row first, through bpy (scene linear for EXR)."""
+    import bpy
+
+    img = bpy.data.images.load(path)
+    try:
+        w, h = img.size
+        px = np.empty(w * h * 4, np.float32)
+        img.pixels.foreach_get(px)
+        return px.reshape(h, w, 4)[::-1].copy()
+    finally:
+        bpy.data.images.remove(img)
+
+
+def linear_to_srgb(x):
+    x = np.clip(x, 0, None)
+    return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def f12_srgb(path):
+    """Render the scene (F12) to a 32-bit EXR at ``path`` and return (H,W,3) display-referred sRGB,
+    comparable with ``nm.render_camera(...).rgb`` (the engine decodes to scene linear for Blender)."""
+    import bpy
+
+    scene = bpy.context.scene
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+    return linear_to_srgb(read_exr(str(path))[..., :3])

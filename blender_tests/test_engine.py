@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from helpers import add_armature_bend, add_camera, exact_colour_settings, manual_K_c2w
+from helpers import linear_to_srgb as _linear_to_srgb, read_exr as _read_exr
 
 W, H = 48, 40
 
@@ -23,22 +24,6 @@ def _read_png(path):
 
     with Image.open(path) as im:
         return np.asarray(im.convert("RGBA"), np.float32) / 255.0
-
-
-def _read_exr(path):
-    img = bpy.data.images.load(path)
-    try:
-        w, h = img.size
-        px = np.empty(w * h * 4, np.float32)
-        img.pixels.foreach_get(px)
-        return px.reshape(h, w, 4)[::-1].copy()
-    finally:
-        bpy.data.images.remove(img)
-
-
-def _linear_to_srgb(x):
-    x = np.clip(x, 0, None)
-    return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
 def _field_object(field_path):

@@ -17,6 +17,7 @@ from .evaluate import evaluate
 from .imageio import read_image, save_image
 from .data.loader import load_scene
 from .data.synthetic import default_scene_dir, make_default_scene
+from . import edit  # noqa: E402  (nm.edit: EditRecord, save_edited, ...)
 
 __version__ = "0.1.0"
 

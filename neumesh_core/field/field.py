@@ -1,19 +1,29 @@
 """The NeuMesh++ field: learnable codes on mesh vertices, decoded by small MLPs.
 
-A sample x finds its K nearest scaffold vertices within ``radius``.  For each neighbour k the local
-indicator is h_k = (p_k, w_k): p_k the projection of v_k - x on the vertex normal n_k, w_k the
-normalised inverse distance.  The geometry decoder maps (geo code, h_k) to sigma_k and the radiance
-decoder maps (tex code, h_k, view direction, normal) to c_k, to which the vertex's view-independent
-modification colour is added.  Post-interpolation (the paper's default) takes the w-weighted mean of
-sigma_k and c_k; early interpolation (config) interpolates codes and h first and decodes once.
+The mesh geometry (rest and current pose, normals, rest frames, neighbour index, occupancy grid) is a
+:class:`~neumesh_core.field.scaffold.Scaffold` (``field.scaffold``); this module holds what is learned
+on it.  A sample's K neighbours and local indicators h_k = (p_k, w_k) come from the scaffold.  The
+geometry decoder maps (geo code, h_k) to sigma_k and a radiance decoder maps (tex code, h_k, view
+direction, normal) to c_k, to which the vertex's view-independent modification colour is added.
+Post-interpolation (the paper's default) takes the w-weighted mean of sigma_k and c_k; early
+interpolation (config) interpolates codes and h first and decodes once.
 
-Vertex positions are inputs, not parameters: :meth:`NeuMeshField.set_vertices` deforms the field.
-View directions and normals reach the radiance decoder in each vertex's *rest* frame (a per-vertex
-rotation from rest to current pose is derived from a tangent frame), so a rigid motion of scaffold
-and camera renders the same image and view-dependent effects move with the surface.
+**Decoder binding.** A field holds one geometry decoder and one or more radiance decoders
+(``rad_decoders``) with a per-vertex ``decoder_id``: texture codes only mean something to the decoder
+they were trained with, so a texture edit that brings codes from another field brings that field's
+decoder too (:meth:`NeuMeshField.add_decoder`, added once per distinct decoder).  Post-interpolation
+decodes each neighbour with its own vertex's decoder.  Early interpolation never mixes codes of
+different decoders: for each decoder d among a sample's neighbours it interpolates the codes of the
+neighbours bound to d (weights renormalised within the group), decodes once with d, and blends the
+decoded colours with the group's total weight W_d = sum of w_k over those neighbours; the indicators
+(p, w), normal and view direction are the sample's own, shared by all groups.  A sample whose
+neighbours all share one decoder decodes exactly once, as before.  A field with a single decoder
+takes the single-decoder code path (no per-sample grouping).
 """
 from __future__ import annotations
 
+import copy
+import hashlib
 from dataclasses import asdict, dataclass, fields
 from typing import Optional
 
@@ -22,11 +32,10 @@ import torch
 from torch import nn
 
 from ..device import draw_device
-from ..errors import VertexMismatchError
-from ..mesh import Mesh, mean_edge_length, unique_edges, vertex_normals
+from ..mesh import Mesh, mean_edge_length, unique_edges
 from .encoding import frequency_encoding, sh_encoding, trunc_exp
-from .knn import KNN_BACKENDS, HashGridIndex, VertexIndex, make_index, vertex_neighbours
-
+from .knn import KNN_BACKENDS, vertex_neighbours
+from .scaffold import Neighbourhood, Scaffold, reference_neighbours, tangent_frames  # noqa: F401 (re-exported)
 
 @dataclass
 class FieldConfig:
@@ -62,30 +71,6 @@ class FieldConfig:
         return cls(**{k: v for k, v in d.items() if k in known})
 
 
-@dataclass
-class Neighbourhood:
-    """Geometry of samples w.r.t. their neighbours; independent of learnable parameters.
-
-    idx (M,K) vertex indices (0 where invalid), w (M,K) normalised inverse-distance weights (0 where
-    invalid), p (M,K) signed projections on the vertex normals, valid (M,K) bool.
-    """
-
-    idx: torch.Tensor
-    w: torch.Tensor
-    p: torch.Tensor
-    valid: torch.Tensor
-
-    def __len__(self) -> int:
-        return self.idx.shape[0]
-
-    def select(self, m: torch.Tensor) -> "Neighbourhood":
-        return Neighbourhood(self.idx[m], self.w[m], self.p[m], self.valid[m])
-
-    @staticmethod
-    def cat(items) -> "Neighbourhood":
-        return Neighbourhood(*(torch.cat([getattr(i, f) for i in items]) for f in ("idx", "w", "p", "valid")))
-
-
 def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
     return nn.Sequential(
         nn.Linear(d_in, hidden), nn.ReLU(inplace=True),
@@ -94,34 +79,35 @@ def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
     )
 
 
-def _tangent_frames(vertices: torch.Tensor, normals: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """(N,3,3) orthonormal frames with columns (t, b, n); t points towards vertex ``ref``."""
-    e = vertices[ref] - vertices
-    t = e - (e * normals).sum(-1, keepdim=True) * normals
-    # fall back to a fixed axis where the edge is (nearly) parallel to the normal or missing
-    axis = torch.where(normals[:, :1].abs() < 0.9,
-                       torch.tensor([1.0, 0.0, 0.0], device=normals.device).expand_as(normals),
-                       torch.tensor([0.0, 1.0, 0.0], device=normals.device).expand_as(normals))
-    t_fb = axis - (axis * normals).sum(-1, keepdim=True) * normals
-    tl = t.norm(dim=-1, keepdim=True)
-    t = torch.where(tl > 1e-8, t / tl.clamp_min(1e-12), t_fb / t_fb.norm(dim=-1, keepdim=True))
-    b = torch.cross(normals, t, dim=-1)
-    return torch.stack([t, b, normals], -1)
+def decoder_key(module: nn.Module) -> str:
+    """Content hash of a decoder's weights: equal keys mean bit-identical decoders (copies of one)."""
+    h = hashlib.sha1()
+    for name, t in module.state_dict().items():
+        t = t.detach().cpu().contiguous()
+        h.update(name.encode())
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.numpy().tobytes())
+    return h.hexdigest()
 
 
 class NeuMeshField(nn.Module):
-    """Per-vertex codes + decoders + the scaffold geometry they live on."""
+    """Per-vertex codes + decoders on a :class:`Scaffold` (``self.scaffold``).
 
-    def __init__(self, mesh: Mesh, config: Optional[FieldConfig] = None):
+    ``num_decoders``: radiance decoders to create (1 for a new field; more when a field file with bound
+    decoders is loaded).
+    """
+
+    def __init__(self, mesh: Mesh, config: Optional[FieldConfig] = None, num_decoders: int = 1):
         super().__init__()
         cfg = config or FieldConfig()
         verts = torch.as_tensor(mesh.vertices, dtype=torch.float32)
-        faces = torch.as_tensor(mesh.faces, dtype=torch.long)
         n = len(verts)
         if n < cfg.k:
             raise ValueError(f"the scaffold has {n} vertices; at least k={cfg.k} are needed")
         if not torch.isfinite(verts).all():
             raise ValueError("the scaffold mesh has NaN/inf vertex positions; repair the mesh first")
+        if num_decoders < 1:
+            raise ValueError("a field needs at least one radiance decoder")
         edges = unique_edges(mesh.faces) if len(mesh.faces) else np.zeros((0, 2), np.int64)
         if cfg.radius <= 0:
             if len(edges):
@@ -149,59 +135,22 @@ class NeuMeshField(nn.Module):
         with torch.random.fork_rng(devices=[]):  # the same mesh and config give the same field
             torch.manual_seed(0)
             self.geo_decoder = _mlp(cfg.geo_dim + pe + 1, cfg.hidden, 1)
-            self.rad_decoder = _mlp(cfg.tex_dim + pe + 1 + cfg.sh_degree ** 2 + 3, cfg.hidden, 3)
+            rad = _mlp(cfg.tex_dim + pe + 1 + cfg.sh_degree ** 2 + 3, cfg.hidden, 3)
+        self.rad_decoders = nn.ModuleList([rad] + [copy.deepcopy(rad) for _ in range(num_decoders - 1)])
+        # which radiance decoder each vertex's texture code belongs to (all 0 in a trained field)
+        self.register_buffer("decoder_id", torch.zeros(n, dtype=torch.int16))
         with torch.no_grad():
             # start with a moderate density in the shell so rays see the surface early in training
             self.geo_decoder[-1].bias.fill_(float(np.log(0.5 / cfg.radius)))
             self.geo_decoder[-1].weight.mul_(0.1)
 
         # --- scaffold geometry (buffers: saved, moved with .to(), never optimised)
-        ref = self._reference_neighbours(n, edges)
-        self.register_buffer("faces", faces)
-        self.register_buffer("tangent_ref", ref)
-        self.register_buffer("rest_vertices", verts.clone())
-        self.register_buffer("tv_neighbours", torch.from_numpy(vertex_neighbours(mesh.vertices, cfg.k_tv)))
-        self.register_buffer("vertices_", verts.clone(), persistent=False)
-        self.register_buffer("normals", torch.zeros_like(verts), persistent=False)
-        self.register_buffer("rest_normals", torch.zeros_like(verts), persistent=False)
-        self.register_buffer("rest_frames", torch.zeros(n, 3, 3), persistent=False)
-        self.to_rest: Optional[torch.Tensor] = None  # (N,3,3) current->rest rotation; None at rest
-        self.index = None  # VertexIndex or HashGridIndex (config.knn)
-        self._update_rest_geometry()
-        from ..sampling.occupancy import OccupancyGrid
+        self.scaffold = Scaffold(mesh, edges, cfg.radius, cfg.k, cfg.knn, cfg.k_tv, cfg.grid_resolution)
 
-        self.grid = OccupancyGrid.from_vertices(verts, cfg.radius, cfg.grid_resolution)
-        self._rest_grid_state = None
-        self._grid_anchors = None
-
-    # ------------------------------------------------------------------ geometry
-    @staticmethod
-    def _reference_neighbours(n: int, edges: np.ndarray) -> torch.Tensor:
-        """For every vertex a fixed edge neighbour (defines its tangent); itself when isolated."""
-        ref = np.arange(n, dtype=np.int64)
-        if len(edges):
-            # the smallest-index neighbour of each vertex: deterministic and topology-only
-            a = np.concatenate([edges[:, 0], edges[:, 1]])
-            b = np.concatenate([edges[:, 1], edges[:, 0]])
-            order = np.lexsort((b, a))
-            a, b = a[order], b[order]
-            first = np.ones(len(a), bool)
-            first[1:] = a[1:] != a[:-1]
-            ref[a[first]] = b[first]
-        return torch.from_numpy(ref)
-
-    def _update_rest_geometry(self) -> None:
-        with torch.no_grad():
-            self.rest_normals.copy_(vertex_normals(self.rest_vertices, self.faces))
-            self.rest_frames.copy_(_tangent_frames(self.rest_vertices, self.rest_normals, self.tangent_ref))
-            self.vertices_.copy_(self.rest_vertices)
-            self.normals.copy_(self.rest_normals)
-        self.to_rest = None
-        self.index = make_index(self.rest_vertices, self.config.k, self.config.radius, self.config.knn)
-
+    # ------------------------------------------------------------------ geometry (the scaffold's)
     @property
     def num_vertices(self) -> int:
-        return self.rest_vertices.shape[0]
+        return self.scaffold.num_vertices
 
     @property
     def radius(self) -> float:
@@ -210,7 +159,27 @@ class NeuMeshField(nn.Module):
     @property
     def vertices(self) -> np.ndarray:
         """Current (possibly deformed) vertex positions, (N,3) numpy."""
-        return self.vertices_.detach().cpu().numpy()
+        return self.scaffold.vertices
+
+    @property
+    def rest_vertices(self) -> torch.Tensor:
+        return self.scaffold.rest_vertices
+
+    @property
+    def rest_normals(self) -> torch.Tensor:
+        return self.scaffold.rest_normals
+
+    @property
+    def faces(self) -> torch.Tensor:
+        return self.scaffold.faces
+
+    @property
+    def grid(self):
+        return self.scaffold.grid
+
+    @property
+    def to_rest(self) -> Optional[torch.Tensor]:
+        return self.scaffold.to_rest
 
     @property
     def mesh(self) -> Mesh:
@@ -221,59 +190,71 @@ class NeuMeshField(nn.Module):
         return Mesh(self.rest_vertices.cpu().numpy(), self.faces.cpu().numpy())
 
     def set_vertices(self, vertices) -> None:
-        """Deform the field: new positions for the same vertices, in the same order.
-
-        Normals, per-vertex rotations, the neighbour index and the occupancy grid are refreshed.
-        """
-        v = torch.as_tensor(np.asarray(vertices) if not torch.is_tensor(vertices) else vertices,
-                            dtype=torch.float32).to(self.rest_vertices.device)
-        if v.ndim != 2 or v.shape[1] != 3:
-            raise VertexMismatchError(f"expected vertex positions of shape (N,3), got {tuple(v.shape)}")
-        if v.shape[0] != self.num_vertices:
-            raise VertexMismatchError(
-                f"the field has {self.num_vertices} vertices but {v.shape[0]} positions were given; "
-                "the mesh topology changed (e.g. a subdivision/remesh/decimate modifier). Apply the "
-                "deformation only with modifiers that keep vertex count and order, or retrain the field "
-                "on the new mesh.")
-        if not torch.isfinite(v).all():
-            raise VertexMismatchError("new vertex positions contain NaN/inf; check the deformer")
-        with torch.no_grad():
-            self.vertices_.copy_(v)
-            if torch.equal(v, self.rest_vertices):
-                self.normals.copy_(self.rest_normals)
-                self.to_rest = None
-            else:
-                self.normals.copy_(vertex_normals(v, self.faces))
-                frames = _tangent_frames(v, self.normals, self.tangent_ref)
-                # rotation current -> rest: R = F_rest F_cur^T
-                self.to_rest = self.rest_frames @ frames.transpose(1, 2)
-        self.index = make_index(v, self.config.k, self.config.radius, self.config.knn)
-        # the grid refined from densities is valid in the rest pose only: keep it aside while deformed,
-        # and carry its occupied cells along with the surface (each moves rigidly with its nearest vertex)
-        if self.to_rest is None:
-            if self._rest_grid_state is not None:
-                self.grid.load_state(self._rest_grid_state)
-                self._rest_grid_state = None
-                self._grid_anchors = None
-        else:
-            if self._rest_grid_state is None:
-                self._rest_grid_state = self.grid.state()
-                self._grid_anchors = None
-                if self.grid.refined:
-                    centers = self.grid.occupied_centers()
-                    nearest, _ = VertexIndex(self.rest_vertices, 1).query(centers)
-                    nearest = nearest[:, 0]
-                    self._grid_anchors = (nearest, centers - self.rest_vertices[nearest])
-            carried = None
-            if self._grid_anchors is not None:
-                vid, offset = self._grid_anchors
-                rest_to_cur = self.to_rest[vid].transpose(1, 2)
-                carried = v[vid] + (rest_to_cur * offset[:, None, :]).sum(-1)
-            self.grid.rebuild_from_vertices(v, self.config.radius, carried)
+        """Deform the field: new positions for the same vertices, in the same order (see
+        :meth:`Scaffold.set_vertices`)."""
+        self.scaffold.set_vertices(vertices)
 
     def reset_vertices(self) -> None:
         """Back to the rest (training) pose."""
-        self.set_vertices(self.rest_vertices)
+        self.scaffold.set_vertices(self.rest_vertices)
+
+    def neighbourhood(self, x: torch.Tensor) -> Neighbourhood:
+        """K nearest vertices within the radius and the local indicators h_k = (p_k, w_k)."""
+        return self.scaffold.neighbourhood(x)
+
+    # ------------------------------------------------------------------ decoder binding
+    @property
+    def rad_decoder(self) -> nn.Module:
+        """The field's own (first) radiance decoder."""
+        return self.rad_decoders[0]
+
+    @property
+    def num_decoders(self) -> int:
+        return len(self.rad_decoders)
+
+    def decoder_keys(self) -> list:
+        """Content hash of each radiance decoder (see :func:`decoder_key`)."""
+        return [decoder_key(d) for d in self.rad_decoders]
+
+    def add_decoder(self, decoder: nn.Module) -> int:
+        """Index of ``decoder`` in this field, appending a frozen copy of it when no bit-identical
+        decoder is here yet (so binding codes from one source several times adds its decoder once)."""
+        key = decoder_key(decoder)
+        for i, d in enumerate(self.rad_decoders):
+            if decoder_key(d) == key:
+                return i
+        if len(self.rad_decoders) >= torch.iinfo(self.decoder_id.dtype).max:
+            raise ValueError("too many radiance decoders in one field")
+        dec = copy.deepcopy(decoder).to(self.geo_codes.device)
+        for prm in dec.parameters():
+            prm.requires_grad_(False)
+        self.rad_decoders.append(dec)
+        return len(self.rad_decoders) - 1
+
+    def drop_unused_decoders(self, keep: int = 1) -> int:
+        """Remove trailing radiance decoders (index >= ``keep``) that no vertex is bound to; returns how
+        many were removed.  Used to undo an edit that added decoders."""
+        removed = 0
+        used = int(self.decoder_id.max()) if self.num_vertices else 0
+        while len(self.rad_decoders) > max(1, keep) and len(self.rad_decoders) - 1 > used:
+            del self.rad_decoders[len(self.rad_decoders) - 1]
+            removed += 1
+        return removed
+
+    def _decode_rgb_rows(self, rad_in: torch.Tensor, vid: torch.Tensor) -> torch.Tensor:
+        """Radiance decoder output (pre-sigmoid) for rows whose texture codes belong to vertices ``vid``
+        (post-interpolation: each row with its own vertex's decoder)."""
+        if len(self.rad_decoders) == 1:
+            return self.rad_decoders[0](rad_in)
+        dec = self.decoder_id[vid].long()
+        out = None
+        for d in torch.unique(dec).tolist():
+            rows = (dec == d).nonzero().squeeze(1)
+            y = self.rad_decoders[d](rad_in[rows])
+            if out is None:
+                out = y.new_zeros(rad_in.shape[0], y.shape[1])
+            out = out.index_copy(0, rows, y)
+        return out if out is not None else rad_in.new_zeros(0, 3)
 
     # ------------------------------------------------------------------ queries
     def rows(self, table: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -306,27 +287,8 @@ class NeuMeshField(nn.Module):
             out = [a if b is None else a + b for a, b in zip(out, self._code_prior.lookup(names, idx))]
         return out
 
-    def neighbourhood(self, x: torch.Tensor) -> Neighbourhood:
-        """K nearest vertices within the radius and the local indicators h_k = (p_k, w_k)."""
-        idx, dist = self.index.query(x)
-        valid = idx >= 0
-        idx = idx.clamp_min(0)
-        inv = torch.where(valid, 1.0 / dist.clamp_min(1e-8), torch.zeros_like(dist))
-        w = inv / inv.sum(-1, keepdim=True).clamp_min(1e-12)
-        vk = self.vertices_[idx]
-        nk = self.normals[idx]
-        p = ((vk - x[:, None, :]) * nk).sum(-1)
-        return Neighbourhood(idx, w, p, valid)
-
     def _p_encoding(self, p: torch.Tensor) -> torch.Tensor:
         return frequency_encoding(p / self.config.radius, self.config.pos_freqs)
-
-    def _rest_dirs(self, idx: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-        """View directions d (P,3) in the rest frame of vertices idx (P,)."""
-        if self.to_rest is None:
-            return d
-        r = self.to_rest[idx]
-        return (r * d[:, None, :]).sum(-1)
 
     def decode(self, nb: Neighbourhood, dirs: Optional[torch.Tensor] = None, with_rgb: bool = True,
                with_sigma: bool = True):
@@ -361,11 +323,11 @@ class NeuMeshField(nn.Module):
         if not with_rgb:
             return sigma, None, None
         d = dirs[:, None, :].expand(m, k, 3).reshape(-1, 3) if sample is None else dirs[sample]
-        d = self._rest_dirs(vid, d)
+        d = self.scaffold.rest_dirs(vid, d)
         rad_in = torch.cat([self.codes(("tex",), vid)[0], pe, wk[:, None], sh_encoding(d, self.config.sh_degree),
                             self.rest_normals[vid]], -1)
         mod_k = self.rows(self.mod_colors, vid)
-        c_k = torch.sigmoid(self.rad_decoder(rad_in)) + mod_k
+        c_k = torch.sigmoid(self._decode_rgb_rows(rad_in, vid)) + mod_k
         out = reduce(torch.cat([c_k, mod_k], -1))
         return sigma, out[:, :3], out[:, 3:]
 
@@ -383,19 +345,35 @@ class NeuMeshField(nn.Module):
             sigma = torch.where(nb.valid.any(1), sigma, torch.zeros_like(sigma))
         if not with_rgb:
             return sigma, None, None
-        tex = (codes["tex"] * w).sum(1)
         n = (self.rest_normals[nb.idx] * w).sum(1)
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         if self.to_rest is None:
             d = dirs
         else:
-            d = (self.to_rest[nb.idx] * dirs[:, None, None, :]).sum(-1)
-            d = (d * w).sum(1)
+            d = (self.scaffold.rest_dirs(nb.idx, dirs[:, None, :]) * w).sum(1)
             d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         mod = (self.rows(self.mod_colors, nb.idx) * w).sum(1)
-        rad_in = torch.cat([tex, pe, wi[:, None], sh_encoding(d, self.config.sh_degree), n], -1)
-        rgb = torch.sigmoid(self.rad_decoder(rad_in)) + mod
+        shared = torch.cat([pe, wi[:, None], sh_encoding(d, self.config.sh_degree), n], -1)
+        if len(self.rad_decoders) == 1:
+            tex = (codes["tex"] * w).sum(1)
+            rgb = torch.sigmoid(self.rad_decoders[0](torch.cat([tex, shared], -1))) + mod
+        else:
+            rgb = self._early_rgb_by_decoder(nb, codes["tex"], shared) + mod
         return sigma, rgb, mod
+
+    def _early_rgb_by_decoder(self, nb: Neighbourhood, tex_k: torch.Tensor, shared: torch.Tensor):
+        """Early interpolation over several decoders: sum_d W_d sigmoid(dec_d(codes of group d, h))."""
+        dec = self.decoder_id[nb.idx].long()
+        rgb = shared.new_zeros(shared.shape[0], 3)
+        for d in torch.unique(dec[nb.valid]).tolist():
+            wd = torch.where((dec == d) & nb.valid, nb.w, torch.zeros_like(nb.w))   # (M,K)
+            W = wd.sum(1)
+            rows = (W > 0).nonzero().squeeze(1)
+            wn = wd[rows] / W[rows, None]
+            tex = (tex_k[rows] * wn[..., None]).sum(1)
+            c = torch.sigmoid(self.rad_decoders[d](torch.cat([tex, shared[rows]], -1)))
+            rgb = rgb.index_add(0, rows, W[rows, None] * c)
+        return rgb
 
     def query(self, x: torch.Tensor, dirs: Optional[torch.Tensor] = None, with_rgb: bool = True):
         """Convenience: neighbourhood + decode for world points x (M,3)."""
@@ -430,22 +408,16 @@ class NeuMeshField(nn.Module):
                               generator=generator).to(self.geo_codes.device)
         else:
             i = torch.arange(n, device=self.geo_codes.device)
-        j = self.tv_neighbours[i]
+        j = self.scaffold.tv_neighbours[i]
         dg = (self.rows(self.geo_codes, i)[:, None] - self.rows(self.geo_codes, j)).pow(2).sum(-1).mean()
         dt = (self.rows(self.tex_codes, i)[:, None] - self.rows(self.tex_codes, j)).pow(2).sum(-1).mean()
         return dg + dt
 
     # ------------------------------------------------------------------ misc
     def persistent_buffer_names(self) -> set:
-        return {n for n, _ in self.named_buffers() if n not in self._non_persistent_buffers_set}
-
-    def _apply(self, fn, *args, **kwargs):  # keep non-buffer tensors on the module's device
-        super()._apply(fn, *args, **kwargs)
-        if self.to_rest is not None:
-            self.to_rest = fn(self.to_rest)
-        if hasattr(self, "grid"):
-            self.grid.to(self.rest_vertices.device)
-        if isinstance(getattr(self, "index", None), HashGridIndex) and self.index.v.device != self.vertices_.device:
-            # the torch index lives with the vertices
-            self.index = make_index(self.vertices_, self.config.k, self.config.radius, self.config.knn)
-        return self
+        out = set()
+        for mod_name, mod in self.named_modules():
+            for name, _ in mod.named_buffers(recurse=False):
+                if name not in mod._non_persistent_buffers_set:
+                    out.add(f"{mod_name}.{name}" if mod_name else name)
+        return out

@@ -1,0 +1,226 @@
+"""The scaffold a field lives on: rest pose, current pose, normals, per-vertex rest frames, the
+neighbour index and the occupancy grid.  Nothing here is learnable.
+
+A sample x finds its K nearest scaffold vertices within ``radius`` (:meth:`Scaffold.neighbourhood`).
+For each neighbour k the local indicator is h_k = (p_k, w_k): p_k the projection of v_k - x on the
+vertex normal n_k, w_k the normalised inverse distance.  Vertex positions are inputs, not parameters:
+:meth:`Scaffold.set_vertices` deforms the scaffold.  View directions reach the radiance decoder in
+each vertex's *rest* frame (a per-vertex rotation from rest to current pose derived from a tangent
+frame), so a rigid motion of scaffold and camera renders the same image and view-dependent effects
+move with the surface.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..errors import VertexMismatchError
+from ..mesh import Mesh, vertex_normals
+from .knn import HashGridIndex, VertexIndex, make_index, vertex_neighbours
+
+# persistent buffers of a Scaffold (saved in field files as ``buffer/scaffold.<name>``)
+PERSISTENT = ("faces", "tangent_ref", "rest_vertices", "tv_neighbours")
+
+
+@dataclass
+class Neighbourhood:
+    """Geometry of samples w.r.t. their neighbours; independent of learnable parameters.
+
+    idx (M,K) vertex indices (0 where invalid), w (M,K) normalised inverse-distance weights (0 where
+    invalid), p (M,K) signed projections on the vertex normals, valid (M,K) bool.
+    """
+
+    idx: torch.Tensor
+    w: torch.Tensor
+    p: torch.Tensor
+    valid: torch.Tensor
+
+    def __len__(self) -> int:
+        return self.idx.shape[0]
+
+    def select(self, m: torch.Tensor) -> "Neighbourhood":
+        return Neighbourhood(self.idx[m], self.w[m], self.p[m], self.valid[m])
+
+    @staticmethod
+    def cat(items) -> "Neighbourhood":
+        return Neighbourhood(*(torch.cat([getattr(i, f) for i in items]) for f in ("idx", "w", "p", "valid")))
+
+
+def tangent_frames(vertices: torch.Tensor, normals: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """(N,3,3) orthonormal frames with columns (t, b, n); t points towards vertex ``ref``."""
+    e = vertices[ref] - vertices
+    t = e - (e * normals).sum(-1, keepdim=True) * normals
+    # fall back to a fixed axis where the edge is (nearly) parallel to the normal or missing
+    axis = torch.where(normals[:, :1].abs() < 0.9,
+                       torch.tensor([1.0, 0.0, 0.0], device=normals.device).expand_as(normals),
+                       torch.tensor([0.0, 1.0, 0.0], device=normals.device).expand_as(normals))
+    t_fb = axis - (axis * normals).sum(-1, keepdim=True) * normals
+    tl = t.norm(dim=-1, keepdim=True)
+    t = torch.where(tl > 1e-8, t / tl.clamp_min(1e-12), t_fb / t_fb.norm(dim=-1, keepdim=True))
+    b = torch.cross(normals, t, dim=-1)
+    return torch.stack([t, b, normals], -1)
+
+
+def reference_neighbours(n: int, edges: np.ndarray) -> torch.Tensor:
+    """For every vertex a fixed edge neighbour (defines its tangent); itself when isolated."""
+    ref = np.arange(n, dtype=np.int64)
+    if len(edges):
+        # the smallest-index neighbour of each vertex: deterministic and topology-only
+        a = np.concatenate([edges[:, 0], edges[:, 1]])
+        b = np.concatenate([edges[:, 1], edges[:, 0]])
+        order = np.lexsort((b, a))
+        a, b = a[order], b[order]
+        first = np.ones(len(a), bool)
+        first[1:] = a[1:] != a[:-1]
+        ref[a[first]] = b[first]
+    return torch.from_numpy(ref)
+
+
+class Scaffold(nn.Module):
+    """Mesh geometry of a field: buffers move with ``.to()``; ``set_vertices`` deforms.
+
+    ``radius``, ``k``, ``knn``, ``k_tv`` and ``grid_resolution`` come from the field's config.
+    """
+
+    def __init__(self, mesh: Mesh, edges: np.ndarray, radius: float, k: int, knn: str, k_tv: int,
+                 grid_resolution: int):
+        super().__init__()
+        verts = torch.as_tensor(mesh.vertices, dtype=torch.float32)
+        n = len(verts)
+        self.radius = float(radius)
+        self.k = int(k)
+        self.knn = knn
+        self.register_buffer("faces", torch.as_tensor(mesh.faces, dtype=torch.long))
+        self.register_buffer("tangent_ref", reference_neighbours(n, edges))
+        self.register_buffer("rest_vertices", verts.clone())
+        self.register_buffer("tv_neighbours", torch.from_numpy(vertex_neighbours(mesh.vertices, k_tv)))
+        self.register_buffer("vertices_", verts.clone(), persistent=False)
+        self.register_buffer("normals", torch.zeros_like(verts), persistent=False)
+        self.register_buffer("rest_normals", torch.zeros_like(verts), persistent=False)
+        self.register_buffer("rest_frames", torch.zeros(n, 3, 3), persistent=False)
+        self.to_rest: Optional[torch.Tensor] = None  # (N,3,3) current->rest rotation; None at rest
+        self.index = None  # VertexIndex or HashGridIndex (knn backend)
+        self.update_rest_geometry()
+        from ..sampling.occupancy import OccupancyGrid
+
+        self.grid = OccupancyGrid.from_vertices(verts, self.radius, grid_resolution)
+        self._rest_grid_state = None
+        self._grid_anchors = None
+
+    def update_rest_geometry(self) -> None:
+        """Recompute rest normals/frames and the index from ``rest_vertices`` (after loading them)."""
+        with torch.no_grad():
+            self.rest_normals.copy_(vertex_normals(self.rest_vertices, self.faces))
+            self.rest_frames.copy_(tangent_frames(self.rest_vertices, self.rest_normals, self.tangent_ref))
+            self.vertices_.copy_(self.rest_vertices)
+            self.normals.copy_(self.rest_normals)
+        self.to_rest = None
+        self.index = make_index(self.rest_vertices, self.k, self.radius, self.knn)
+
+    @property
+    def num_vertices(self) -> int:
+        return self.rest_vertices.shape[0]
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """Current (possibly deformed) vertex positions, (N,3) numpy."""
+        return self.vertices_.detach().cpu().numpy()
+
+    def rest_grid_state(self) -> dict:
+        """The occupancy grid of the rest pose (what a field file stores, also while deformed)."""
+        return self._rest_grid_state or self.grid.state()
+
+    def set_vertices(self, vertices) -> None:
+        """Deform: new positions for the same vertices, in the same order.
+
+        Normals, per-vertex rotations, the neighbour index and the occupancy grid are refreshed.
+        """
+        v = torch.as_tensor(np.asarray(vertices) if not torch.is_tensor(vertices) else vertices,
+                            dtype=torch.float32).to(self.rest_vertices.device)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise VertexMismatchError(f"expected vertex positions of shape (N,3), got {tuple(v.shape)}")
+        if v.shape[0] != self.num_vertices:
+            raise VertexMismatchError(
+                f"the field has {self.num_vertices} vertices but {v.shape[0]} positions were given; "
+                "the mesh topology changed (e.g. a subdivision/remesh/decimate modifier). Apply the "
+                "deformation only with modifiers that keep vertex count and order, or retrain the field "
+                "on the new mesh.")
+        if not torch.isfinite(v).all():
+            raise VertexMismatchError("new vertex positions contain NaN/inf; check the deformer")
+        with torch.no_grad():
+            self.vertices_.copy_(v)
+            if torch.equal(v, self.rest_vertices):
+                self.normals.copy_(self.rest_normals)
+                self.to_rest = None
+            else:
+                self.normals.copy_(vertex_normals(v, self.faces))
+                frames = tangent_frames(v, self.normals, self.tangent_ref)
+                # rotation current -> rest: R = F_rest F_cur^T
+                self.to_rest = self.rest_frames @ frames.transpose(1, 2)
+        self.index = make_index(v, self.k, self.radius, self.knn)
+        # the grid refined from densities is valid in the rest pose only: keep it aside while deformed,
+        # and carry its occupied cells along with the surface (each moves rigidly with its nearest vertex)
+        if self.to_rest is None:
+            if self._rest_grid_state is not None:
+                self.grid.load_state(self._rest_grid_state)
+                self._rest_grid_state = None
+                self._grid_anchors = None
+        else:
+            if self._rest_grid_state is None:
+                self._rest_grid_state = self.grid.state()
+                self._grid_anchors = None
+                if self.grid.refined:
+                    centers = self.grid.occupied_centers()
+                    nearest, _ = VertexIndex(self.rest_vertices, 1).query(centers)
+                    nearest = nearest[:, 0]
+                    self._grid_anchors = (nearest, centers - self.rest_vertices[nearest])
+            carried = None
+            if self._grid_anchors is not None:
+                vid, offset = self._grid_anchors
+                rest_to_cur = self.to_rest[vid].transpose(1, 2)
+                carried = v[vid] + (rest_to_cur * offset[:, None, :]).sum(-1)
+            self.grid.rebuild_from_vertices(v, self.radius, carried)
+
+    def neighbourhood(self, x: torch.Tensor) -> Neighbourhood:
+        """K nearest vertices within the radius and the local indicators h_k = (p_k, w_k)."""
+        idx, dist = self.index.query(x)
+        valid = idx >= 0
+        idx = idx.clamp_min(0)
+        inv = torch.where(valid, 1.0 / dist.clamp_min(1e-8), torch.zeros_like(dist))
+        w = inv / inv.sum(-1, keepdim=True).clamp_min(1e-12)
+        vk = self.vertices_[idx]
+        nk = self.normals[idx]
+        p = ((vk - x[:, None, :]) * nk).sum(-1)
+        return Neighbourhood(idx, w, p, valid)
+
+    def rest_dirs(self, idx: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """View directions d (...,3) in the rest frame of vertices idx (...,)."""
+        if self.to_rest is None:
+            return d
+        return (self.to_rest[idx] * d[..., None, :]).sum(-1)
+
+    def __deepcopy__(self, memo):
+        """A copy with its own tensors; the neighbour index (a C object) is rebuilt, not copied."""
+        import copy
+
+        new = type(self).__new__(type(self))
+        memo[id(self)] = new
+        for k, v in self.__dict__.items():
+            new.__dict__[k] = None if k == "index" else copy.deepcopy(v, memo)
+        new.index = make_index(new.vertices_, new.k, new.radius, new.knn)
+        return new
+
+    def _apply(self, fn, *args, **kwargs):  # keep non-buffer tensors on the module's device
+        super()._apply(fn, *args, **kwargs)
+        if self.to_rest is not None:
+            self.to_rest = fn(self.to_rest)
+        if hasattr(self, "grid"):
+            self.grid.to(self.rest_vertices.device)
+        if isinstance(getattr(self, "index", None), HashGridIndex) and self.index.v.device != self.vertices_.device:
+            # the torch index lives with the vertices
+            self.index = make_index(self.vertices_, self.k, self.radius, self.knn)
+        return self
