@@ -13,12 +13,16 @@ import numpy as np
 import torch
 
 # per-vertex tables an edit may change (attribute names on NeuMeshField)
-TABLES = ("tex_codes", "mod_colors", "decoder_id", "geo_codes", "sem_codes")
+TABLES = ("tex_codes", "mod_colors", "decoder_id", "tex_frame", "geo_codes", "sem_codes")
 
 
 def _table(field, name: str) -> torch.Tensor:
+    """The per-vertex table ``name`` of ``field`` (texture frames are materialised as identities when
+    the field has none, so that their rows can be read and written like any other table)."""
     if name not in TABLES:
         raise ValueError(f"unknown per-vertex table {name!r}; known: {', '.join(TABLES)}")
+    if name == "tex_frame":
+        return field.ensure_tex_frame()
     return getattr(field, name)
 
 
@@ -83,6 +87,7 @@ class EditRecord:
         self.decoders_after = field.num_decoders
         self.added_decoders = list(field.rad_decoders)[self.decoders_before:]
         self.info.update(info)
+        field.compact_tex_frame()   # all identities (e.g. a region swapped onto itself): none needed
         return self
 
     @property
@@ -103,6 +108,7 @@ class EditRecord:
                                f"decoders, the edit left {self.decoders_after}; undo later edits first")
         self._write(field, self.old)
         field.drop_unused_decoders(keep=self.decoders_before)
+        field.compact_tex_frame()
 
     def redo(self, field) -> None:
         """Write the edit's new rows (and decoders) again after :meth:`undo`."""
@@ -112,3 +118,4 @@ class EditRecord:
         for d in self.added_decoders:
             field.rad_decoders.append(d)
         self._write(field, self.new)
+        field.compact_tex_frame()

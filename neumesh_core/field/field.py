@@ -19,6 +19,14 @@ decoded colours with the group's total weight W_d = sum of w_k over those neighb
 (p, w), normal and view direction are the sample's own, shared by all groups.  A sample whose
 neighbours all share one decoder decodes exactly once, as before.  A field with a single decoder
 takes the single-decoder code path (no per-sample grouping).
+
+**Texture frames.** The radiance decoder sees the normal and the view direction in the rest pose's
+world axes, so a texture code decodes to the colour it was trained for only in the orientation it was
+trained in.  A texture edit that brings codes from a differently oriented surface (a swap from a
+rotated region, a fill from a template) stores, for each vertex it writes, the rotation from the
+vertex's rest frame into the frame of the code's origin (``tex_frame``, (N,3,3)); normals and view
+directions are rotated by it before they reach the decoder (post: per neighbour; early: per neighbour,
+then w-weighted means).  A field without texture frames (every trained field) skips this entirely.
 """
 from __future__ import annotations
 
@@ -139,6 +147,11 @@ class NeuMeshField(nn.Module):
         self.rad_decoders = nn.ModuleList([rad] + [copy.deepcopy(rad) for _ in range(num_decoders - 1)])
         # which radiance decoder each vertex's texture code belongs to (all 0 in a trained field)
         self.register_buffer("decoder_id", torch.zeros(n, dtype=torch.int16))
+        # per-vertex rotation from the vertex's rest frame into the frame its texture code was trained
+        # in (normals and view directions reach the radiance decoder in that frame); None = identity for
+        # every vertex (a trained field).  A texture edit that brings codes from a differently oriented
+        # surface sets the rows it writes (see :meth:`ensure_tex_frame`).
+        self.register_buffer("tex_frame", None)
         with torch.no_grad():
             # start with a moderate density in the shell so rays see the surface early in training
             self.geo_decoder[-1].bias.fill_(float(np.log(0.5 / cfg.radius)))
@@ -241,6 +254,33 @@ class NeuMeshField(nn.Module):
             removed += 1
         return removed
 
+    def ensure_tex_frame(self) -> torch.Tensor:
+        """The (N,3,3) texture frames, created as identities when the field has none yet."""
+        if self.tex_frame is None:
+            eye = torch.eye(3, device=self.geo_codes.device)
+            self.tex_frame = eye.expand(self.num_vertices, 3, 3).clone()
+        return self.tex_frame
+
+    def compact_tex_frame(self) -> bool:
+        """Drop the texture frames when every one is exactly the identity (the field then decodes as a
+        trained field does, at no extra cost).  Returns True when the field has none afterwards."""
+        if self.tex_frame is not None:
+            eye = torch.eye(3, device=self.tex_frame.device)
+            if bool((self.tex_frame == eye).all()):
+                self.tex_frame = None
+        return self.tex_frame is None
+
+    def _code_frame(self, vid: torch.Tensor, d: torch.Tensor):
+        """View directions ``d`` (...,3) (world, current pose) and rest normals of vertices ``vid`` (...,),
+        both in the frame of each vertex's texture code (rest frame, then :attr:`tex_frame`)."""
+        d = self.scaffold.rest_dirs(vid, d)
+        n = self.rest_normals[vid]
+        if self.tex_frame is not None:
+            Q = self.tex_frame[vid]
+            d = (Q * d[..., None, :]).sum(-1)
+            n = (Q * n[..., None, :]).sum(-1)
+        return d, n
+
     def _decode_rgb_rows(self, rad_in: torch.Tensor, vid: torch.Tensor) -> torch.Tensor:
         """Radiance decoder output (pre-sigmoid) for rows whose texture codes belong to vertices ``vid``
         (post-interpolation: each row with its own vertex's decoder)."""
@@ -323,9 +363,9 @@ class NeuMeshField(nn.Module):
         if not with_rgb:
             return sigma, None, None
         d = dirs[:, None, :].expand(m, k, 3).reshape(-1, 3) if sample is None else dirs[sample]
-        d = self.scaffold.rest_dirs(vid, d)
+        d, n = self._code_frame(vid, d)
         rad_in = torch.cat([self.codes(("tex",), vid)[0], pe, wk[:, None], sh_encoding(d, self.config.sh_degree),
-                            self.rest_normals[vid]], -1)
+                            n], -1)
         mod_k = self.rows(self.mod_colors, vid)
         c_k = torch.sigmoid(self._decode_rgb_rows(rad_in, vid)) + mod_k
         out = reduce(torch.cat([c_k, mod_k], -1))
@@ -345,13 +385,19 @@ class NeuMeshField(nn.Module):
             sigma = torch.where(nb.valid.any(1), sigma, torch.zeros_like(sigma))
         if not with_rgb:
             return sigma, None, None
-        n = (self.rest_normals[nb.idx] * w).sum(1)
-        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-        if self.to_rest is None:
-            d = dirs
-        else:
-            d = (self.scaffold.rest_dirs(nb.idx, dirs[:, None, :]) * w).sum(1)
+        if self.tex_frame is None:
+            n = (self.rest_normals[nb.idx] * w).sum(1)
+            if self.to_rest is None:
+                d = dirs
+            else:
+                d = (self.scaffold.rest_dirs(nb.idx, dirs[:, None, :]) * w).sum(1)
+                d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        else:   # each neighbour's normal and view direction in its code frame, then w-weighted means
+            dk, nk = self._code_frame(nb.idx, dirs[:, None, :].expand(-1, nb.idx.shape[1], 3))
+            n = (nk * w).sum(1)
+            d = (dk * w).sum(1)
             d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         mod = (self.rows(self.mod_colors, nb.idx) * w).sum(1)
         shared = torch.cat([pe, wi[:, None], sh_encoding(d, self.config.sh_degree), n], -1)
         if len(self.rad_decoders) == 1:

@@ -6,7 +6,8 @@ edit}.  ``edit`` (absent in trained fields) describes the edit that made the fil
 parent file it was made from, the training file at the root of the chain and the history of edits.
 
 Versions: 1 (one radiance decoder ``rad_decoder``; scaffold buffers at the top level) and 2 (radiance
-decoders ``rad_decoders.<i>`` with a per-vertex ``decoder_id``; scaffold buffers under ``scaffold.``).
+decoders ``rad_decoders.<i>`` with a per-vertex ``decoder_id``, and ``tex_frame`` (N,3,3) when a
+texture edit rotated the frames of the codes it brought; scaffold buffers under ``scaffold.``).
 Version-1 files load as single-decoder fields with every vertex bound to decoder 0.
 """
 from __future__ import annotations
@@ -203,6 +204,12 @@ def load_field(path: str, device="cpu"):
                         raise CheckpointError(f"{path}: buffer {name} has shape {tuple(t[key].shape)}, "
                                               f"expected {tuple(b.shape)}")
                     b.copy_(t[key])
+            if "buffer/tex_frame" in t:   # per-vertex texture frames (absent: identity everywhere)
+                tf = t["buffer/tex_frame"].float()
+                if tuple(tf.shape) != (field.num_vertices, 3, 3) or not torch.isfinite(tf).all():
+                    raise CheckpointError(f"{path}: buffer tex_frame has shape {tuple(tf.shape)} or non-finite "
+                                          f"values, expected ({field.num_vertices}, 3, 3); the file is corrupt")
+                field.tex_frame = tf.clone()
             ids = field.decoder_id
             if int(ids.min()) < 0 or int(ids.max()) >= field.num_decoders:
                 raise CheckpointError(f"{path}: decoder ids outside [0, {field.num_decoders}); the file "

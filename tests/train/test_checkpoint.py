@@ -190,3 +190,37 @@ def test_saved_files_are_readable_like_ordinary_files(blob_mesh, tmp_path):
     finally:
         os.umask(old)
     assert os.stat(path).st_mode & 0o777 == 0o644
+
+
+@pytest.mark.parametrize("interp", ["post", "early"])
+def test_texture_frames_round_trip_and_bad_ones_are_refused(blob_mesh, tmp_path, interp):
+    import json
+
+    from safetensors.torch import load_file, save_file
+
+    from neumesh_core.train.checkpoint import read_header
+
+    f = textured_field(blob_mesh, interp)
+    a, b = np.radians(40.0), np.radians(-25.0)
+    R = torch.tensor([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]], dtype=torch.float32)
+    R = R @ torch.tensor([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]], dtype=torch.float32)
+    with torch.no_grad():
+        f.ensure_tex_frame()[f.rest_vertices[:, 0] > 0] = R
+    plain = nm.load_field(_save(textured_field(blob_mesh, interp), tmp_path / "plain.neumesh"))
+    assert plain.tex_frame is None        # a trained field has no frames, in memory or on disk
+    path = _save(f, tmp_path / "frames.neumesh")
+    g = nm.load_field(path)
+    assert torch.equal(g.tex_frame, f.tex_frame)
+    assert np.array_equal(_render(g).rgb, _render(f).rgb)   # bit copies, same path, same process
+    assert np.abs(_render(g).rgb - _render(plain).rgb).max() > 0.005   # the frames change the picture
+    t = load_file(path)
+    t["buffer/tex_frame"] = t["buffer/tex_frame"][:10]
+    bad = str(tmp_path / "bad.neumesh")
+    save_file(t, bad, metadata={"neumesh": json.dumps(read_header(path))})
+    with pytest.raises(nm.CheckpointError, match="tex_frame"):
+        nm.load_field(bad)
+
+
+def _save(field, path):
+    nm.save_field(field, str(path))
+    return str(path)

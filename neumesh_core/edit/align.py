@@ -1,0 +1,292 @@
+"""Aligning one surface region onto another: a similarity transform (Umeyama), an automatic initial
+guess without correspondences (centroids, principal axes, extents), rigid ICP, and an
+as-rigid-as-possible regularised non-rigid ICP over the source region's mesh edges.
+
+Everything here works on plain numpy arrays (points, edges) and knows nothing about fields.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field as dc_field
+from itertools import product
+from typing import Callable, Optional
+
+import numpy as np
+
+
+@dataclass
+class Similarity:
+    """x -> scale * R @ x + t."""
+
+    scale: float
+    R: np.ndarray   # (3,3) proper rotation
+    t: np.ndarray   # (3,)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        return (self.scale * (np.asarray(x, np.float64) @ self.R.T) + self.t).astype(np.float64)
+
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous matrix."""
+        M = np.eye(4)
+        M[:3, :3] = self.scale * self.R
+        M[:3, 3] = self.t
+        return M
+
+    @staticmethod
+    def identity() -> "Similarity":
+        return Similarity(1.0, np.eye(3), np.zeros(3))
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True,
+            weights: Optional[np.ndarray] = None) -> Similarity:
+    """Least-squares similarity (Umeyama 1991) mapping points ``src`` (P,3) onto ``dst`` (P,3).
+
+    ``weights`` (P,) optional non-negative point weights.  Needs at least 3 non-collinear pairs.
+    """
+    src = np.asarray(src, np.float64).reshape(-1, 3)
+    dst = np.asarray(dst, np.float64).reshape(-1, 3)
+    if src.shape != dst.shape:
+        raise ValueError(f"umeyama: {len(src)} source points but {len(dst)} target points; give pairs")
+    if len(src) < 3:
+        raise ValueError(f"umeyama: {len(src)} point pairs given; at least 3 are needed")
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, np.float64).reshape(-1)
+    if w.sum() <= 0:
+        raise ValueError("umeyama: all weights are zero")
+    w = w / w.sum()
+    mu_s, mu_d = w @ src, w @ dst
+    xs, xd = src - mu_s, dst - mu_d
+    var_s = float(w @ (xs * xs).sum(1))
+    cov = (xd * w[:, None]).T @ xs
+    U, D, Vt = np.linalg.svd(cov)
+    if var_s <= 1e-30 or D[1] <= 1e-12 * max(D[0], 1e-300):
+        raise ValueError("umeyama: the source points are (nearly) collinear or coincide; give at least 3 "
+                         "pairs of points that span a triangle")
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    scale = float((D * np.diag(S)).sum() / var_s) if with_scale else 1.0
+    t = mu_d - scale * R @ mu_s
+    return Similarity(scale, R, t)
+
+
+def _nn(points: np.ndarray):
+    from pykdtree.kdtree import KDTree
+
+    return KDTree(np.ascontiguousarray(points, dtype=np.float64), leafsize=16)
+
+
+def _query(tree, x: np.ndarray, k: int = 1):
+    d, i = tree.query(np.ascontiguousarray(x, dtype=np.float64), k=k)
+    return np.asarray(d), np.asarray(i).astype(np.int64)
+
+
+def principal_frame(points: np.ndarray):
+    """(centroid (3,), axes (3,3) columns sorted by decreasing spread, rms radius)."""
+    p = np.asarray(points, np.float64)
+    c = p.mean(0)
+    x = p - c
+    evals, evecs = np.linalg.eigh(x.T @ x / max(len(p), 1))
+    order = np.argsort(evals)[::-1]
+    return c, evecs[:, order], float(np.sqrt(max(evals.sum(), 1e-30)))
+
+
+def initial_alignment(src: np.ndarray, dst: np.ndarray, icp_iterations: int = 10,
+                      dst_normals: Optional[np.ndarray] = None) -> Similarity:
+    """An automatic similarity from ``src`` onto ``dst`` (no correspondences needed).
+
+    Centroids are matched, principal axes aligned and the rms radius (extent) scaled.  The principal
+    axes have a sign ambiguity: the four proper rotations that flip pairs of axes are each refined by a
+    few rigid ICP iterations and the one with the smallest mean nearest-neighbour distance wins, then it
+    is refined further (point-to-plane when ``dst_normals`` are given).
+    """
+    cs, As, rs = principal_frame(src)
+    cd, Ad, rd = principal_frame(dst)
+    scale = rd / rs
+    tree = _nn(dst)
+    best, best_err = None, np.inf
+    for signs in product((1.0, -1.0), repeat=3):
+        D = np.diag(signs)
+        R = Ad @ D @ As.T
+        if np.linalg.det(R) < 0:
+            continue
+        T = Similarity(scale, R, cd - scale * R @ cs)
+        T, err = rigid_icp(src, dst, T, iterations=icp_iterations, tree=tree)
+        if err < best_err - 1e-12:
+            best, best_err = T, err
+    best, _ = rigid_icp(src, dst, best, iterations=3 * icp_iterations, tree=tree, dst_normals=dst_normals)
+    return best
+
+
+TRIM = 0.9   # ICP uses the closest 90% of matches: parts of one region with no counterpart in the other
+
+
+def _rotvec(w: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(w))
+    if th < 1e-15:
+        return np.eye(3)
+    k = w / th
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+
+
+def rigid_icp(src: np.ndarray, dst: np.ndarray, init: Similarity, iterations: int = 20,
+              with_scale: bool = True, tree=None, dst_normals: Optional[np.ndarray] = None):
+    """Refine ``init`` by ICP; returns (Similarity, mean nearest-neighbour distance).
+
+    Point-to-point (closest points, Umeyama) without ``dst_normals``; point-to-plane (linearised
+    rotation, translation and scale, least squares) with them, which does not stall where the vertex
+    sampling makes point-to-point distances flat (sliding along a smooth surface).
+    """
+    tree = tree if tree is not None else _nn(dst)
+    dst = np.asarray(dst, np.float64)
+    normals = None if dst_normals is None else np.asarray(dst_normals, np.float64)
+    T = init
+    for _ in range(iterations):
+        x = T.apply(src)
+        d, i = _query(tree, x)
+        keep = d <= np.quantile(d, TRIM) if len(d) > 10 else np.ones(len(d), bool)
+        if normals is None:
+            try:
+                step = umeyama(x[keep], dst[i[keep]], with_scale=with_scale)
+            except ValueError:
+                break
+        else:
+            xs, c, n = x[keep], dst[i[keep]], normals[i[keep]]
+            mu = xs.mean(0)
+            xc = xs - mu
+            cols = [np.cross(xc, n), n] + ([(n * xc).sum(1, keepdims=True)] if with_scale else [])
+            sol = np.linalg.lstsq(np.concatenate(cols, 1), -(n * (xs - c)).sum(1), rcond=None)[0]
+            s = 1.0 + (float(sol[6]) if with_scale else 0.0)
+            R = _rotvec(sol[:3])
+            step = Similarity(s, R, mu + sol[3:6] - s * R @ mu)
+        T = Similarity(step.scale * T.scale, step.R @ T.R, step.scale * step.R @ T.t + step.t)
+        if np.abs(step.R - np.eye(3)).max() < 1e-9 and abs(step.scale - 1) < 1e-9 and \
+                np.abs(step.t).max() < 1e-12 * max(1.0, np.abs(dst).max()):
+            break
+    d, _ = _query(tree, T.apply(src))
+    return T, float(d.mean())
+
+
+@dataclass
+class NonRigidResult:
+    points: np.ndarray          # (N,3) the source region's vertices after the non-rigid step
+    residual: float             # mean distance to the target region's nearest vertex
+    residuals: list = dc_field(default_factory=list)  # per iteration
+
+
+def _arap_system(rest: np.ndarray, edges: np.ndarray):
+    """Graph Laplacian L (uniform weights) and the edge lists of the region."""
+    import scipy.sparse as sp
+
+    n = len(rest)
+    i, j = edges[:, 0], edges[:, 1]
+    w = np.ones(len(edges))
+    W = sp.coo_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))),
+                      shape=(n, n)).tocsr()
+    deg = np.asarray(W.sum(1)).reshape(-1)
+    L = sp.diags(deg) - W
+    return L, W
+
+
+def _local_rotations(rest: np.ndarray, cur: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """ARAP local step: per vertex the rotation best mapping its rest edge vectors to the current ones."""
+    n = len(rest)
+    i, j = edges[:, 0], edges[:, 1]
+    e0 = rest[j] - rest[i]
+    e1 = cur[j] - cur[i]
+    outer = e1[:, :, None] * e0[:, None, :]       # (E,3,3)
+    S = np.zeros((n, 3, 3))
+    np.add.at(S, i, outer)
+    np.add.at(S, j, outer)
+    U, _, Vt = np.linalg.svd(S)
+    det = np.linalg.det(U @ Vt)
+    U[:, :, 2] *= np.where(det < 0, -1.0, 1.0)[:, None]
+    R = U @ Vt
+    bad = ~np.isfinite(R).all(axis=(1, 2))
+    R[bad] = np.eye(3)
+    return R
+
+
+def arap_icp(src_points: np.ndarray, src_edges: np.ndarray, dst_points: np.ndarray,
+             iterations: int = 20, stiffness=(20.0, 10.0, 5.0, 2.0, 1.0), max_distance: Optional[float] = None,
+             tree=None, progress: Optional[Callable[[float], bool]] = None) -> NonRigidResult:
+    """As-rigid-as-possible regularised non-rigid ICP of a source region onto target points.
+
+    ``src_points`` (N,3) are the (already similarity-aligned) source vertices and ``src_edges`` (E,2)
+    the region's mesh edges (indices into ``src_points``).  Each iteration finds every source vertex's
+    closest target point c_i and solves the sparse least-squares problem
+
+        min_X  sum_i a_i |x_i - c_i|^2 + lam * sum_(i,j) |(x_i - x_j) - (R_i + R_j)/2 (p_i - p_j)|^2
+
+    (p the aligned rest positions, R_i the ARAP local rotations of the current estimate, a_i = 0 for
+    matches farther than ``max_distance``), alternating the local rotations and the global solve
+    (scipy sparse LU, factorised once per stiffness).  ``stiffness`` lam runs from stiff to flexible
+    over the iterations (in units of the data weight).  ``progress(fraction)`` returning False stops.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    p = np.asarray(src_points, np.float64)
+    dst = np.asarray(dst_points, np.float64)
+    edges = np.asarray(src_edges, np.int64).reshape(-1, 2)
+    n = len(p)
+    tree = tree if tree is not None else _nn(dst)
+    if len(edges) == 0 or iterations <= 0:
+        d, _ = _query(tree, p)
+        return NonRigidResult(p.copy(), float(d.mean()), [float(d.mean())])
+    L, _ = _arap_system(p, edges)
+    unit = float(np.linalg.norm(p[edges[:, 0]] - p[edges[:, 1]], axis=1).mean())
+    x = p.copy()
+    residuals = []
+    lams = list(stiffness) + [stiffness[-1]] * max(0, iterations - len(stiffness))
+    lam_prev, solver, a_prev = None, None, None
+    for it in range(iterations):
+        d, idx = _query(tree, x)
+        residuals.append(float(d.mean()))
+        a = np.ones(n)
+        if max_distance is not None:
+            a[d > max_distance] = 0.0
+        lam = lams[it]
+        R = _local_rotations(p, x, edges)
+        # b = sum over edges of lam * (R_i + R_j)/2 (p_i - p_j), assembled per vertex (Laplacian form)
+        i, j = edges[:, 0], edges[:, 1]
+        e = p[i] - p[j]
+        Rm = 0.5 * (R[i] + R[j])
+        r = np.einsum("eab,eb->ea", Rm, e)
+        b = np.zeros_like(p)
+        np.add.at(b, i, r)
+        np.add.at(b, j, -r)
+        # a weak pull (eps) towards the current estimate keeps vertices without a match (a_i = 0) where
+        # they are instead of leaving a component's translation undetermined
+        eps = 1e-4
+        rhs = a[:, None] * dst[idx] + eps * x + lam * b
+        if solver is None or lam != lam_prev or not np.array_equal(a, a_prev):
+            A = (sp.diags(a + eps) + lam * L).tocsc()
+            solver = splu(A)
+            lam_prev, a_prev = lam, a
+        x_new = np.stack([solver.solve(rhs[:, c]) for c in range(3)], 1)
+        moved = float(np.abs(x_new - x).max())
+        x = x_new
+        if progress is not None and progress((it + 1) / iterations) is False:
+            break
+        if lam == lams[-1] and moved < 1e-4 * unit:   # converged at the final stiffness
+            break
+    d, _ = _query(tree, x)
+    residuals.append(float(d.mean()))
+    return NonRigidResult(x, float(d.mean()), residuals)
+
+
+def region_edges(faces: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """Mesh edges with both ends in ``vertices`` (sorted unique indices), re-indexed into positions of
+    ``vertices`` (so they index the region's own point array)."""
+    from ..mesh import unique_edges
+
+    faces = np.asarray(faces, np.int64)
+    if len(faces) == 0:
+        return np.zeros((0, 2), np.int64)
+    e = unique_edges(faces)
+    pos = np.full(int(max(faces.max(), vertices.max())) + 1, -1, np.int64)
+    pos[vertices] = np.arange(len(vertices))
+    a, b = pos[e[:, 0]], pos[e[:, 1]]
+    keep = (a >= 0) & (b >= 0)
+    return np.stack([a[keep], b[keep]], 1)
