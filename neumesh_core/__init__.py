@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from .data.cameras import Cameras, intrinsics_from_fov, opencv_to_opengl, opengl_to_opencv, pixel_rays
 from .data.scene import ImageSet, Scene
-from .errors import CheckpointError, DataError, NeuMeshError, VertexMismatchError, WeightsUnavailableError
+from .errors import (CheckpointError, DataError, EditError, NeuMeshError, VertexMismatchError,
+                     WeightsUnavailableError)
 from .mesh import Mesh, load_mesh, save_mesh
 from .field.field import FieldConfig, NeuMeshField
 from .render.renderer import Cancelled, RenderOutput, RenderSettings, render_camera, render_rays
@@ -29,7 +30,7 @@ def create_field(mesh: Mesh, config: FieldConfig | None = None, device="cpu") ->
 
 
 __all__ = [
-    "Cameras", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "FieldConfig", "ImageSet", "Mesh",
+    "Cameras", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "EditError", "FieldConfig", "ImageSet", "Mesh",
     "NeuMeshError", "NeuMeshField", "RenderOutput", "RenderSettings", "Scene", "TrainConfig",
     "TrainProgress", "TrainResult", "VertexMismatchError", "WeightsUnavailableError", "create_field",
     "default_scene_dir", "evaluate", "fill_texture", "intrinsics_from_fov", "load_field", "load_mesh", "load_scene",

@@ -1,4 +1,4 @@
-"""`neumesh` command line: train, render, eval, demo (+ scaffold, fit)."""
+"""`neumesh` command line: train, render, eval, demo (+ scaffold, fit, edit)."""
 from __future__ import annotations
 
 import argparse
@@ -385,9 +385,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="decoder interpolation (see `neumesh train --help`)")
     p.set_defaults(func=cmd_demo)
 
+    from .edit.cli import add_commands as add_edit_commands
     from .scaffold.cli import add_commands, add_scaffold_options
 
     add_commands(sub)
+    add_edit_commands(sub)
     p = sub.add_parser("fit", help="images alone -> scaffold -> trained field -> evaluation (resumable)",
                        description="Build the scaffold (skipped when OUT/scaffold.ply exists), train the "
                                    "field (resumes OUT/field.neumesh), evaluate on 'val'. Progress per stage.")

@@ -19,3 +19,8 @@ class CheckpointError(NeuMeshError):
 
 class WeightsUnavailableError(NeuMeshError):
     """Pretrained weights (LPIPS/DINO/...) are not present in the local cache."""
+
+
+class EditError(NeuMeshError, ValueError):
+    """An edit cannot run with the given input (empty region, missing UVs, incompatible fields...).
+    Nothing was changed."""

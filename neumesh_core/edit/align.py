@@ -12,6 +12,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from ..errors import EditError
+
 
 @dataclass
 class Similarity:
@@ -45,12 +47,12 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True,
     src = np.asarray(src, np.float64).reshape(-1, 3)
     dst = np.asarray(dst, np.float64).reshape(-1, 3)
     if src.shape != dst.shape:
-        raise ValueError(f"umeyama: {len(src)} source points but {len(dst)} target points; give pairs")
+        raise EditError(f"umeyama: {len(src)} source points but {len(dst)} target points; give pairs")
     if len(src) < 3:
-        raise ValueError(f"umeyama: {len(src)} point pairs given; at least 3 are needed")
+        raise EditError(f"umeyama: {len(src)} point pairs given; at least 3 are needed")
     w = np.ones(len(src)) if weights is None else np.asarray(weights, np.float64).reshape(-1)
     if w.sum() <= 0:
-        raise ValueError("umeyama: all weights are zero")
+        raise EditError("umeyama: all weights are zero")
     w = w / w.sum()
     mu_s, mu_d = w @ src, w @ dst
     xs, xd = src - mu_s, dst - mu_d
@@ -58,7 +60,7 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True,
     cov = (xd * w[:, None]).T @ xs
     U, D, Vt = np.linalg.svd(cov)
     if var_s <= 1e-30 or D[1] <= 1e-12 * max(D[0], 1e-300):
-        raise ValueError("umeyama: the source points are (nearly) collinear or coincide; give at least 3 "
+        raise EditError("umeyama: the source points are (nearly) collinear or coincide; give at least 3 "
                          "pairs of points that span a triangle")
     S = np.eye(3)
     if np.linalg.det(U) * np.linalg.det(Vt) < 0:

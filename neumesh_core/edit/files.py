@@ -63,11 +63,10 @@ def root_of(path: str) -> str:
     return _resolve(e["root"], path) if e and e.get("root") else os.path.abspath(path)
 
 
-def save_edited(field, parent_path: str, record, out_path: Optional[str] = None) -> str:
-    """Save ``field`` after the edit ``record`` (an :class:`~neumesh_core.edit.record.EditRecord`) was
-    applied to the field loaded from ``parent_path``.  Writes ``out_path`` (default
-    :func:`next_edit_path`) atomically and returns it.  Refuses to overwrite the parent or the root
-    file of the chain."""
+def check_out_path(parent_path: str, out_path: Optional[str] = None) -> str:
+    """The absolute file an edit of ``parent_path`` will be written to (``out_path`` or the next
+    ``<name>.edit-NNN.neumesh``); :class:`NeuMeshError` when that would overwrite the parent or the
+    trained file at the root of its chain.  Callers check before a long edit, not only when saving."""
     parent = os.path.abspath(parent_path)
     out = os.path.abspath(out_path) if out_path else next_edit_path(parent)
     root = root_of(parent) if os.path.isfile(parent) else parent
@@ -75,6 +74,17 @@ def save_edited(field, parent_path: str, record, out_path: Optional[str] = None)
         if _same_file(out, keep):
             raise NeuMeshError(f"refusing to overwrite {what} ({keep}) with an edit; choose another "
                                "output file (the default is the next <name>.edit-NNN.neumesh beside it)")
+    return out
+
+
+def save_edited(field, parent_path: str, record, out_path: Optional[str] = None) -> str:
+    """Save ``field`` after the edit ``record`` (an :class:`~neumesh_core.edit.record.EditRecord`) was
+    applied to the field loaded from ``parent_path``.  Writes ``out_path`` (default
+    :func:`next_edit_path`) atomically and returns it.  Refuses to overwrite the parent or the root
+    file of the chain."""
+    parent = os.path.abspath(parent_path)
+    out = check_out_path(parent, out_path)
+    root = root_of(parent) if os.path.isfile(parent) else parent
     parent_edit = edit_info(parent) if os.path.isfile(parent) else None
     history = list((parent_edit or {}).get("history", []))
     history.append({"op": record.op, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),

@@ -21,6 +21,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from ..errors import EditError
 from .record import EditRecord, as_vertex_ids
 from .transfer import TransferPlan, apply_transfer, check_compatible, idw_neighbours, minimal_rotations
 
@@ -36,12 +37,12 @@ class CornerUVs:
         self.vertex = np.asarray(self.vertex).reshape(-1)
         self.uv = np.asarray(self.uv, np.float64).reshape(-1, 2)
         if len(self.vertex) != len(self.uv):
-            raise ValueError(f"UVs: {len(self.vertex)} corner vertices but {len(self.uv)} UV pairs")
+            raise EditError(f"UVs: {len(self.vertex)} corner vertices but {len(self.uv)} UV pairs")
         if not np.issubdtype(self.vertex.dtype, np.integer):
-            raise ValueError("UVs: corner vertices must be whole vertex indices")
+            raise EditError("UVs: corner vertices must be whole vertex indices")
         self.vertex = self.vertex.astype(np.int64)
         if not np.isfinite(self.uv).all():
-            raise ValueError("UVs hold NaN/inf; repair the UV map")
+            raise EditError("UVs hold NaN/inf; repair the UV map")
 
     @staticmethod
     def per_vertex(vertices, uv) -> "CornerUVs":
@@ -49,7 +50,7 @@ class CornerUVs:
         v = np.asarray(vertices).reshape(-1)
         uv = np.asarray(uv, np.float64)
         if uv.ndim != 2 or uv.shape[1] != 2 or len(uv) != len(v):
-            raise ValueError(f"UVs: expected ({len(v)}, 2) UVs, one per region vertex, got {uv.shape}")
+            raise EditError(f"UVs: expected ({len(v)}, 2) UVs, one per region vertex, got {uv.shape}")
         return CornerUVs(v, uv)
 
     @staticmethod
@@ -63,7 +64,7 @@ class CornerUVs:
         v, uv = self.vertex[keep], self.uv[keep]
         missing = np.setdiff1d(vertices, v)
         if len(missing):
-            raise ValueError(f"{what}: {len(missing)} of the region's {len(vertices)} vertices have no UV "
+            raise EditError(f"{what}: {len(missing)} of the region's {len(vertices)} vertices have no UV "
                              f"(e.g. vertex {int(missing[0])}); unwrap the region or choose the right UV map")
         key = np.concatenate([v[:, None].astype(np.float64), np.round(uv, 7)], 1)
         _, first = np.unique(key, axis=0, return_index=True)
@@ -89,7 +90,7 @@ class FillConfig:
 
     def __post_init__(self) -> None:
         if self.k < 1:
-            raise ValueError("k must be at least 1")
+            raise EditError("k must be at least 1")
 
 
 def fill_plan(target_rows: np.ndarray, target_uv: CornerUVs, template_uv: CornerUVs, scale: float,
@@ -118,9 +119,9 @@ def fill_texture(target, target_vertices, target_uv, template=None, template_ver
     cfg = config or FillConfig()
     template = target if template is None else template
     if template_vertices is None or template_uv is None or target_uv is None:
-        raise ValueError("fill_texture needs target UVs, a template region and its UVs")
+        raise EditError("fill_texture needs target UVs, a template region and its UVs")
     if not np.isfinite(scale) or scale <= 0:
-        raise ValueError(f"scale must be a positive number, got {scale}")
+        raise EditError(f"scale must be a positive number, got {scale}")
     check_compatible(target, template)
     t0 = time.perf_counter()
     tv = as_vertex_ids(target_vertices, target.num_vertices, "target region")

@@ -12,6 +12,8 @@ from typing import Dict, Iterable
 import numpy as np
 import torch
 
+from ..errors import EditError
+
 # per-vertex tables an edit may change (attribute names on NeuMeshField)
 TABLES = ("tex_codes", "mod_colors", "decoder_id", "tex_frame", "geo_codes", "sem_codes")
 
@@ -20,7 +22,7 @@ def _table(field, name: str) -> torch.Tensor:
     """The per-vertex table ``name`` of ``field`` (texture frames are materialised as identities when
     the field has none, so that their rows can be read and written like any other table)."""
     if name not in TABLES:
-        raise ValueError(f"unknown per-vertex table {name!r}; known: {', '.join(TABLES)}")
+        raise EditError(f"unknown per-vertex table {name!r}; known: {', '.join(TABLES)}")
     if name == "tex_frame":
         return field.ensure_tex_frame()
     return getattr(field, name)
@@ -34,19 +36,19 @@ def as_vertex_ids(vertices, num_vertices: int, what: str = "vertex indices") -> 
     v = np.asarray(vertices)
     if v.dtype == bool:
         if v.shape != (num_vertices,):
-            raise ValueError(f"{what}: a boolean mask must have one entry per vertex ({num_vertices}), "
+            raise EditError(f"{what}: a boolean mask must have one entry per vertex ({num_vertices}), "
                              f"got shape {v.shape}")
         v = np.nonzero(v)[0]
     if v.size == 0:
-        raise ValueError(f"{what}: the region is empty; select at least one vertex")
+        raise EditError(f"{what}: the region is empty; select at least one vertex")
     if not np.issubdtype(v.dtype, np.integer):
         if np.issubdtype(v.dtype, np.floating) and np.all(np.isfinite(v)) and np.all(v == np.round(v)):
             v = v.astype(np.int64)
         else:
-            raise ValueError(f"{what}: expected whole vertex indices, got {v.dtype} values")
+            raise EditError(f"{what}: expected whole vertex indices, got {v.dtype} values")
     v = np.unique(v.reshape(-1).astype(np.int64))
     if v[0] < 0 or v[-1] >= num_vertices:
-        raise ValueError(f"{what}: indices must lie in [0, {num_vertices}) for this field, got "
+        raise EditError(f"{what}: indices must lie in [0, {num_vertices}) for this field, got "
                          f"[{int(v[0])}, {int(v[-1])}]; is the region from another mesh?")
     return v
 

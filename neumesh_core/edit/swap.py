@@ -22,6 +22,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from ..errors import EditError
 from ..mesh import unique_edges
 from .align import Similarity, arap_icp, initial_alignment, region_edges, rigid_icp, umeyama
 from .record import EditRecord, as_vertex_ids
@@ -43,9 +44,9 @@ class SwapConfig:
 
     def __post_init__(self) -> None:
         if self.k < 1:
-            raise ValueError("k must be at least 1")
+            raise EditError("k must be at least 1")
         if self.nonrigid_iterations < 0 or not self.stiffness or min(self.stiffness) <= 0:
-            raise ValueError("nonrigid_iterations must be >= 0 and stiffness values positive")
+            raise EditError("nonrigid_iterations must be >= 0 and stiffness values positive")
 
 
 def _mean_edge(points: np.ndarray, faces: np.ndarray, region: np.ndarray) -> float:
@@ -68,22 +69,22 @@ def _pairs_points(pairs, source_rest: np.ndarray, target_rest: np.ndarray):
     else:
         a = np.asarray(pairs)
         if a.ndim != 2 or a.shape[1] not in (2, 6):
-            raise ValueError("pairs: give (P,2) vertex index pairs (source, target), (P,6) point pairs, or "
+            raise EditError("pairs: give (P,2) vertex index pairs (source, target), (P,6) point pairs, or "
                              "a tuple (source points (P,3), target points (P,3))")
         if a.shape[1] == 2:
             ai = a.astype(np.int64)
             if not np.array_equal(ai, a):
-                raise ValueError("pairs: (P,2) pairs must hold whole vertex indices")
+                raise EditError("pairs: (P,2) pairs must hold whole vertex indices")
             for col, n, what in ((0, len(source_rest), "source"), (1, len(target_rest), "target")):
                 if ai[:, col].min() < 0 or ai[:, col].max() >= n:
-                    raise ValueError(f"pairs: {what} vertex indices must lie in [0, {n})")
+                    raise EditError(f"pairs: {what} vertex indices must lie in [0, {n})")
             src, dst = source_rest[ai[:, 0]], target_rest[ai[:, 1]]
         else:
             src, dst = a[:, :3].astype(np.float64), a[:, 3:].astype(np.float64)
     if len(src) != len(dst):
-        raise ValueError(f"pairs: {len(src)} source points but {len(dst)} target points")
+        raise EditError(f"pairs: {len(src)} source points but {len(dst)} target points")
     if len(src) < 3:
-        raise ValueError(f"pairs: {len(src)} correspondences given; at least 3 are needed (or none, for "
+        raise EditError(f"pairs: {len(src)} correspondences given; at least 3 are needed (or none, for "
                          "the automatic alignment)")
     return src, dst
 
@@ -113,7 +114,7 @@ def swap_texture(target, target_vertices, source=None, source_vertices=None, pai
     cfg = config or SwapConfig()
     source = target if source is None else source
     if source_vertices is None:
-        raise ValueError("source_vertices: give the source region (vertex indices or a boolean mask)")
+        raise EditError("source_vertices: give the source region (vertex indices or a boolean mask)")
     check_compatible(target, source)
     tv = as_vertex_ids(target_vertices, target.num_vertices, "target region")
     sv = as_vertex_ids(source_vertices, source.num_vertices, "source region")
@@ -139,7 +140,7 @@ def swap_texture(target, target_vertices, source=None, source_vertices=None, pai
         if cfg.refine_pairs:
             sim, _ = rigid_icp(S_pts, T_pts, sim, with_scale=cfg.with_scale, tree=tree, dst_normals=T_nrm)
     elif len(sv) < 4 or len(tv) < 4:
-        raise ValueError("automatic alignment needs at least 4 vertices in each region; select larger "
+        raise EditError("automatic alignment needs at least 4 vertices in each region; select larger "
                          "regions or give 3 or more point pairs")
     else:
         sim = initial_alignment(S_pts, T_pts, dst_normals=T_nrm)

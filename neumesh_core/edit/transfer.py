@@ -16,6 +16,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from ..errors import EditError
 from .record import EditRecord
 
 
@@ -31,7 +32,7 @@ def idw_neighbours(query: np.ndarray, points: np.ndarray, k: int = 4, tree=None)
     pts = np.ascontiguousarray(points, dtype=np.float64)
     q = np.ascontiguousarray(query, dtype=np.float64)
     if len(pts) == 0:
-        raise ValueError("the source region is empty")
+        raise EditError("the source region is empty")
     kk = min(int(k), len(pts))
     tree = tree if tree is not None else KDTree(pts, leafsize=16)
     d, i = tree.query(q, k=kk)
@@ -85,7 +86,7 @@ class TransferPlan:
         T = len(rows)
         counts = np.bincount(query_row, minlength=T)
         if (counts == 0).any():
-            raise ValueError("every target vertex needs at least one query")
+            raise EditError("every target vertex needs at least one query")
         J = int(counts.max()) * src.shape[1]
         order = np.argsort(query_row, kind="stable")
         qr = query_row[order]
@@ -112,7 +113,7 @@ def apply_transfer(op: str, target, plan: TransferPlan, source,
     tables = ("tex_codes", "mod_colors", "decoder_id", "tex_frame")
     record = EditRecord.begin(op, target, rows, tables)
     if not np.array_equal(record.vertices, rows):
-        raise ValueError("the target region holds repeated vertices")
+        raise EditError("the target region holds repeated vertices")
     src_ids = source.decoder_id.detach().cpu().numpy().astype(np.int64)
     src, w = plan.src, plan.w.copy()
     dec = src_ids[src]                                           # (T,J) decoder of each blended vertex
@@ -154,5 +155,5 @@ def check_compatible(target, source) -> None:
     diffs = [f"{name} {getattr(b, name)} (source) vs {getattr(a, name)} (target)"
              for name in ("tex_dim", "pos_freqs", "sh_degree") if getattr(a, name) != getattr(b, name)]
     if diffs:
-        raise ValueError("the two fields' texture codes are not interchangeable: " + "; ".join(diffs) +
+        raise EditError("the two fields' texture codes are not interchangeable: " + "; ".join(diffs) +
                          ". Use a source field trained with the same code size and encodings")
