@@ -8,10 +8,20 @@ step between the files, and the render cache reloads whichever file the object p
 edit" steps to the file an edited field was made from; "Revert to trained field" to the root of the
 chain.  Edit operators declare ``bl_options = {"REGISTER", "UNDO"}`` and add their panel as a child of
 :class:`NEUMESH_PT_edit` (``bl_parent_id = "NEUMESH_PT_edit"``).
+
+Long edits run in a background thread (:class:`EditOperator`): invoked from the UI the operator is
+modal, shows progress in the status bar and the cursor, and Esc cancels (nothing changes); run from a
+script (``bpy.ops.neumesh.<edit>()``, EXEC) it blocks.  The thread edits a *copy* of the object's
+field, so the viewport can keep rendering the current one; the copy replaces it when the edit is
+committed.
 """
 from __future__ import annotations
 
+import copy
 import os
+import threading
+import time
+import traceback
 
 import bpy
 
@@ -96,6 +106,169 @@ def _read_chain(edit, path):
         chain.append(((info or {}).get("op", "trained"), p))
         p = edit.parent_of(p) if info else None
     return chain[::-1]
+
+
+def edit_copy(field):
+    """A private copy of a cached field for a background edit (taken under the render lock, so no
+    render or deformation is half-way through it)."""
+    with render._LOCK:
+        return copy.deepcopy(field)
+
+
+def region_of(obj, group: str, field, what: str):
+    """Field vertex indices of vertex group ``group`` of ``obj``; :class:`EditError` when the group is
+    missing or empty, or the mesh's vertices are not the field's."""
+    from . import sync
+
+    if not group:
+        raise EditError(f"{what}: choose a vertex group of '{obj.name}'")
+    if obj.vertex_groups.get(group) is None:
+        raise EditError(f"{what}: '{obj.name}' has no vertex group '{group}'")
+    if len(obj.data.vertices) != field.num_vertices:
+        raise EditError(f"'{obj.name}' has {len(obj.data.vertices)} vertices but its field has "
+                        f"{field.num_vertices}; edit the mesh the field was trained on")
+    idx = sync.vertex_group_indices(obj, group)
+    if len(idx) == 0:
+        raise EditError(f"{what}: vertex group '{group}' of '{obj.name}' is empty; assign vertices to it")
+    return idx
+
+
+class EditJob:
+    """One core edit in a background thread: ``fn(progress) -> EditRecord``; ``progress(fraction)``
+    returns False once :meth:`cancel` was called (the core then raises ``Cancelled``)."""
+
+    def __init__(self, label: str, fn):
+        self.label = label
+        self.fn = fn
+        self.fraction = 0.0
+        self.record = None
+        self.error = None
+        self.cancelled = False
+        self.started = time.time()
+        self._cancel = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"neumesh-{label}", daemon=True)
+
+    def start(self):
+        self._thread.start()
+        return self
+
+    def cancel(self):
+        self._cancel.set()
+
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
+    def join(self):
+        self._thread.join()
+
+    def _progress(self, fraction):
+        self.fraction = float(fraction)
+        return not self._cancel.is_set()
+
+    def _run(self):
+        try:
+            self.record = self.fn(self._progress)
+        except Exception as exc:  # noqa: BLE001 - reported by the operator
+            if type(exc).__name__ == "Cancelled":
+                self.cancelled = True
+            else:
+                self.error = exc
+                if not isinstance(exc, (EditError, ValueError)):
+                    traceback.print_exc()
+        finally:
+            try:
+                core.guard_torch_namespaces()
+            except Exception:  # noqa: BLE001
+                pass
+
+
+class EditOperator:
+    """Mixin of the edit operators.  A subclass implements :meth:`prepare` (main thread: read Blender
+    state, raise :class:`EditError` for bad input) returning ``(obj, field, parent_path, fn)`` where
+    ``fn(progress)`` runs the core edit on ``field`` (a copy from :func:`edit_copy`) and returns its
+    record.  Invoked from the UI the edit runs in a thread with progress and Esc; EXEC blocks."""
+
+    bl_options = {"REGISTER", "UNDO"}
+    edit_label = "edit"
+
+    def prepare(self, context):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _start(self, context):
+        try:
+            obj, field, parent, fn = self.prepare(context)
+        except (EditError, core.CoreUnavailable, ValueError) as exc:
+            self.report({"ERROR"}, f"NeuMesh: {exc}")
+            return None
+        except Exception as exc:  # noqa: BLE001
+            self.report({"ERROR"}, f"NeuMesh: {self.edit_label} failed: {exc}")
+            return None
+        self._obj_name, self._field, self._parent = obj.name_full, field, parent
+        return EditJob(self.edit_label, lambda progress: fn(field, progress))
+
+    def _finish(self, context, job):
+        if job.cancelled:
+            self.report({"WARNING"}, f"NeuMesh: {self.edit_label} cancelled; nothing changed")
+            return {"CANCELLED"}
+        if job.error is not None:
+            self.report({"ERROR"}, f"NeuMesh: {self.edit_label}: {job.error}")
+            return {"CANCELLED"}
+        obj = bpy.data.objects.get(self._obj_name)
+        try:
+            out = commit_edit(obj, self._field, job.record, self._parent)
+        except Exception as exc:  # noqa: BLE001
+            self.report({"ERROR"}, f"NeuMesh: could not save the edited field: {exc}")
+            return {"CANCELLED"}
+        for area in getattr(context.screen, "areas", []) or []:
+            area.tag_redraw()
+        self.report({"INFO"}, f"NeuMesh: {self.edit_label}: {job.record.num_changed} vertices changed; "
+                              f"saved {os.path.basename(out)} ({self.summary(job.record)})")
+        return {"FINISHED"}
+
+    def summary(self, record) -> str:
+        return f"{record.info.get('seconds', 0.0):.1f} s"
+
+    def execute(self, context):
+        job = self._start(context)
+        if job is None:
+            return {"CANCELLED"}
+        job.start().join()
+        return self._finish(context, job)
+
+    def invoke(self, context, event):
+        job = self._start(context)
+        if job is None:
+            return {"CANCELLED"}
+        self._job = job.start()
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        _status(context, f"NeuMesh: {self.edit_label}... (Esc cancels)")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC" and job.running:
+            job.cancel()
+        if event.type == "TIMER":
+            context.window_manager.progress_update(int(100 * job.fraction))
+            _status(context, f"NeuMesh: {self.edit_label} {100 * job.fraction:.0f}% (Esc cancels)")
+        if job.running:   # the viewport stays usable while the edit runs; Esc is ours
+            return {"RUNNING_MODAL"} if event.type == "ESC" else {"PASS_THROUGH"}
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        _status(context, None)
+        return self._finish(context, job)
+
+
+def _status(context, text):
+    try:
+        context.workspace.status_text_set(text)
+    except Exception:  # noqa: BLE001 - no workspace in background mode
+        pass
 
 
 class NEUMESH_OT_undo_edit(bpy.types.Operator):
