@@ -93,17 +93,23 @@ def principal_frame(points: np.ndarray):
 
 
 def initial_alignment(src: np.ndarray, dst: np.ndarray, icp_iterations: int = 10,
-                      dst_normals: Optional[np.ndarray] = None) -> Similarity:
+                      dst_normals: Optional[np.ndarray] = None, max_points: int = 5000) -> Similarity:
     """An automatic similarity from ``src`` onto ``dst`` (no correspondences needed).
 
     Centroids are matched, principal axes aligned and the rms radius (extent) scaled.  The principal
     axes have a sign ambiguity: the four proper rotations that flip pairs of axes are each refined by a
     few rigid ICP iterations and the one with the smallest mean nearest-neighbour distance wins, then it
-    is refined further (point-to-plane when ``dst_normals`` are given).
+    is refined further (point-to-plane when ``dst_normals`` are given).  The source is subsampled to
+    ``max_points`` for the hypotheses and 4x that for the refinement.
     """
+    src = np.asarray(src, np.float64)
+    dst = np.asarray(dst, np.float64)
     cs, As, rs = principal_frame(src)
     cd, Ad, rd = principal_frame(dst)
     scale = rd / rs
+    # the hypotheses are told apart on a subsample (the answer does not need every vertex); the winner
+    # is refined on a larger one
+    sub = _subsample(len(src), max_points)
     tree = _nn(dst)
     best, best_err = None, np.inf
     for signs in product((1.0, -1.0), repeat=3):
@@ -112,11 +118,19 @@ def initial_alignment(src: np.ndarray, dst: np.ndarray, icp_iterations: int = 10
         if np.linalg.det(R) < 0:
             continue
         T = Similarity(scale, R, cd - scale * R @ cs)
-        T, err = rigid_icp(src, dst, T, iterations=icp_iterations, tree=tree)
+        T, err = rigid_icp(src[sub], dst, T, iterations=icp_iterations, tree=tree)
         if err < best_err - 1e-12:
             best, best_err = T, err
-    best, _ = rigid_icp(src, dst, best, iterations=3 * icp_iterations, tree=tree, dst_normals=dst_normals)
+    fine = _subsample(len(src), 4 * max_points)
+    best, _ = rigid_icp(src[fine], dst, best, iterations=3 * icp_iterations, tree=tree, dst_normals=dst_normals)
     return best
+
+
+def _subsample(n: int, m: int) -> np.ndarray:
+    """At most ``m`` of ``n`` indices, evenly spread (deterministic)."""
+    if n <= m:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, m).round().astype(np.int64))
 
 
 TRIM = 0.9   # ICP uses the closest 90% of matches: parts of one region with no counterpart in the other
@@ -176,31 +190,77 @@ class NonRigidResult:
     residuals: list = dc_field(default_factory=list)  # per iteration
 
 
-def _arap_system(rest: np.ndarray, edges: np.ndarray):
-    """Graph Laplacian L (uniform weights) and the edge lists of the region."""
+def _incidence(n: int, edges: np.ndarray):
+    """Sparse (n,E) matrices: ``both`` has 1 at both ends of every edge, ``signed`` +1 at the first end
+    and -1 at the second (so ``signed @ r`` sums r over a vertex's edges with the edge's sign)."""
     import scipy.sparse as sp
 
-    n = len(rest)
-    i, j = edges[:, 0], edges[:, 1]
-    w = np.ones(len(edges))
-    W = sp.coo_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))),
-                      shape=(n, n)).tocsr()
-    deg = np.asarray(W.sum(1)).reshape(-1)
-    L = sp.diags(deg) - W
-    return L, W
+    E = len(edges)
+    rows = np.concatenate([edges[:, 0], edges[:, 1]])
+    cols = np.concatenate([np.arange(E), np.arange(E)])
+    both = sp.csr_matrix((np.ones(2 * E), (rows, cols)), shape=(n, E))
+    signed = sp.csr_matrix((np.concatenate([np.ones(E), -np.ones(E)]), (rows, cols)), shape=(n, E))
+    return both, signed
 
 
-def _local_rotations(rest: np.ndarray, cur: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """ARAP local step: per vertex the rotation best mapping its rest edge vectors to the current ones."""
+def _local_rotations(rest: np.ndarray, cur: np.ndarray, edges: np.ndarray, both=None) -> np.ndarray:
+    """ARAP local step: per vertex the rotation best mapping its rest edge vectors to the current ones
+    (the rotation of the polar decomposition of sum_e e1 e0^T over the vertex's edges)."""
     n = len(rest)
     i, j = edges[:, 0], edges[:, 1]
     e0 = rest[j] - rest[i]
     e1 = cur[j] - cur[i]
-    outer = e1[:, :, None] * e0[:, None, :]       # (E,3,3)
-    S = np.zeros((n, 3, 3))
-    np.add.at(S, i, outer)
-    np.add.at(S, j, outer)
-    U, _, Vt = np.linalg.svd(S)
+    outer = (e1[:, :, None] * e0[:, None, :]).reshape(-1, 9)       # (E,9)
+    if both is None:
+        both, _ = _incidence(n, edges)
+    S = np.asarray(both @ outer).reshape(n, 3, 3)
+    return polar_rotations(S)
+
+
+def _cofactor(M: np.ndarray) -> np.ndarray:
+    """Cofactor matrices of (n,3,3) M: det(M) M^{-T}, from cross products of the columns."""
+    c0, c1, c2 = M[:, :, 0], M[:, :, 1], M[:, :, 2]
+    return np.stack([np.cross(c1, c2), np.cross(c2, c0), np.cross(c0, c1)], axis=2)
+
+
+def polar_rotations(S: np.ndarray, iterations: int = 12) -> np.ndarray:
+    """(n,3,3) proper rotations nearest to the (n,3,3) matrices ``S`` (the rotation factor of their polar
+    decomposition, as the SVD U diag(1,1,det) V^T gives it).
+
+    Fast path: Higham's scaled Newton iteration R <- (zeta R + (zeta R)^-T) / 2 with closed-form 3x3
+    inverses (a few vectorised cross products instead of a batched SVD, ~10x faster); rows that are
+    near singular, have a negative determinant or do not converge go through the SVD reference
+    (:func:`polar_rotations_svd`).
+    """
+    S = np.asarray(S, np.float64)
+    scale = np.linalg.norm(S.reshape(len(S), 9), axis=1)[:, None, None]
+    R = S / np.maximum(scale, 1e-300)
+    det = np.einsum("nij,nij->n", R, _cofactor(R)) / 3.0    # sum_ij R_ij cof_ij = 3 det(R)
+    ok = det > 1e-6          # |R| = 1, so det <= 0.19; smaller means near singular (or a reflection)
+    Rk = R[ok]
+    for _ in range(iterations):
+        cof = _cofactor(Rk)
+        d = np.einsum("nij,nij->n", Rk, cof) / 3.0          # det, as (1/3) trace(R^T cof(R))
+        inv_t = cof / d[:, None, None]
+        zeta = (np.linalg.norm(inv_t.reshape(-1, 9), axis=1) / np.linalg.norm(Rk.reshape(-1, 9), axis=1)) ** 0.5
+        nxt = 0.5 * (zeta[:, None, None] * Rk + inv_t / zeta[:, None, None])
+        delta = np.abs(nxt - Rk).max()
+        Rk = nxt
+        if delta < 1e-12:
+            break
+    out = np.empty_like(R)
+    out[ok] = Rk
+    orth = np.abs(np.einsum("nji,njk->nik", out[ok], out[ok]) - np.eye(3)).max(axis=(1, 2)) < 1e-9
+    ok_idx = np.nonzero(ok)[0]
+    ok[ok_idx[~orth]] = False
+    if (~ok).any():
+        out[~ok] = polar_rotations_svd(S[~ok])
+    return out
+
+
+def polar_rotations_svd(S: np.ndarray) -> np.ndarray:
+    """Reference for :func:`polar_rotations`: U diag(1,1,det(U V^T)) V^T from a batched SVD."""
+    U, _, Vt = np.linalg.svd(np.asarray(S, np.float64))
     det = np.linalg.det(U @ Vt)
     U[:, :, 2] *= np.where(det < 0, -1.0, 1.0)[:, None]
     R = U @ Vt
@@ -218,12 +278,15 @@ def arap_icp(src_points: np.ndarray, src_edges: np.ndarray, dst_points: np.ndarr
     the region's mesh edges (indices into ``src_points``).  Each iteration finds every source vertex's
     closest target point c_i and solves the sparse least-squares problem
 
-        min_X  sum_i a_i |x_i - c_i|^2 + lam * sum_(i,j) |(x_i - x_j) - (R_i + R_j)/2 (p_i - p_j)|^2
+        min_X  sum_i |x_i - c_i|^2 + lam * sum_(i,j) |(x_i - x_j) - (R_i + R_j)/2 (p_i - p_j)|^2
 
-    (p the aligned rest positions, R_i the ARAP local rotations of the current estimate, a_i = 0 for
-    matches farther than ``max_distance``), alternating the local rotations and the global solve
-    (scipy sparse LU, factorised once per stiffness).  ``stiffness`` lam runs from stiff to flexible
-    over the iterations (in units of the data weight).  ``progress(fraction)`` returning False stops.
+    (p the aligned rest positions, R_i the ARAP local rotations of the current estimate), alternating
+    the local rotations and the global solve.  A vertex whose closest target point is farther than
+    ``max_distance`` has no counterpart: its data target is its current position instead (it follows
+    its neighbours through the ARAP term), so the system matrix depends on ``lam`` alone and is
+    factorised once per stiffness (scipy sparse LU).  ``stiffness`` lam runs from stiff to flexible
+    over the iterations (in units of the data weight); it stops early once converged at the final
+    stiffness.  ``progress(fraction)`` returning False stops.
     """
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
@@ -236,37 +299,30 @@ def arap_icp(src_points: np.ndarray, src_edges: np.ndarray, dst_points: np.ndarr
     if len(edges) == 0 or iterations <= 0:
         d, _ = _query(tree, p)
         return NonRigidResult(p.copy(), float(d.mean()), [float(d.mean())])
-    L, _ = _arap_system(p, edges)
+    both, signed = _incidence(n, edges)
+    BBt = (both @ both.T).tocsr()              # degree on the diagonal, 1 per edge off it
+    L = sp.diags(2.0 * BBt.diagonal()) - BBt    # graph Laplacian D - A (uniform weights)
     unit = float(np.linalg.norm(p[edges[:, 0]] - p[edges[:, 1]], axis=1).mean())
     x = p.copy()
     residuals = []
     lams = list(stiffness) + [stiffness[-1]] * max(0, iterations - len(stiffness))
-    lam_prev, solver, a_prev = None, None, None
+    solvers = {}
+    e_rest = p[edges[:, 0]] - p[edges[:, 1]]
     for it in range(iterations):
         d, idx = _query(tree, x)
         residuals.append(float(d.mean()))
-        a = np.ones(n)
+        c = dst[idx]
         if max_distance is not None:
-            a[d > max_distance] = 0.0
+            far = d > max_distance
+            c[far] = x[far]
         lam = lams[it]
-        R = _local_rotations(p, x, edges)
-        # b = sum over edges of lam * (R_i + R_j)/2 (p_i - p_j), assembled per vertex (Laplacian form)
-        i, j = edges[:, 0], edges[:, 1]
-        e = p[i] - p[j]
-        Rm = 0.5 * (R[i] + R[j])
-        r = np.einsum("eab,eb->ea", Rm, e)
-        b = np.zeros_like(p)
-        np.add.at(b, i, r)
-        np.add.at(b, j, -r)
-        # a weak pull (eps) towards the current estimate keeps vertices without a match (a_i = 0) where
-        # they are instead of leaving a component's translation undetermined
-        eps = 1e-4
-        rhs = a[:, None] * dst[idx] + eps * x + lam * b
-        if solver is None or lam != lam_prev or not np.array_equal(a, a_prev):
-            A = (sp.diags(a + eps) + lam * L).tocsc()
-            solver = splu(A)
-            lam_prev, a_prev = lam, a
-        x_new = np.stack([solver.solve(rhs[:, c]) for c in range(3)], 1)
+        R = _local_rotations(p, x, edges, both)
+        Rm = 0.5 * (R[edges[:, 0]] + R[edges[:, 1]])
+        b = np.asarray(signed @ np.einsum("eab,eb->ea", Rm, e_rest))
+        if lam not in solvers:
+            solvers[lam] = splu((sp.identity(n) + lam * L).tocsc())
+        rhs = c + lam * b
+        x_new = np.stack([solvers[lam].solve(np.ascontiguousarray(rhs[:, k])) for k in range(3)], 1)
         moved = float(np.abs(x_new - x).max())
         x = x_new
         if progress is not None and progress((it + 1) / iterations) is False:

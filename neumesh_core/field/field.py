@@ -287,6 +287,11 @@ class NeuMeshField(nn.Module):
         if len(self.rad_decoders) == 1:
             return self.rad_decoders[0](rad_in)
         dec = self.decoder_id[vid].long()
+        if len(dec) == 0:
+            return rad_in.new_zeros(0, 3)
+        lo, hi = int(dec.min()), int(dec.max())
+        if lo == hi:   # every row on one decoder (most chunks of an edited field): no grouping
+            return self.rad_decoders[lo](rad_in)
         out = None
         for d in torch.unique(dec).tolist():
             rows = (dec == d).nonzero().squeeze(1)
@@ -400,12 +405,22 @@ class NeuMeshField(nn.Module):
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         mod = (self.rows(self.mod_colors, nb.idx) * w).sum(1)
         shared = torch.cat([pe, wi[:, None], sh_encoding(d, self.config.sh_degree), n], -1)
-        if len(self.rad_decoders) == 1:
+        single = 0 if len(self.rad_decoders) == 1 else self._single_decoder(nb)
+        if single is not None:   # one decoder for every neighbour: decode the interpolated code once
             tex = (codes["tex"] * w).sum(1)
-            rgb = torch.sigmoid(self.rad_decoders[0](torch.cat([tex, shared], -1))) + mod
+            rgb = torch.sigmoid(self.rad_decoders[single](torch.cat([tex, shared], -1))) + mod
         else:
             rgb = self._early_rgb_by_decoder(nb, codes["tex"], shared) + mod
         return sigma, rgb, mod
+
+    def _single_decoder(self, nb: Neighbourhood) -> Optional[int]:
+        """The decoder every valid neighbour of every sample is bound to, or None when they differ."""
+        dec = self.decoder_id[nb.idx]
+        if not bool(nb.valid.any()):
+            return 0
+        lo = int(torch.where(nb.valid, dec, dec.new_full((), torch.iinfo(dec.dtype).max)).min())
+        hi = int(torch.where(nb.valid, dec, dec.new_full((), -1)).max())
+        return lo if lo == hi else None
 
     def _early_rgb_by_decoder(self, nb: Neighbourhood, tex_k: torch.Tensor, shared: torch.Tensor):
         """Early interpolation over several decoders: sum_d W_d sigmoid(dec_d(codes of group d, h))."""
