@@ -1,7 +1,7 @@
 """neumesh_core: NeuMesh++ neural radiance fields on mesh scaffolds (torch; no bpy).
 
 Public API (see README.md): load_scene, load_mesh, create_field, train, save_field, load_field,
-render_camera, evaluate, save_image, make_default_scene; edits: swap_texture, fill_texture (nm.edit).
+render_camera, evaluate, save_image, make_default_scene; edits: swap_texture, fill_texture, paint_texture (nm.edit).
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from .imageio import read_image, save_image
 from .data.loader import load_scene
 from .data.synthetic import default_scene_dir, make_default_scene
 from . import edit  # noqa: E402  (nm.edit: EditRecord, save_edited, ...)
-from .edit import CornerUVs, fill_texture, swap_texture  # noqa: E402
+from .edit import CornerUVs, fill_texture, paint_layer, paint_texture, swap_texture  # noqa: E402
 
 __version__ = "0.1.0"
 
@@ -34,6 +34,6 @@ __all__ = [
     "NeuMeshError", "NeuMeshField", "RenderOutput", "RenderSettings", "Scene", "TrainConfig",
     "TrainProgress", "TrainResult", "VertexMismatchError", "WeightsUnavailableError", "create_field",
     "default_scene_dir", "evaluate", "fill_texture", "intrinsics_from_fov", "load_field", "load_mesh", "load_scene",
-    "make_default_scene", "opencv_to_opengl", "opengl_to_opencv", "pixel_rays", "read_image",
+    "make_default_scene", "opencv_to_opengl", "opengl_to_opencv", "paint_layer", "paint_texture", "pixel_rays", "read_image",
     "render_camera", "render_rays", "save_field", "save_image", "save_mesh", "swap_texture", "train",
 ]

@@ -1,4 +1,4 @@
-"""`neumesh edit swap|fill`: edits of a field file, written to a new file beside it."""
+"""`neumesh edit swap|fill|paint`: edits of a field file, written to a new file beside it."""
 from __future__ import annotations
 
 import json
@@ -77,13 +77,75 @@ def cmd_fill(args) -> int:
     return 0
 
 
+def _paint_camera(args, field):
+    """(K, c2w, width, height) from --camera JSON or --data/--split/--view."""
+    import numpy as np
+
+    from ..errors import EditError
+
+    if args.camera:
+        try:
+            with open(args.camera, encoding="utf-8") as fh:
+                c = json.load(fh)
+            K, c2w = np.asarray(c["K"], np.float32), np.asarray(c["c2w"], np.float32)
+            w, h = int(c["width"]), int(c["height"])
+        except (OSError, KeyError, ValueError, TypeError) as exc:
+            raise EditError(f"camera file {args.camera}: expected JSON with K (3x3), c2w (4x4, OpenCV), width "
+                            f"and height ({exc})") from exc
+        if K.shape != (3, 3) or c2w.shape != (4, 4):
+            raise EditError(f"camera file {args.camera}: K must be 3x3 and c2w 4x4")
+        return K, c2w, w, h
+    if not args.data:
+        raise EditError("give the view: --camera cam.json, or --data DIR with --view N (and --split)")
+    import neumesh_core as nm
+
+    cams = nm.load_scene(args.data, downscale=args.downscale).split(args.split).cameras
+    if not 0 <= args.view < len(cams):
+        raise EditError(f"--view {args.view}: the '{args.split}' split has {len(cams)} cameras")
+    return cams.K[args.view], cams.c2w[args.view], cams.width, cams.height
+
+
+def cmd_paint(args) -> int:
+    import numpy as np
+
+    import neumesh_core as nm
+
+    from ..errors import EditError
+    from .files import check_out_path
+    from .paint import paint_layer, paint_texture
+
+    if not args.save_render:
+        check_out_path(args.field, args.out)
+    field = _load(args.field, args.device)
+    K, c2w, w, h = _paint_camera(args, field)
+    if args.save_render:
+        out = nm.render_camera(field, K, c2w, w, h, background=(1.0, 1.0, 1.0))
+        nm.save_image(args.save_render, np.concatenate([np.clip(out.rgb, 0, 1), np.ones((h, w, 1), np.float32)], -1))
+        print(f"wrote {args.save_render} ({w}x{h}): paint on it, then run this command with --painted "
+              f"PAINTED.png --original {args.save_render}")
+        return 0
+    if args.paint:
+        layer = nm.read_image(args.paint)
+        if layer.shape[2] != 4:
+            raise EditError(f"--paint {args.paint} has no alpha channel; give an RGBA layer (alpha > 0 marks paint) "
+                            "or --painted with --original")
+    elif args.painted and args.original:
+        layer = paint_layer(nm.read_image(args.painted)[..., :3], nm.read_image(args.original)[..., :3])
+    else:
+        raise EditError("give the paint: --paint LAYER.png (RGBA), or --painted IMAGE.png with --original RENDER.png")
+    rec = paint_texture(field, K, c2w, w, h, layer, progress=_progress("paint"))
+    out = _save(field, args.field, rec, args.out)
+    _report(rec, out)
+    return 0
+
+
 _REGION_HELP = ("vertex indices: .npy (indices or a boolean mask) or text (whole numbers separated by "
                 "spaces, commas or new lines)")
 
 
 def add_commands(sub) -> None:
     """Register ``neumesh edit ...`` on the top-level subparsers."""
-    p = sub.add_parser("edit", help="edit a field without retraining (texture swap, fill); writes a new "
+    p = sub.add_parser("edit", help="edit a field without retraining (texture swap, fill, paint); writes a new "
                                     "file beside it",
                        description="Edit a trained field. The result is written to a new file beside the "
                                    "input (<name>.edit-NNN.neumesh, or --out); the input is never changed.")
@@ -130,3 +192,25 @@ def add_commands(sub) -> None:
     q.add_argument("--scale", type=float, default=1.0, help="tile scale: the template repeats this many "
                                                             "times across (default 1)")
     q.set_defaults(func=cmd_fill)
+
+    q = esub.add_parser("paint", help="paint on one rendered view; the paint appears on the surface in "
+                                      "every view",
+                        description="Texture painting: the painted pixels' surface points select the "
+                                    "vertices near them; only their modification colours change, solved "
+                                    "so that the view shows the paint and every other pixel keeps its "
+                                    "colour. Workflow: --save-render view.png, paint on it, then "
+                                    "--painted painted.png --original view.png.")
+    q.add_argument("--field", required=True, help="field file to edit (.neumesh); never overwritten")
+    q.add_argument("--out", help="output field file (default: the next <name>.edit-NNN.neumesh beside "
+                                 "--field)")
+    q.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    q.add_argument("--camera", help="view as JSON: K (3x3), c2w (4x4, OpenCV), width, height")
+    q.add_argument("--data", help="dataset whose camera --view is the view (instead of --camera)")
+    q.add_argument("--split", default="val", help="dataset split of --view (default val)")
+    q.add_argument("--view", type=int, default=0, help="camera index in --split (default 0)")
+    q.add_argument("--downscale", type=float, default=1, help="downscale of the dataset cameras")
+    q.add_argument("--save-render", metavar="PNG", help="only render the view to this PNG (to paint on) and exit")
+    q.add_argument("--paint", help="paint layer: RGBA PNG of the view's size; alpha > 0 marks painted pixels")
+    q.add_argument("--painted", help="the view's render with paint on it (with --original)")
+    q.add_argument("--original", help="the unpainted render (--save-render's output); pixels that differ are paint")
+    q.set_defaults(func=cmd_paint)

@@ -10,7 +10,7 @@ import torch
 from ..data.cameras import pixel_rays
 from ..errors import NeuMeshError
 from ..sampling.marcher import march_rays
-from .volume import composite
+from .volume import composite, render_weights
 
 
 class Cancelled(NeuMeshError):
@@ -103,6 +103,56 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
     if background is not None:
         bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)
         out["rgb"] = out["rgb"] + (1.0 - out["opacity"])[:, None] * bg
+    return out
+
+
+@torch.no_grad()
+def mod_colour_weights(fields, origins: torch.Tensor, dirs: torch.Tensor,
+                       settings: Optional[RenderSettings] = None) -> list:
+    """How each ray's colour depends on the modification colours: for every field a scipy sparse
+    (R, N_field) matrix W with ``rgb = rgb_without_mod + W @ field.mod_colors`` (each channel).
+
+    The modification colour enters a sample linearly as sum_k w_k mod_k (post- and early
+    interpolation alike), and samples composite with weights that do not depend on it, so once the
+    geometry is fixed a ray's colour is affine in the modification colours: W[r, v] = sum over the
+    ray's samples of (compositing weight x neighbour weight of v).  Rays are marched and composited
+    exactly as :func:`render_rays` does (several fields jointly, sorted by depth).
+    """
+    import scipy.sparse as sp
+
+    settings = settings or RenderSettings()
+    fl = _as_list(fields)
+    n = origins.shape[0]
+    parts = []
+    for fi, f in enumerate(fl):
+        s = march_rays(origins, dirs, f.grid, f.sigma_fn, default_step(f, settings), near=settings.near,
+                       window=settings.window, early_stop_eps=settings.early_stop_eps,
+                       weight_threshold=settings.weight_threshold)
+        if len(s):
+            parts.append((fi, s))
+    out = [sp.csr_matrix((n, f.num_vertices), dtype=np.float64) for f in fl]
+    if not parts:
+        return out
+    ri = torch.cat([s.ray_indices for _, s in parts])
+    ts = torch.cat([s.t_starts for _, s in parts])
+    te = torch.cat([s.t_ends for _, s in parts])
+    sig = torch.cat([s.sigmas for _, s in parts])
+    owner = torch.cat([torch.full((len(s),), fi, dtype=torch.long) for fi, s in parts])
+    local = torch.cat([torch.arange(len(s)) for _, s in parts])
+    if len(parts) > 1:   # the same order as render_rays
+        order = torch.argsort(ts)
+        order = order[torch.sort(ri[order], stable=True).indices]
+        ri, ts, te, sig, owner, local = ri[order], ts[order], te[order], sig[order], owner[order], local[order]
+    w = render_weights(ri, ts, te, sig, n)
+    for fi, s in parts:
+        m = owner == fi
+        nb = s.aux.select(local[m])
+        ww = (w[m][:, None] * nb.w) * nb.valid
+        rows = ri[m][:, None].expand_as(nb.idx)
+        keep = nb.valid & (ww > 0)
+        out[fi] = sp.csr_matrix((ww[keep].double().cpu().numpy(),
+                                 (rows[keep].cpu().numpy(), nb.idx[keep].cpu().numpy())),
+                                shape=(n, fl[fi].num_vertices))
     return out
 
 

@@ -129,3 +129,20 @@ def test_region_edges_are_reindexed_into_the_region(blob_mesh):
     e = region_edges(faces, region)
     # 9-11 lies on a face with a vertex outside the region, but both its ends are inside: kept
     assert sorted(map(tuple, e.tolist())) == [(0, 1), (0, 2), (1, 2), (2, 3), (3, 4), (3, 5), (4, 5)]
+
+
+def test_polar_rotations_match_the_svd_reference():
+    """The Newton fast path against the SVD reference, on ARAP-like matrices (a rotation times a
+    stretch), random ones, singular ones and reflections (the last two go through the reference)."""
+    from neumesh_core.edit.align import polar_rotations, polar_rotations_svd
+
+    rng = np.random.default_rng(0)
+    R = np.stack([_rotation(s) for s in range(200)])
+    P = rng.normal(size=(200, 3, 3)) * 0.3
+    S = np.concatenate([R @ (P @ P.transpose(0, 2, 1) + np.eye(3)), rng.normal(size=(200, 3, 3)),
+                        np.zeros((3, 3, 3)), -np.eye(3)[None].repeat(2, 0)])
+    S[-7, :, 2] = 0.0   # rank 2
+    got, ref = polar_rotations(S), polar_rotations_svd(S)
+    assert np.allclose(got, ref, atol=1e-9)
+    assert np.allclose(got[:200], R, atol=1e-9)            # a rotation times an SPD stretch: exactly R
+    assert np.allclose(np.linalg.det(got), 1.0) and np.allclose(got @ got.transpose(0, 2, 1), np.eye(3), atol=1e-9)

@@ -1,0 +1,237 @@
+"""Texture painting from one view: a painted layer on one rendered image becomes surface paint that
+every other view sees.
+
+1. The painted pixels' rays find their surface points (the rendered depth, where the ray hits the
+   object); the *affected* vertices are those within the field radius of such a point that face the
+   camera (a vertex on the far side of a thin part is left alone, so paint does not come through).
+2. Only the modification colours of the affected vertices change.  The loss compares rendered and
+   painted colours on the painted pixels, and rendered and original colours on every other pixel of
+   the view whose rays look up an affected vertex (the ring around the stroke: exactly the pixels the
+   edit could otherwise change), plus a small damping towards the current colours.
+3. With the geometry frozen, a ray's colour is affine in the modification colours
+   (:func:`~neumesh_core.render.renderer.mod_colour_weights`), so this fine-tuning is a linear least
+   squares problem: it is solved exactly (sparse normal equations, one factorisation for the three
+   channels) rather than by gradient steps.  The modification colour is free in sign and range (the
+   final colour is clamped only for display), so a target far from what the decoder produces - black
+   on white, a saturated sticker - is reached.
+
+The paint layer is straight-alpha RGBA: alpha > 0 marks painted pixels and the target colour is the
+layer composited over the render (``alpha * paint + (1 - alpha) * render``).  :func:`paint_layer`
+derives it from a painted image and the unpainted render by their difference.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..errors import EditError
+from .record import EditRecord
+
+
+@dataclass
+class PaintConfig:
+    """Parameters of :func:`paint_texture`."""
+
+    ring_weight: float = 1.0      # weight of "keep the original colour" on the ring around the stroke
+    damping: float = 1e-3         # pull of each changed modification colour towards its current value
+    hit_opacity: float = 0.5      # a painted pixel paints the surface where the render is this opaque
+    facing: bool = True           # only vertices whose normal faces the camera take paint
+    chunk_rays: int = 16384
+
+    def __post_init__(self) -> None:
+        if self.ring_weight < 0 or self.damping <= 0:
+            raise EditError("ring_weight must be >= 0 and damping > 0")
+        if not 0 < self.hit_opacity <= 1:
+            raise EditError("hit_opacity must lie in (0, 1]")
+
+
+def paint_layer(painted: np.ndarray, original: np.ndarray, threshold: float = 1.5 / 255) -> np.ndarray:
+    """(H,W,4) straight-alpha paint layer from a painted image and the render it was painted on: alpha
+    is 1 where any channel differs by more than ``threshold`` (a pixel quantised to 8 bits and back
+    differs by at most 0.5/255), and the colour is the painted one."""
+    p = np.asarray(painted, np.float32)[..., :3]
+    o = np.asarray(original, np.float32)[..., :3]
+    if p.shape != o.shape:
+        raise EditError(f"the painted image is {p.shape[1]}x{p.shape[0]} but the render it was painted on is "
+                        f"{o.shape[1]}x{o.shape[0]}; paint on the render of this view (Paint on view)")
+    alpha = (np.abs(p - o).max(-1) > threshold).astype(np.float32)
+    return np.concatenate([p, alpha[..., None]], -1)
+
+
+def _cancel(progress, fraction):
+    if progress is not None and progress(float(fraction)) is False:
+        from ..render.renderer import Cancelled
+
+        raise Cancelled("painting cancelled; the field is unchanged")
+
+
+def _rays(K, c2w, width, height, pixels: np.ndarray, device):
+    from ..data.cameras import pixel_rays
+
+    px = torch.as_tensor(np.stack([pixels % width, pixels // width], 1), dtype=torch.long)
+    return pixel_rays(K, c2w, width, height, device=device, pixels=px)
+
+
+def _render(fields, o, d, settings, chunk):
+    from ..render.renderer import render_rays
+
+    outs = []
+    with torch.no_grad():
+        for s in range(0, len(o), chunk):
+            r = render_rays(fields, o[s:s + chunk], d[s:s + chunk], None, settings)
+            outs.append((r["rgb"].cpu(), r["opacity"].cpu(), r["depth"].cpu()))
+    if not outs:
+        z = torch.zeros(0)
+        return torch.zeros(0, 3), z, z
+    return tuple(torch.cat(x) for x in zip(*outs))
+
+
+def _affected(field, points: np.ndarray, cam_center: np.ndarray, facing: bool) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    v = field.vertices.astype(np.float64)
+    hits = cKDTree(v).query_ball_point(points, r=field.radius, return_sorted=False)
+    ids = np.unique(np.fromiter((i for h in hits for i in h), dtype=np.int64)) if len(hits) else \
+        np.zeros(0, np.int64)
+    if facing and len(ids):
+        n = field.scaffold.normals.detach().cpu().numpy().astype(np.float64)[ids]
+        ids = ids[(n * (cam_center[None] - v[ids])).sum(1) > 0]
+    return ids
+
+
+def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: np.ndarray,
+                 config: Optional[PaintConfig] = None, settings=None,
+                 progress: Optional[Callable[[float], bool]] = None) -> list:
+    """Paint on the view (K, c2w, width, height) of ``fields`` (rendered jointly, as in a scene).
+
+    Returns one :class:`EditRecord` per field, or None for a field the painted rays do not reach.
+    Raises :class:`EditError` (nothing changed) when nothing is painted or the paint covers only
+    background, and ``Cancelled`` when ``progress`` returns False.
+    """
+    from ..render.renderer import RenderSettings, mod_colour_weights
+
+    cfg = config or PaintConfig()
+    settings = settings or RenderSettings()
+    fl = list(fields)
+    if not fl:
+        raise EditError("paint needs at least one field")
+    t0 = time.perf_counter()
+    layer = np.asarray(paint_rgba, np.float32)
+    if layer.ndim != 3 or layer.shape[:2] != (height, width) or layer.shape[2] != 4:
+        raise EditError(f"the paint layer must be ({height}, {width}, 4) RGBA for this {width}x{height} view, "
+                        f"got {layer.shape}; was the camera or the image size changed since the render?")
+    if not np.isfinite(layer).all():
+        raise EditError("the paint layer holds NaN/inf values")
+    alpha = np.clip(layer[..., 3], 0, 1).reshape(-1)
+    painted = np.nonzero(alpha > 0)[0]
+    if len(painted) == 0:
+        raise EditError("nothing is painted: paint on the image first (alpha > 0 marks painted pixels)")
+    device = fl[0].rest_vertices.device
+    K = np.asarray(K, np.float32)
+    c2w = np.asarray(c2w, np.float32)
+    cam = c2w[:3, 3].astype(np.float64)
+    _cancel(progress, 0.0)
+
+    # 1. surface points of the painted rays
+    o, d = _rays(K, c2w, width, height, painted, device)
+    rgb_p, op_p, depth_p = _render(fl, o, d, settings, cfg.chunk_rays)
+    hit = (op_p >= cfg.hit_opacity).numpy() & np.isfinite(depth_p.numpy())
+    if not hit.any():
+        raise EditError(f"the paint covers only background ({len(painted)} painted pixels, none on a field); "
+                        "paint over the object")
+    pts = (o[hit] + d[hit] * depth_p[hit, None].to(o.device)).cpu().numpy().astype(np.float64)
+    affected = [_affected(f, pts, cam, cfg.facing) for f in fl]
+    if sum(len(a) for a in affected) == 0:
+        raise EditError("no scaffold vertex lies near the painted surface; paint over the object")
+    _cancel(progress, 0.2)
+
+    # 2. the pixels the affected vertices can change: look around the stroke, as far as the influence
+    # of a vertex (two radii) projects at the nearest painted depth
+    fx = float(K[0, 0])
+    zmin = max(float(np.min(np.linalg.norm(pts - cam[None], axis=1))), 1e-6)
+    pad = int(np.ceil(3.0 * max(f.radius for f in fl) * fx / zmin)) + 2
+    ys, xs = painted // width, painted % width
+    x0, x1 = max(0, xs.min() - pad), min(width, xs.max() + pad + 1)
+    y0, y1 = max(0, ys.min() - pad), min(height, ys.max() + pad + 1)
+    gy, gx = np.mgrid[y0:y1, x0:x1]
+    box = (gy * width + gx).reshape(-1)
+    ob, db = _rays(K, c2w, width, height, box, device)
+    rgb_b, _, _ = _render(fl, ob, db, settings, cfg.chunk_rays)
+    _cancel(progress, 0.5)
+    W = []
+    for s in range(0, len(box), cfg.chunk_rays):
+        parts = mod_colour_weights(fl, ob[s:s + cfg.chunk_rays], db[s:s + cfg.chunk_rays], settings)
+        W.append(parts)
+    import scipy.sparse as sp
+
+    Wf = [sp.vstack([w[i] for w in W]).tocsr() for i in range(len(fl))]
+    cols = [Wf[i][:, affected[i]] for i in range(len(fl))]
+    A = sp.hstack(cols).tocsr()                                  # rays of the box x affected vertices
+    touched = np.asarray(np.abs(A).sum(1)).reshape(-1) > 0
+    is_painted = np.zeros(height * width, bool)
+    is_painted[painted[hit]] = True
+    paint_rows = is_painted[box] & touched
+    ring_rows = ~np.isin(box, painted) & touched
+    # targets: the paint over the render on painted pixels, no change on the ring
+    lay = layer.reshape(-1, 4)
+    tgt = lay[box[paint_rows], :3] * alpha[box[paint_rows], None] + \
+        rgb_b.numpy()[paint_rows] * (1 - alpha[box[paint_rows], None])
+    b = np.concatenate([tgt - rgb_b.numpy()[paint_rows], np.zeros((int(ring_rows.sum()), 3))])
+    rw = np.sqrt(cfg.ring_weight)
+    M = sp.vstack([A[paint_rows], rw * A[ring_rows]]).tocsr()
+    b[paint_rows.sum():] *= rw
+    _cancel(progress, 0.7)
+
+    # 3. solve (M^T M + damping * diag) delta = M^T b, one factorisation for the three channels
+    from scipy.sparse.linalg import splu
+
+    n_a = M.shape[1]
+    diag = np.asarray(M.multiply(M).sum(0)).reshape(-1)
+    lam = cfg.damping * max(float(diag.max()), 1e-12)
+    N = (M.T @ M + sp.diags(np.full(n_a, lam))).tocsc()
+    solver = splu(N)
+    rhs = np.asarray(M.T @ b)
+    delta = np.stack([solver.solve(np.ascontiguousarray(rhs[:, c])) for c in range(3)], 1)
+    if not np.isfinite(delta).all():
+        raise EditError("painting did not converge (non-finite colours); paint a larger area")
+    _cancel(progress, 0.9)
+
+    # 4. write the affected rows of each field
+    records = []
+    offset = 0
+    fit_res = (M @ delta - b)[: int(paint_rows.sum())]
+    for i, f in enumerate(fl):
+        ids = affected[i]
+        dd = delta[offset:offset + len(ids)]
+        offset += len(ids)
+        if len(ids) == 0:
+            records.append(None)
+            continue
+        rec = EditRecord.begin("paint_texture", f, ids, ("mod_colors",))
+        with torch.no_grad():
+            idx = torch.as_tensor(ids, device=f.mod_colors.device)
+            f.mod_colors[idx] = f.mod_colors[idx] + torch.as_tensor(dd, dtype=f.mod_colors.dtype,
+                                                                     device=f.mod_colors.device)
+        records.append(rec.finish(f, painted_pixels=int(len(painted)), hit_pixels=int(hit.sum()),
+                                  ring_pixels=int(ring_rows.sum()), affected_vertices=int(len(ids)),
+                                  predicted_rmse=float(np.sqrt(np.mean(fit_res ** 2))) if len(fit_res) else 0.0,
+                                  seconds=time.perf_counter() - t0))
+    if progress is not None:
+        progress(1.0)
+    return records
+
+
+def paint_texture(field, K, c2w, width: int, height: int, paint_rgba: np.ndarray,
+                  config: Optional[PaintConfig] = None, settings=None,
+                  progress: Optional[Callable[[float], bool]] = None) -> EditRecord:
+    """Paint ``paint_rgba`` (H,W,4 straight alpha, see :func:`paint_layer`) seen from (K, c2w) onto
+    ``field``'s surface.  Returns the :class:`EditRecord` (the affected vertices and their old
+    modification colours: ``record.undo(field)`` restores them exactly)."""
+    return paint_fields([field], K, c2w, width, height, paint_rgba, config, settings, progress)[0]
+
+
+__all__ = ["PaintConfig", "paint_fields", "paint_layer", "paint_texture"]
