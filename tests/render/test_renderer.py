@@ -1,6 +1,7 @@
-"""render_camera (neumesh_core/render/renderer.py): supersampling."""
+"""render_camera and render_rays (neumesh_core/render/renderer.py): supersampling, mod-colour weights."""
 import numpy as np
 import pytest
+import torch
 
 import neumesh_core as nm
 from neumesh_core.data.cameras import intrinsics_from_fov
@@ -64,3 +65,34 @@ def test_training_render_lists_the_vertices_it_looked_up(blob_mesh):
     assert grad_rows and grad_rows <= set(ids.tolist())
     assert "vertex_ids" not in nm.render_rays(f, o, d)
     assert "vertex_ids" not in nm.render_rays(f, o, d, train=True)
+
+
+@pytest.mark.parametrize("interp", ["post", "early"])
+def test_mod_colour_weights_predict_the_render_of_changed_mod_colours(blob_mesh, interp):
+    """rgb(mod + delta) - rgb(mod) == W @ delta for any delta: the modification colour enters the
+    render linearly (what painting solves with); one field and two fields composited jointly."""
+    import copy
+
+    from neumesh_core.render.renderer import mod_colour_weights, render_rays
+
+    f = textured_field(blob_mesh, interp)
+    g = copy.deepcopy(f)
+    with torch.no_grad():
+        g.scaffold.set_vertices(g.rest_vertices + torch.tensor([0.6, 0.0, 0.0]))   # a second, shifted copy
+    K, c2w = _cam()
+    o, d = nm.pixel_rays(K, c2w, 20, 16)
+    for fields in ([f], [f, g]):
+        Ws = mod_colour_weights(fields, o, d)
+        before = render_rays(fields, o, d)["rgb"].numpy()
+        gen = torch.Generator().manual_seed(1)
+        deltas = [0.3 * torch.randn(x.num_vertices, 3, generator=gen) for x in fields]
+        with torch.no_grad():
+            for x, dl in zip(fields, deltas):
+                x.mod_colors.add_(dl)
+        after = render_rays(fields, o, d)["rgb"].numpy()
+        with torch.no_grad():
+            for x, dl in zip(fields, deltas):
+                x.mod_colors.sub_(dl)
+        pred = sum(W @ dl.numpy() for W, dl in zip(Ws, deltas))
+        assert np.abs(after - before).max() > 0.05
+        assert np.allclose(after - before, pred, atol=1e-5)
