@@ -134,7 +134,7 @@ def region_of(obj, group: str, field, what: str):
 
 
 class EditJob:
-    """One core edit in a background thread: ``fn(progress) -> EditRecord``; ``progress(fraction)``
+    """One core edit in a background thread: ``fn(progress) -> [EditRecord | None, ...]``; ``progress(fraction)``
     returns False once :meth:`cancel` was called (the core then raises ``Cancelled``)."""
 
     def __init__(self, label: str, fn):
@@ -185,9 +185,10 @@ class EditJob:
 
 class EditOperator:
     """Mixin of the edit operators.  A subclass implements :meth:`prepare` (main thread: read Blender
-    state, raise :class:`EditError` for bad input) returning ``(obj, field, parent_path, fn)`` where
-    ``fn(progress)`` runs the core edit on ``field`` (a copy from :func:`edit_copy`) and returns its
-    record.  Invoked from the UI the edit runs in a thread with progress and Esc; EXEC blocks."""
+    state, raise :class:`EditError` for bad input) returning ``(targets, fn)``: ``targets`` a list of
+    ``(obj, field, parent_path)`` with ``field`` a copy from :func:`edit_copy`, and ``fn(progress)``
+    running the core edit on those fields and returning one record per target (None: unchanged).
+    Invoked from the UI the edit runs in a thread with progress and Esc; EXEC blocks."""
 
     bl_options = {"REGISTER", "UNDO"}
     edit_label = "edit"
@@ -197,15 +198,15 @@ class EditOperator:
 
     def _start(self, context):
         try:
-            obj, field, parent, fn = self.prepare(context)
+            targets, fn = self.prepare(context)
         except (EditError, core.CoreUnavailable, ValueError) as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return None
         except Exception as exc:  # noqa: BLE001
             self.report({"ERROR"}, f"NeuMesh: {self.edit_label} failed: {exc}")
             return None
-        self._obj_name, self._field, self._parent = obj.name_full, field, parent
-        return EditJob(self.edit_label, lambda progress: fn(field, progress))
+        self._targets = [(obj.name_full, field, parent) for obj, field, parent in targets]
+        return EditJob(self.edit_label, fn)
 
     def _finish(self, context, job):
         if job.cancelled:
@@ -214,16 +215,22 @@ class EditOperator:
         if job.error is not None:
             self.report({"ERROR"}, f"NeuMesh: {self.edit_label}: {job.error}")
             return {"CANCELLED"}
-        obj = bpy.data.objects.get(self._obj_name)
-        try:
-            out = commit_edit(obj, self._field, job.record, self._parent)
-        except Exception as exc:  # noqa: BLE001
-            self.report({"ERROR"}, f"NeuMesh: could not save the edited field: {exc}")
-            return {"CANCELLED"}
+        saved, changed = [], 0
+        for (name, field, parent), record in zip(self._targets, job.record):
+            if record is None:
+                continue
+            obj = bpy.data.objects.get(name)
+            try:
+                saved.append(os.path.basename(commit_edit(obj, field, record, parent)))
+            except Exception as exc:  # noqa: BLE001
+                self.report({"ERROR"}, f"NeuMesh: could not save the edited field of '{name}': {exc}")
+                return {"CANCELLED"} if not saved else {"FINISHED"}
+            changed += record.num_changed
         for area in getattr(context.screen, "areas", []) or []:
             area.tag_redraw()
-        self.report({"INFO"}, f"NeuMesh: {self.edit_label}: {job.record.num_changed} vertices changed; "
-                              f"saved {os.path.basename(out)} ({self.summary(job.record)})")
+        done = [r for r in job.record if r is not None]
+        self.report({"INFO"}, f"NeuMesh: {self.edit_label}: {changed} vertices changed; saved "
+                              f"{', '.join(saved)} ({self.summary(done[0]) if done else ''})")
         return {"FINISHED"}
 
     def summary(self, record) -> str:

@@ -150,10 +150,10 @@ class NEUMESH_OT_swap_texture(EditOperator, bpy.types.Operator):
         source = edit_copy(src_field) if src_field is not None else None
         cfg = nm.edit.SwapConfig(nonrigid=self.nonrigid)
 
-        def run(f, progress):
-            return nm.swap_texture(f, t_idx, f if source is None else source, s_idx, pairs=pairs, config=cfg,
-                                   progress=progress)
-        return target, work, path, run
+        def run(progress):
+            return [nm.swap_texture(work, t_idx, work if source is None else source, s_idx, pairs=pairs,
+                                    config=cfg, progress=progress)]
+        return [(target, work, path)], run
 
     def summary(self, record):
         i = record.info
@@ -208,10 +208,10 @@ class NEUMESH_OT_fill_texture(EditOperator, bpy.types.Operator):
         template = edit_copy(tmpl_field) if tmpl_field is not None else None
         scale = float(self.scale)
 
-        def run(f, progress):
-            return nm.fill_texture(f, t_idx, t_uv, f if template is None else template, s_idx, s_uv,
-                                   scale=scale, progress=progress)
-        return target, work, path, run
+        def run(progress):
+            return [nm.fill_texture(work, t_idx, t_uv, work if template is None else template, s_idx, s_uv,
+                                    scale=scale, progress=progress)]
+        return [(target, work, path)], run
 
 
 class NEUMESH_PT_swap(bpy.types.Panel):

@@ -199,8 +199,8 @@ def test_a_cancelled_background_edit_changes_nothing(addon, trained_field, tmp_p
     field, _ = addon.edits.field_for_edit(target)
     work = addon.edits.edit_copy(field)
     assert work is not field and work.num_vertices == field.num_vertices
-    job = addon.edits.EditJob("swap", lambda progress: nm.swap_texture(work, region, work, region,
-                                                                       progress=progress))
+    job = addon.edits.EditJob("swap", lambda progress: [nm.swap_texture(work, region, work, region,
+                                                                        progress=progress)])
     job.cancel()
     job.start().join()
     assert job.cancelled and job.record is None and job.error is None

@@ -1,0 +1,213 @@
+"""Texture painting in Blender: paint on a render of the scene camera, then apply the paint to the
+fields in view (``nm.edit.paint_fields``; see ``neumesh_core/edit/paint.py``).
+
+*Paint on view* renders the scene camera with the core into an image ("NeuMesh Paint"), keeps the
+unpainted render beside it ("NeuMesh Paint (unpainted)") and the view (K, camera-to-world, size) in
+the image's custom properties, and opens it in an Image Editor in Paint mode.  *Apply painting* reads
+the painted image, takes the pixels that differ from the unpainted render as paint, and changes the
+modification colours of the fields those pixels' rays hit (each field object that changes gets an
+edited file beside its own; undo as for every edit).  The camera and the image size must be those of
+the render.
+"""
+from __future__ import annotations
+
+import bpy
+from bpy.props import StringProperty
+
+from ._np import np
+from . import camera, core, render
+from .edits import EditError, EditOperator, edit_copy
+
+PAINT_IMAGE = "NeuMesh Paint"
+_KEYS = ("neumesh_K", "neumesh_c2w", "neumesh_size", "neumesh_original", "neumesh_camera")
+
+
+def _image_pixels(img) -> np.ndarray:
+    """(H,W,4) float32 pixels of a Blender image, top row first."""
+    w, h = img.size
+    px = np.empty(w * h * 4, np.float32)
+    img.pixels.foreach_get(px)
+    return px.reshape(h, w, 4)[::-1].copy()
+
+
+def _set_pixels(img, rgba: np.ndarray) -> None:
+    img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1], dtype=np.float32).ravel())
+    img.update()
+
+
+def _new_image(name: str, w: int, h: int):
+    old = bpy.data.images.get(name)
+    if old is not None:
+        bpy.data.images.remove(old)
+    # a byte image in sRGB: pixel values are the display-referred colours the field renders
+    img = bpy.data.images.new(name, w, h, alpha=True, float_buffer=False)
+    img.colorspace_settings.name = "sRGB"
+    return img
+
+
+def _view(context):
+    scene = context.scene
+    cam = scene.camera
+    if cam is None:
+        raise EditError("the scene has no camera; add one (or set Scene > Camera) and paint on its view")
+    depsgraph = context.evaluated_depsgraph_get()
+    W, H = camera.render_size(scene)
+    K, c2w, W, H = camera.camera_K_c2w(cam, scene, depsgraph, W, H)
+    return cam, depsgraph, np.asarray(K, np.float32), np.asarray(c2w, np.float32), int(W), int(H)
+
+
+def _open_in_image_editor(context, img) -> None:
+    """Show ``img`` in an Image Editor in Paint mode (an existing one, else a new window)."""
+    screen = getattr(context, "screen", None)
+    if screen is None or bpy.app.background:
+        return
+    area = next((a for a in screen.areas if a.type == "IMAGE_EDITOR"), None)
+    if area is None:
+        try:
+            bpy.ops.wm.window_new()
+            area = bpy.context.window_manager.windows[-1].screen.areas[0]
+            area.type = "IMAGE_EDITOR"
+        except Exception:  # noqa: BLE001 - painting still works from any Image Editor the user opens
+            return
+    space = area.spaces.active
+    space.image = img
+    try:
+        space.ui_mode = "PAINT"
+    except Exception:  # noqa: BLE001 - older Blender: mode on the space
+        try:
+            space.mode = "PAINT"
+        except Exception:  # noqa: BLE001
+            pass
+
+
+class NEUMESH_OT_paint_view(bpy.types.Operator):
+    """Render the scene camera's view of the fields into an image to paint on (Image Editor, Paint
+    mode); then press Apply painting"""
+
+    bl_idname = "neumesh.paint_view"
+    bl_label = "Paint on view"
+    bl_options = {"REGISTER"}
+
+    def execute(self, context):
+        try:
+            cam, depsgraph, K, c2w, W, H = _view(context)
+            items = render.collect(depsgraph, for_render=True)
+            if not items:
+                raise EditError("no object with a field is in the scene; load or train a field first")
+            rgba = render.render_items(items, K, c2w, W, H, transparent=False)
+        except (EditError, core.CoreUnavailable) as exc:
+            self.report({"ERROR"}, f"NeuMesh: {exc}")
+            return {"CANCELLED"}
+        except Exception as exc:  # noqa: BLE001 - topology errors, missing files ...
+            self.report({"ERROR"}, f"NeuMesh: cannot render the view to paint on: {exc}")
+            return {"CANCELLED"}
+        rgb = np.clip(rgba[..., :3], 0, 1)
+        opaque = np.concatenate([rgb, np.ones((H, W, 1), np.float32)], -1)
+        original = _new_image(PAINT_IMAGE + " (unpainted)", W, H)
+        _set_pixels(original, opaque)
+        original.pack()
+        original.use_fake_user = True
+        img = _new_image(PAINT_IMAGE, W, H)
+        _set_pixels(img, opaque)
+        img.pack()
+        img["neumesh_K"] = [float(x) for x in K.ravel()]
+        img["neumesh_c2w"] = [float(x) for x in c2w.ravel()]
+        img["neumesh_size"] = [W, H]
+        img["neumesh_original"] = original.name
+        img["neumesh_camera"] = cam.name
+        _open_in_image_editor(context, img)
+        self.report({"INFO"}, f"NeuMesh: paint on '{img.name}' ({W}x{H}) in the Image Editor, then Apply painting")
+        return {"FINISHED"}
+
+
+def paint_image_view(img):
+    """(K, c2w, W, H, original pixels) stored with a paint image; :class:`EditError` when it is not one."""
+    if img is None:
+        raise EditError(f"there is no image '{PAINT_IMAGE}'; press Paint on view first")
+    if any(k not in img for k in _KEYS):
+        raise EditError(f"image '{img.name}' was not made by Paint on view; press Paint on view and paint on "
+                        "that image")
+    orig = bpy.data.images.get(img["neumesh_original"])
+    if orig is None:
+        raise EditError(f"the unpainted render of '{img.name}' is gone; press Paint on view again")
+    K = np.asarray(img["neumesh_K"], np.float32).reshape(3, 3)
+    c2w = np.asarray(img["neumesh_c2w"], np.float32).reshape(4, 4)
+    W, H = (int(x) for x in img["neumesh_size"])
+    return K, c2w, W, H, orig
+
+
+class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
+    """Apply what was painted on the Paint on view image to the fields it covers (their modification
+    colours change; each object's field is saved as a new file beside its own; Undo edit / Ctrl+Z go
+    back)"""
+
+    bl_idname = "neumesh.apply_paint"
+    bl_label = "Apply painting"
+    bl_options = {"REGISTER", "UNDO"}
+    edit_label = "painting"
+
+    image: StringProperty(name="Image", default=PAINT_IMAGE, description="The painted image")
+
+    def prepare(self, context):
+        nm = core.get()
+        img = bpy.data.images.get(self.image)
+        K, c2w, W, H, orig = paint_image_view(img)
+        if tuple(img.size) != (W, H) or tuple(orig.size) != (W, H):
+            raise EditError(f"'{img.name}' is {img.size[0]}x{img.size[1]} but the view was rendered at {W}x{H}; "
+                            "paint on the image Paint on view made (do not resize it)")
+        cam, depsgraph, K_now, c2w_now, W_now, H_now = _view(context)
+        if cam.name != img["neumesh_camera"] or (W_now, H_now) != (W, H) or \
+                not np.allclose(c2w_now, c2w, atol=1e-5) or not np.allclose(K_now, K, rtol=1e-5):
+            raise EditError("the camera or the render size changed since Paint on view; put them back, or press "
+                            "Paint on view again (and paint again)")
+        layer = nm.edit.paint_layer(_image_pixels(img)[..., :3], _image_pixels(orig)[..., :3])
+        if layer[..., 3].max() <= 0:
+            raise EditError(f"nothing is painted on '{img.name}'; paint on it in the Image Editor first")
+        items = render.collect(depsgraph, for_render=True)
+        if not items:
+            raise EditError("no object with a field is in the scene")
+        targets, fields = [], []
+        for it in items:
+            obj = bpy.data.objects.get(it.key)
+            field = edit_copy(render.get_field(it.key, it.path))
+            field.set_vertices(it.vertices)         # paint lands on the surface as it is posed now
+            targets.append((obj, field, it.path))
+            fields.append(field)
+
+        def run(progress):
+            return nm.edit.paint_fields(fields, K, c2w, W, H, layer, progress=progress)
+        return targets, run
+
+    def summary(self, record):
+        i = record.info
+        return f"{i.get('painted_pixels', 0)} painted pixels, {i.get('seconds', 0):.1f} s"
+
+
+class NEUMESH_PT_paint(bpy.types.Panel):
+    bl_label = "Paint texture"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "NeuMesh"
+    bl_parent_id = "NEUMESH_PT_edit"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        col = self.layout.column()
+        col.label(text="1. Render the camera view to paint on")
+        col.operator("neumesh.paint_view", icon="BRUSH_DATA")
+        col.label(text="2. Paint on it in the Image Editor")
+        col.label(text="3. Apply the paint to the fields")
+        col.operator("neumesh.apply_paint", icon="CHECKMARK")
+
+
+classes = (NEUMESH_OT_paint_view, NEUMESH_OT_apply_paint, NEUMESH_PT_paint)
+
+
+def register():
+    for c in classes:
+        bpy.utils.register_class(c)
+
+
+def unregister():
+    for c in reversed(classes):
+        bpy.utils.unregister_class(c)
