@@ -137,14 +137,19 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
     _cancel(progress, 0.0)
 
     # 1. surface points of the painted rays
+    timing = {}
+    t = time.perf_counter()
     o, d = _rays(K, c2w, width, height, painted, device)
     rgb_p, op_p, depth_p = _render(fl, o, d, settings, cfg.chunk_rays)
+    timing["render_s"] = time.perf_counter() - t
     hit = (op_p >= cfg.hit_opacity).numpy() & np.isfinite(depth_p.numpy())
     if not hit.any():
         raise EditError(f"the paint covers only background ({len(painted)} painted pixels, none on a field); "
                         "paint over the object")
+    t = time.perf_counter()
     pts = (o[hit] + d[hit] * depth_p[hit, None].to(o.device)).cpu().numpy().astype(np.float64)
     affected = [_affected(f, pts, cam, cfg.facing) for f in fl]
+    timing["surface_s"] = time.perf_counter() - t
     if sum(len(a) for a in affected) == 0:
         raise EditError("no scaffold vertex lies near the painted surface; paint over the object")
     _cancel(progress, 0.2)
@@ -159,8 +164,11 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
     y0, y1 = max(0, ys.min() - pad), min(height, ys.max() + pad + 1)
     gy, gx = np.mgrid[y0:y1, x0:x1]
     box = (gy * width + gx).reshape(-1)
+    t = time.perf_counter()
     ob, db = _rays(K, c2w, width, height, box, device)
     rgb_b, _, _ = _render(fl, ob, db, settings, cfg.chunk_rays)
+    timing["render_s"] += time.perf_counter() - t
+    t = time.perf_counter()
     _cancel(progress, 0.5)
     W = []
     for s in range(0, len(box), cfg.chunk_rays):
@@ -184,7 +192,9 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
     rw = np.sqrt(cfg.ring_weight)
     M = sp.vstack([A[paint_rows], rw * A[ring_rows]]).tocsr()
     b[paint_rows.sum():] *= rw
+    timing["weights_s"] = time.perf_counter() - t
     _cancel(progress, 0.7)
+    t = time.perf_counter()
 
     # 3. solve (M^T M + damping * diag) delta = M^T b, one factorisation for the three channels
     from scipy.sparse.linalg import splu
@@ -198,6 +208,7 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
     delta = np.stack([solver.solve(np.ascontiguousarray(rhs[:, c])) for c in range(3)], 1)
     if not np.isfinite(delta).all():
         raise EditError("painting did not converge (non-finite colours); paint a larger area")
+    timing["solve_s"] = time.perf_counter() - t
     _cancel(progress, 0.9)
 
     # 4. write the affected rows of each field
@@ -219,7 +230,7 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
         records.append(rec.finish(f, painted_pixels=int(len(painted)), hit_pixels=int(hit.sum()),
                                   ring_pixels=int(ring_rows.sum()), affected_vertices=int(len(ids)),
                                   predicted_rmse=float(np.sqrt(np.mean(fit_res ** 2))) if len(fit_res) else 0.0,
-                                  seconds=time.perf_counter() - t0))
+                                  box_pixels=int(len(box)), seconds=time.perf_counter() - t0, **timing))
     if progress is not None:
         progress(1.0)
     return records
