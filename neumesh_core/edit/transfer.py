@@ -100,6 +100,52 @@ class TransferPlan:
         return TransferPlan(rows, out_src, out_w)
 
 
+@dataclass
+class BlendedRows:
+    """Rows blended from a source field by a plan (CPU tensors): ``decoder`` (T,) the source decoder
+    each row is bound to, ``frames`` (T,3,3) float64 the source texture frame of each row's most
+    weighted vertex (None when the source has none), ``tables`` name -> (T,C) blended rows."""
+
+    decoder: np.ndarray
+    frames: Optional[np.ndarray]
+    tables: dict
+
+
+def blend_rows(source, src: np.ndarray, w: np.ndarray, tables=("tex_codes", "mod_colors")) -> BlendedRows:
+    """Blend rows of ``source``: row t is ``sum_j w[t,j] * table[src[t,j]]`` over the source vertices
+    bound to the decoder holding the largest share of the row's weight (the others' weights are
+    dropped and the rest renormalised, so codes of different decoders are never averaged)."""
+    src = np.asarray(src, np.int64)
+    w = np.array(w, np.float64)
+    src_ids = source.decoder_id.detach().cpu().numpy().astype(np.int64)
+    dec = src_ids[src]                                           # (T,J) decoder of each blended vertex
+    decs = np.unique(dec[w > 0])
+    share = np.stack([(w * (dec == d)).sum(1) for d in decs], 1)
+    chosen = decs[share.argmax(1)]
+    w[dec != chosen[:, None]] = 0.0
+    w /= w.sum(1, keepdims=True)
+    out = {}
+    with torch.no_grad():
+        sdev = source.geo_codes.device
+        S = torch.as_tensor(src, device=sdev)
+        W = torch.as_tensor(w, dtype=torch.float32, device=sdev)[..., None]
+        for name in tables:
+            t = getattr(source, name).detach()
+            out[name] = (t[S].float() * W).sum(1).cpu() if t.shape[1] else t.new_zeros(len(src), 0).cpu()
+    lead = src[np.arange(len(src)), w.argmax(1)]
+    frames = None
+    if source.tex_frame is not None:
+        frames = source.tex_frame.detach().cpu().numpy()[lead].astype(np.float64)
+    return BlendedRows(chosen, frames, out)
+
+
+def snap_identity(Q: np.ndarray) -> np.ndarray:
+    """Rotations within 1e-6 of the identity become exactly the identity (rounding noise: no frame)."""
+    Q = np.array(Q, np.float64)
+    Q[np.abs(Q - np.eye(3)).max(axis=(1, 2)) < 1e-6] = np.eye(3)
+    return Q
+
+
 def apply_transfer(op: str, target, plan: TransferPlan, source,
                    frames: Optional[np.ndarray] = None, **info) -> EditRecord:
     """Write the blended texture codes and modification colours of ``source`` into ``target``'s rows
@@ -114,35 +160,19 @@ def apply_transfer(op: str, target, plan: TransferPlan, source,
     record = EditRecord.begin(op, target, rows, tables)
     if not np.array_equal(record.vertices, rows):
         raise EditError("the target region holds repeated vertices")
-    src_ids = source.decoder_id.detach().cpu().numpy().astype(np.int64)
-    src, w = plan.src, plan.w.copy()
-    dec = src_ids[src]                                           # (T,J) decoder of each blended vertex
-    # the decoder with the largest share of each row's weight; the others' weights are dropped
-    decs = np.unique(dec[w > 0])
-    share = np.stack([(w * (dec == d)).sum(1) for d in decs], 1)
-    chosen = decs[share.argmax(1)]
-    w[dec != chosen[:, None]] = 0.0
-    w /= w.sum(1, keepdims=True)
+    b = blend_rows(source, plan.src, plan.w)
+    Q = np.broadcast_to(np.eye(3), (len(rows), 3, 3)) if frames is None else np.asarray(frames, np.float64)
+    if b.frames is not None:   # the source's own texture frame, after the geometric frame
+        Q = b.frames @ Q
+    Q = snap_identity(Q)
     with torch.no_grad():
         dev = target.geo_codes.device
-        sdev = source.geo_codes.device
-        S = torch.as_tensor(src, device=sdev)
-        W = torch.as_tensor(w, dtype=torch.float32, device=sdev)[..., None]
-        tex = (source.tex_codes.detach()[S] * W).sum(1)
-        mod = (source.mod_colors.detach()[S] * W).sum(1)
-        # the source's own texture frame of the most weighted vertex, after the geometric frame
-        lead = src[np.arange(len(src)), w.argmax(1)]
-        Q = np.broadcast_to(np.eye(3), (len(rows), 3, 3)) if frames is None else np.asarray(frames, np.float64)
-        if source.tex_frame is not None:
-            Q = source.tex_frame.detach().cpu().numpy()[lead].astype(np.float64) @ Q
-        Q = np.array(Q, np.float64)
-        Q[np.abs(Q - np.eye(3)).max(axis=(1, 2)) < 1e-6] = np.eye(3)   # rounding noise: no frame needed
         # decoders: each distinct source decoder used is added to the target once
-        mapping = {int(d): target.add_decoder(source.rad_decoders[int(d)]) for d in np.unique(chosen)}
-        new_ids = np.array([mapping[int(d)] for d in chosen], np.int64)
+        mapping = {int(d): target.add_decoder(source.rad_decoders[int(d)]) for d in np.unique(b.decoder)}
+        new_ids = np.array([mapping[int(d)] for d in b.decoder], np.int64)
         idx = torch.as_tensor(rows, device=dev)
-        target.tex_codes[idx] = tex.to(dev, target.tex_codes.dtype)
-        target.mod_colors[idx] = mod.to(dev, target.mod_colors.dtype)
+        target.tex_codes[idx] = b.tables["tex_codes"].to(dev, target.tex_codes.dtype)
+        target.mod_colors[idx] = b.tables["mod_colors"].to(dev, target.mod_colors.dtype)
         target.decoder_id[idx] = torch.as_tensor(new_ids, device=dev, dtype=target.decoder_id.dtype)
         target.ensure_tex_frame()[idx] = torch.as_tensor(Q, dtype=torch.float32, device=dev)
     return record.finish(target, **info)
