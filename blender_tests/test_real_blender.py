@@ -108,3 +108,43 @@ def test_real_blender_renders_animation_with_neumesh_engine(addon_zip, trained_f
     assert f1[root_px].std() > 0.02  # those pixels show the field, not background
     tip_px = near(np.concatenate([tip1, tip2]), 3.0)
     assert (diff[tip_px] > 0.1).sum() >= 10 and diff[tip_px].max() > 0.25
+
+
+def _facts(log):
+    return json.loads(next(l for l in log.splitlines() if l.startswith("NEUMESH_FACTS "))[14:])
+
+
+def _need_torch():
+    if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
+        pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
+
+
+def test_check_dependencies_exits_cleanly_and_uses_torchs_blas(addon_zip, tmp_path):
+    """'Check dependencies' imports torch: Blender must still exit normally (it segfaulted at exit,
+    code 139, when torch was imported without the add-on's guard), and torch's matrix multiplies must
+    run on torch's own BLAS even where this Blender links another one (Debian's links the reference
+    libblas.so.3); with the rebinding switched off the check names the slow library and the launcher
+    command, and that command works."""
+    _need_torch()
+    env = _env(tmp_path)
+    cmd = [BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_deps.py"), "--",
+           addon_zip]
+    log = _run(cmd, env)  # asserts exit code 0
+    f = _facts(log)
+    assert f["result"] == ["FINISHED"] and f["missing"] == [] and f["rebind_error"] == ""
+    assert f["own"] and f["sgemm"] == f["torch_lib"] and f["gflops"] > 0 and f["remedy"] == ""
+    assert "NeuMesh: matrix multiply" in log and "with torch's own BLAS" in log
+
+    off = _facts(_run(cmd, dict(env, NEUMESH_NO_BLAS_REBIND="1")))
+    if off["own"]:
+        pytest.skip(f"this blender ({BLENDER}) does not link another BLAS: nothing to rebind")
+    # what the user is told without the rebinding, and the remedy it names
+    assert os.path.basename(off["sgemm"]).startswith(("libblas", "libopenblas", "libcblas", "libatlas"))
+    assert off["remedy"] == f"LD_PRELOAD={f['torch_lib']} blender"
+    assert "slow BLAS" in off["message"]
+    assert any(os.path.realpath(p) == os.path.realpath(off["sgemm"]) for p in f["foreign"]), f["foreign"]
+    assert f["rebound"] >= 1
+    preloaded = dict(env, NEUMESH_NO_BLAS_REBIND="1", LD_PRELOAD=f["torch_lib"])
+    pre = _facts(_run(cmd, preloaded))
+    assert pre["own"] and pre["sgemm"] == f["torch_lib"] and pre["remedy"] == ""
+
