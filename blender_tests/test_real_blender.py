@@ -148,3 +148,30 @@ def test_check_dependencies_exits_cleanly_and_uses_torchs_blas(addon_zip, tmp_pa
     pre = _facts(_run(cmd, preloaded))
     assert pre["own"] and pre["sgemm"] == f["torch_lib"] and pre["remedy"] == ""
 
+
+def test_save_as_to_another_folder_keeps_the_field(addon_zip, trained_field, tmp_path):
+    """Blender 3.x gives save handlers no file name (save_pre gets (None, None)): a Save As into
+    another folder must still leave a file whose field is found, in a new Blender process."""
+    _need_torch()
+    env = _env(tmp_path)
+    out = tmp_path / "work"
+    field = tmp_path / "fields" / "blob.neumesh"
+    field.parent.mkdir()
+    shutil.copy(trained_field, field)
+    f = _facts(_run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_saveas.py"),
+                     "--", addon_zip, str(field), str(out)], env))
+    assert f["path_first"] == "//../../fields/blob.neumesh"
+    assert f["path_after_save_as"] == "//../../../fields/blob.neumesh"
+    if tuple(f["version"]) < (4, 0, 0):
+        assert f["save_pre_args"][-1] == [None, None]  # what made the bug: no target path
+    # a new process opens the moved file, says where its field is, and renders it
+    expr = ("import bpy; print('FIELD_PATH', [o.neumesh.field_path for o in bpy.data.objects "
+            "if o.type == 'MESH'])")
+    log = _run([BLENDER, "-b", f["second"], "--python-expr", expr, "-E", "NEUMESH",
+                "-o", str(out / "frame_####"), "-f", "1"], env)
+    assert "not found" not in log, log[-3000:]
+    assert "FIELD_PATH ['//../../../fields/blob.neumesh']" in log, log[-3000:]
+    from PIL import Image
+
+    img = np.asarray(Image.open(out / "frame_0001.png").convert("RGB"), np.float32) / 255
+    assert img.shape == (40, 48, 3) and img.std() > 0.02  # the field is in the picture
