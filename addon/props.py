@@ -127,6 +127,9 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
                                             "time. The viewport uses 1")
     viewport_preview: BoolProperty(name="Progressive viewport", default=True,
                                    description="Rendered viewport shading draws low-resolution previews first")
+    photo_colour_set: BoolProperty(name="Photo colours set", default=False, options={"HIDDEN"},
+                                   description="The view transform was set to 'Standard' when NeuMesh was "
+                                               "first chosen as this scene's render engine")
 
 
 def _objects_with_field_paths():

@@ -13,6 +13,32 @@ import pytest
 from helpers import add_camera, grid_mesh
 
 
+# ------------------------------------------------------------------------------------ colour (4)
+def test_choosing_neumesh_sets_photo_colours_once(addon):
+    scene = bpy.context.scene
+    default = scene.view_settings.view_transform
+    assert default in ("AgX", "Filmic")  # Blender's default: what made renders flat and grey
+    colour = addon.colour
+    scene.render.engine = "CYCLES"
+    assert colour.engine_selected(scene) is False and scene.view_settings.view_transform == default
+    scene.render.engine = "NEUMESH"
+    # what the message bus calls when the engine changes in the interface (bpy has no event loop:
+    # the real window test checks the subscription itself)
+    assert colour.engine_selected(scene) is True
+    assert scene.view_settings.view_transform == "Standard" and scene.view_settings.look == "None"
+    assert colour.photo_colour_issues(scene) == []
+    # once per scene: a user who then picks another view transform keeps it
+    scene.view_settings.view_transform = default
+    scene.render.engine = "CYCLES"
+    scene.render.engine = "NEUMESH"
+    assert colour.engine_selected(scene) is False and scene.view_settings.view_transform == default
+    assert colour.photo_colour_issues(scene) == [f"View Transform is '{default}'"]
+    assert bpy.ops.neumesh.photo_colour() == {"FINISHED"}
+    assert scene.view_settings.view_transform == "Standard" and scene.render.dither_intensity == 0.0
+    # the subscription is in place after the add-on registered and after a file load
+    assert colour._load_post in bpy.app.handlers.load_post
+
+
 # ------------------------------------------------------------------------------------ wording (7)
 def test_relative_field_path_in_unsaved_file_keeps_its_slashes(addon, trained_field):
     V, F = grid_mesh()
