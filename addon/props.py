@@ -81,13 +81,21 @@ def _maybe_relative(abspath: str, blend_path: str) -> str:
 _REL = {"options": {"PATH_SUPPORTS_BLEND_RELATIVE"}} if bpy.app.version >= (4, 5, 0) else {}
 
 
+def _tag_object(self, _context):
+    """A changed field path or switch: re-evaluate the object, so a Rendered viewport redraws."""
+    try:
+        self.id_data.update_tag()
+    except Exception:  # noqa: BLE001 - e.g. while the file is being written
+        pass
+
+
 class NeuMeshObjectSettings(bpy.types.PropertyGroup):
     field_path: StringProperty(
         name="Field file", description="NeuMesh field (.neumesh) rendered on this mesh's vertices",
-        subtype="FILE_PATH", default="", **_REL,
+        subtype="FILE_PATH", default="", update=_tag_object, **_REL,
     )
     enabled: BoolProperty(name="Render field", description="Render this object's field with NeuMesh",
-                          default=True)
+                          default=True, update=_tag_object)
     # where field_path_saved_as (the field path as it was then) led when it was set or the .blend was
     # last saved; used while the path is unchanged and does not resolve (see _save_pre)
     field_path_saved: StringProperty(name="Field file at last save", default="", options={"HIDDEN"})
@@ -101,6 +109,8 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
                            description="Divide the dataset image resolution by this")
     scaffold_method: EnumProperty(
         name="Scaffold method",
+        description="How the scaffold (the mesh the field is stored on; every vertex keeps the learned codes "
+                    "of the surface around it) is built from the dataset's photos",
         items=[("auto", "Auto", "Visual hull carved by stereo with masks, photometric density "
                                 "without"),
                ("hull", "Visual hull", "Fastest; needs masks / alpha"),
@@ -110,11 +120,14 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
         default="auto",
     )
     scaffold_vertices: IntProperty(name="Scaffold vertices", default=100_000, min=0, max=5_000_000,
-                                   description="Vertex count the scaffold is resampled to (0 = grid's own)")
+                                   description="Vertex count the scaffold (the mesh the field is stored on) is "
+                                               "resampled to: more vertices hold finer detail and cost memory "
+                                               "and time (0 = the grid's own count)")
     train_steps: IntProperty(name="Steps", default=2000, min=1, max=10_000_000)
     train_object: PointerProperty(name="Mesh", type=bpy.types.Object,
                                   poll=lambda self, o: o.type == "MESH",
-                                  description="Mesh object (scaffold) whose field is trained")
+                                  description="The scaffold: the mesh whose field is trained (every vertex "
+                                              "keeps the learned codes of the surface around it)")
     output_dir: StringProperty(name="Output folder", subtype="DIR_PATH", default="//neumesh_renders/", **_REL)
     render_cameras: EnumProperty(
         name="Cameras", items=[("ACTIVE", "Scene camera", "Render the scene camera"),

@@ -39,7 +39,78 @@ def test_choosing_neumesh_sets_photo_colours_once(addon):
     assert colour._load_post in bpy.app.handlers.load_post
 
 
+def test_render_panel_note_is_wrapped_to_the_panel(addon):
+    """The Render properties note used to be one label cut off mid-word; every line now fits."""
+    ui = addon.text
+    measure = ui.text_measure()
+    text = ("Colours look flat: View Transform is 'AgX', Look is 'AgX - Punchy'. NeuMesh fields hold the "
+            "photos' colours; show them with 'Standard'.")
+    for width in (150.0, 220.0, 400.0):
+        lines = ui.wrap_text(text, width, measure)
+        assert len(lines) >= 2 and " ".join(lines) == text
+        assert all(measure(l) <= width for l in lines)
+
+
+def test_wrap_text_splits_long_paths():
+    import importlib
+
+    import conftest
+
+    ui = importlib.import_module(conftest.ADDON_MODULE + ".text")
+    measure = len  # one pixel per character
+    path = "/very/long/folder/name/that/does/not/fit/field.neumesh"
+    lines = ui.wrap_text("not found: " + path, 20, measure)
+    assert all(len(l) <= 20 for l in lines) and "".join(lines).replace("not found:", "") == path
+    assert lines[1].endswith("/")  # cut after a slash where there is one
+    assert ui.wrap_text("a b", 10, measure) == ["a b"] and ui.wrap_text("", 10, measure) == [""]
+
+
+# ------------------------------------------------------------------------------------ panels (6)
+def test_load_field_fills_the_training_mesh(addon, trained_field):
+    assert bpy.context.scene.neumesh.train_object is None
+    assert bpy.ops.neumesh.load_field(filepath=trained_field, new_object=True) == {"FINISHED"}
+    obj = bpy.context.active_object
+    assert bpy.context.scene.neumesh.train_object == obj
+    # loading onto an existing mesh with the right vertex count does the same
+    other = addon.sync.new_mesh_object("copy", addon.sync.mesh_vertices(obj.data),
+                                       addon.sync.mesh_triangles(obj.data))
+    bpy.context.view_layer.objects.active = other
+    assert bpy.ops.neumesh.load_field(filepath=trained_field) == {"FINISHED"}
+    assert bpy.context.scene.neumesh.train_object == other
+
+
+def test_scaffold_is_explained_where_it_is_seen(addon):
+    help_words = ("mesh the field is stored on", "mesh whose field is trained")
+    texts = [
+        bpy.types.NEUMESH_PT_scaffold.bl_description,
+        bpy.ops.neumesh.build_scaffold.get_rna_type().description,
+        bpy.ops.neumesh.import_mesh.get_rna_type().description,
+        bpy.types.Scene.bl_rna.properties["neumesh"].fixed_type.properties["scaffold_method"].description,
+        bpy.types.Scene.bl_rna.properties["neumesh"].fixed_type.properties["train_object"].description,
+    ]
+    for t in texts:
+        assert any(w in t for w in help_words), t
+
+
+def test_training_status_lines_are_short(addon):
+    job = addon.worker.TrainJob(dataset_path="", field_path="/tmp/x.neumesh", steps=2000)
+    job.state, job.step, job.loss, job.psnr, job.rays_per_sec, job.eta_s = "TRAINING", 120, 0.0123, 23.4, 40100, 4000
+    assert job.status_lines() == ["Step 120/2000", "Loss 0.0123, PSNR 23.40 dB", "40.1k rays/s, ETA 1 h 06 min"]
+    assert max(len(l) for l in job.status_lines()) <= 30
+
+
 # ------------------------------------------------------------------------------------ wording (7)
+def test_missing_dependency_message_has_one_neumesh(addon, monkeypatch):
+    monkeypatch.setattr(addon.deps, "missing_required", lambda statuses=None: ["torch"])
+    monkeypatch.setattr(addon.core, "_nm", None)
+    with pytest.raises(RuntimeError) as exc:
+        bpy.ops.neumesh.import_mesh(filepath="/nonexistent.ply")
+    msg = str(exc.value)
+    assert "NeuMesh: missing Python package(s) torch" in msg and msg.count("NeuMesh") == 2  # + "> NeuMesh"
+    assert "NeuMesh: NeuMesh" not in msg and "Install dependencies" in msg
+    assert addon.engine.prefixed("NeuMesh: x") == "NeuMesh: x" and addon.engine.prefixed("x") == "NeuMesh: x"
+
+
 def test_relative_field_path_in_unsaved_file_keeps_its_slashes(addon, trained_field):
     V, F = grid_mesh()
     obj = addon.sync.new_mesh_object("grid", V, F)
