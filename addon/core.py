@@ -13,7 +13,26 @@ _nm = None
 
 
 class CoreUnavailable(RuntimeError):
-    """The core (or one of its dependencies such as torch) cannot be imported."""
+    """The core (or one of its dependencies such as torch) cannot be imported. The message is meant to
+    follow a "NeuMesh: " prefix (operators, the render engine and the viewport add it)."""
+
+
+_WHAT_TO_DO = ("Open Edit > Preferences > Add-ons > NeuMesh and press 'Install dependencies', or set "
+               "'Existing environment' to a site-packages folder that has torch 2.13 (numpy<2).")
+
+
+def prepare_torch():
+    """Run once torch has been imported, by the add-on or by anyone else (idempotent, cheap after the
+    first call): point torch's BLAS calls at torch's own BLAS where Blender links a slow one
+    (:mod:`blas`), and make torch's module-like objects safe for Blender's exit-time add-on scan."""
+    import sys
+
+    if "torch" not in sys.modules:
+        return
+    from . import blas
+
+    blas.ensure()
+    guard_torch_namespaces()
 
 
 def _import():
@@ -40,24 +59,20 @@ def get():
     missing = deps.missing_required()
     if missing:
         raise CoreUnavailable(
-            "NeuMesh needs the Python package(s) " + ", ".join(missing) + ", which Blender's Python cannot "
-            "import. Open Edit > Preferences > Add-ons > NeuMesh and press 'Install dependencies', or set "
-            "'Existing environment' to a site-packages folder that has torch 2.13 (numpy<2).")
+            "missing Python package(s) " + ", ".join(missing) + ": Blender's Python cannot import "
+            + ("it" if len(missing) == 1 else "them") + ". " + _WHAT_TO_DO)
     try:
         _nm = _import()
-        guard_torch_namespaces()
     except ModuleNotFoundError as exc:
         missing = exc.name or str(exc)
         raise CoreUnavailable(
-            f"NeuMesh needs the Python package '{missing}', which Blender's Python cannot import. "
-            "Open Edit > Preferences > Add-ons > NeuMesh and press 'Install dependencies', or set "
-            "'Existing environment' to a site-packages folder that has torch 2.13 (numpy<2)."
-        ) from exc
+            f"missing Python package '{missing}': Blender's Python cannot import it. " + _WHAT_TO_DO) from exc
     except ImportError as exc:
         raise CoreUnavailable(
-            f"NeuMesh could not import its core: {exc}. The installed dependencies are probably broken or "
-            "built for another Python; reinstall them from the add-on preferences."
+            f"the core cannot be imported: {exc}. The installed dependencies are probably broken or built for "
+            "another Python; reinstall them from the add-on preferences."
         ) from exc
+    prepare_torch()
     return _nm
 
 

@@ -139,7 +139,19 @@ def check_dependencies(do_import: bool = False) -> list[DepStatus]:
             st.found = False
             st.error = f"{type(exc).__name__}: {exc}"
         out.append(st)
+    if do_import and "torch" in sys.modules:
+        _torch_imported()
     return out
+
+
+def _torch_imported():
+    """torch was just imported here: the add-on's post-import steps (core.prepare_torch: torch's own
+    BLAS, and the guard without which Blender 3.x segfaults at exit). Skipped when this file is loaded
+    on its own, outside the add-on package."""
+    if not __package__:
+        return
+    core = importlib.import_module(__package__ + ".core")
+    core.prepare_torch()
 
 
 def missing_required(statuses=None) -> list[str]:

@@ -11,6 +11,9 @@ from ._np import np
 from . import camera, core, render, sync
 
 LAST_ERROR = {"message": ""}
+# the last message drawn in a viewport: its wrapped lines, the widest one's right end, the region's width
+# and the part of it that the sidebar does not cover (pixels)
+VIEWPORT_MESSAGE = {"lines": [], "widest": 0.0, "region_width": 0, "visible_width": 0}
 
 
 def _user_message(exc) -> str:
@@ -159,7 +162,7 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
         except Exception as exc:  # noqa: BLE001 - reported to the user, no (wrong) image written
             if type(exc).__name__ == "Cancelled":
                 return
-            msg = "NeuMesh: " + _user_message(exc)
+            msg = prefixed(_user_message(exc))
             LAST_ERROR["message"] = msg
             print(msg)
             if hasattr(self, "error_set"):
@@ -237,16 +240,56 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
         self.unbind_display_space_shader()
         gpu.state.blend_set("NONE")
 
-    def _draw_message(self, context, text):
+    def _draw_message(self, context, message):
+        """The error in the viewport, "NeuMesh: ..." wrapped to the region's width."""
         try:
             import blf
 
-            blf.position(0, 12, 30, 0)
-            blf.size(0, 14) if bpy.app.version >= (4, 0, 0) else blf.size(0, 14, 72)
+            from . import text
+
+            scale = text.ui_scale(context)
+            px = 13 * scale
+
+            def measure(s):
+                return blf.dimensions(0, s)[0]
+
+            if bpy.app.version >= (4, 0, 0):
+                blf.size(0, px)
+            else:
+                blf.size(0, 13, int(72 * scale))
+            region = context.region
+            width = _visible_width(context)
+            lines = text.wrap_text(prefixed(message), max(40.0, width - 24 * scale), measure)
+            step = px * 1.4
+            max_lines = max(1, int((region.height - 60 * scale) // step))
+            if len(lines) > max_lines:
+                lines = lines[:max_lines - 1] + [lines[max_lines - 1] + " ..."]
+            VIEWPORT_MESSAGE.update(lines=lines, widest=max(measure(x) for x in lines) + 12 * scale,
+                                    region_width=region.width, visible_width=width)
             blf.color(0, 1.0, 0.3, 0.3, 1.0)
-            blf.draw(0, text[:200])
-        except Exception:
-            pass
+            y = 12 * scale + step * (len(lines) - 1)
+            for line in lines:
+                blf.position(0, 12 * scale, y, 0)
+                blf.draw(0, line)
+                y -= step
+        except Exception as exc:  # noqa: BLE001 - drawing must never raise into Blender
+            print(f"NeuMesh: cannot draw the viewport message: {exc}")
+
+
+def _visible_width(context) -> int:
+    """Width of the part of the viewport region not covered by the sidebar (with 'Region Overlap' the
+    sidebar floats over the region, which then spans the whole area)."""
+    region, area = context.region, context.area
+    width = region.width
+    for r in getattr(area, "regions", ()):
+        if r.type == "UI" and r.width > 1 and region.x < r.x < region.x + region.width:
+            width = min(width, r.x - region.x)
+    return width
+
+
+def prefixed(message: str) -> str:
+    """``message`` with one "NeuMesh: " in front."""
+    return message if message.startswith("NeuMesh") else "NeuMesh: " + message
 
 
 class _PollRedraw:

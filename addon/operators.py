@@ -128,7 +128,8 @@ class NEUMESH_OT_import_dataset(bpy.types.Operator):
 
 
 class NEUMESH_OT_import_mesh(bpy.types.Operator):
-    """Import a scaffold mesh (.ply/.obj/...) with the core's loader (vertex order kept exactly)"""
+    """Import a mesh (.ply/.obj/...) as the scaffold, the mesh the field is stored on (read by the core's
+    loader, so the vertex order is exactly the file's)"""
 
     bl_idname = "neumesh.import_mesh"
     bl_label = "Import scaffold mesh"
@@ -162,7 +163,9 @@ def _make_active(context, obj):
 
 
 class NEUMESH_OT_build_scaffold(bpy.types.Operator):
-    """Build a mesh scaffold from the dataset's posed images (visual hull, density grid, marching cubes)"""
+    """Build the scaffold from the dataset's photos: the mesh the field is stored on, each vertex keeping
+    the learned codes of the surface around it (visual hull from the masks, refined by stereo or a
+    density grid, meshed by marching cubes)"""
 
     bl_idname = "neumesh.build_scaffold"
     bl_label = "Build scaffold"
@@ -384,6 +387,7 @@ class NEUMESH_OT_load_field(bpy.types.Operator):
             return {"CANCELLED"}
         props.set_field_path(obj, path)
         obj.neumesh.enabled = True
+        context.scene.neumesh.train_object = obj  # Training > Scaffold mesh: the mesh this field is on
         self.report({"INFO"}, f"NeuMesh: field {os.path.basename(path)} on '{obj.name}'")
         return {"FINISHED"}
 

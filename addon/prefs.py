@@ -10,7 +10,7 @@ from . import deps
 
 ADDON_ID = __package__  # "neumesh" (legacy add-on) or "bl_ext.<repo>.neumesh" (extension)
 
-_status_cache: dict = {"statuses": None}
+_status_cache: dict = {"statuses": None, "blas": None}
 
 
 def get_prefs():
@@ -116,14 +116,63 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
                 col = box.column(align=True)
                 for line in job.log_lines[-15:]:
                     col.label(text=line[:160])
+        self._draw_speed(layout, context)
         layout.prop(self, "torch_threads")
         row = layout.row()
         row.prop(self, "preview_start")
         row.prop(self, "preview_final")
 
+    def _draw_speed(self, layout, context):
+        """Box 'Speed': torch's matrix-multiply rate and BLAS in this Blender, with the remedy if slow."""
+        from . import text
+
+        st = _status_cache.get("blas")
+        box = layout.box()
+        if st is None:
+            box.label(text="Speed: press 'Check dependencies' to measure torch in this Blender", icon="TIME")
+            return
+        width = text.text_width(context)
+        if st["own"]:
+            text.wrapped_label(box, "Speed: " + speed_message(st), width, icon="CHECKMARK")
+            return
+        text.wrapped_label(box, "Speed: " + speed_message(st), width, icon="ERROR")
+        text.wrapped_label(box, "Start Blender with torch's BLAS preloaded (see docs/addon.md, 'Speed'):", width)
+        text.wrapped_label(box, st["remedy"], width, icon="CONSOLE")
+        box.operator("neumesh.copy_launcher", icon="COPYDOWN")
+
+
+def speed_status(measure: bool = True):
+    """torch's BLAS in this Blender (see blas.py): which library its matrix multiplies call, the rate
+    measured here, the launcher command when it is the slow one. None without torch."""
+    import sys
+
+    if "torch" not in sys.modules:
+        return None
+    from . import blas, core
+
+    st = blas.status(measure=measure)
+    core.prepare_torch()  # measuring may have made torch import more modules
+    _status_cache["blas"] = st
+    return st
+
+
+def speed_message(st) -> str:
+    """One sentence on torch's matrix-multiply speed in this Blender ('' before it was measured); the
+    launcher command is not part of it (``st["remedy"]``)."""
+    if not st:
+        return ""
+    rate = "" if st.get("gflops") is None else f" {st['gflops']:.0f} GFLOP/s"
+    if st["own"]:
+        foreign = st["rebind"].get("foreign") if st["rebind"].get("rebound") else None
+        src = f" (rebound from {', '.join(os.path.basename(f) for f in foreign)})" if foreign else ""
+        return f"matrix multiply{rate} with torch's own BLAS{src}"
+    return (f"matrix multiply{rate} on {os.path.basename(st['sgemm'])}, the slow BLAS this Blender links: "
+            "renders and training run several times slower")
+
 
 class NEUMESH_OT_check_dependencies(bpy.types.Operator):
-    """Import every dependency and report versions"""
+    """Import every dependency, report versions, and measure torch's matrix-multiply speed in this
+    Blender (a Blender that links a slow BLAS makes NeuMesh several times slower)"""
 
     bl_idname = "neumesh.check_dependencies"
     bl_label = "Check dependencies"
@@ -133,11 +182,34 @@ class NEUMESH_OT_check_dependencies(bpy.types.Operator):
         miss = [s.dist for s in statuses if s.required and not s.found]
         for s in statuses:
             if not s.found and s.error and s.error != "not found":
-                self.report({"WARNING"}, f"{s.dist}: {s.error}")
+                self.report({"WARNING"}, f"NeuMesh: {s.dist}: {s.error}")
         if miss:
             self.report({"WARNING"}, "NeuMesh: missing " + ", ".join(miss))
-        else:
-            self.report({"INFO"}, "NeuMesh: " + ", ".join(f"{s.dist} {s.version}" for s in statuses if s.found))
+            return {"FINISHED"}
+        self.report({"INFO"}, "NeuMesh: " + ", ".join(f"{s.dist} {s.version}" for s in statuses if s.found))
+        st = speed_status(measure=True)
+        if st is not None:
+            msg = "NeuMesh: " + speed_message(st)
+            if st["own"]:
+                self.report({"INFO"}, msg)
+            else:
+                self.report({"WARNING"}, f"{msg}. Start Blender as: {st['remedy']}")
+        return {"FINISHED"}
+
+
+class NEUMESH_OT_copy_launcher(bpy.types.Operator):
+    """Copy the command that starts Blender with torch's own BLAS preloaded to the clipboard"""
+
+    bl_idname = "neumesh.copy_launcher"
+    bl_label = "Copy launcher command"
+
+    def execute(self, context):
+        from . import blas
+
+        st = _status_cache.get("blas") or {}
+        cmd = st.get("remedy") or blas.preload_command()
+        context.window_manager.clipboard = cmd
+        self.report({"INFO"}, f"NeuMesh: copied: {cmd}")
         return {"FINISHED"}
 
 
@@ -200,7 +272,8 @@ def _redraw_preferences():
         pass
 
 
-classes = (NEUMESH_AP_preferences, NEUMESH_OT_check_dependencies, NEUMESH_OT_install_dependencies)
+classes = (NEUMESH_AP_preferences, NEUMESH_OT_check_dependencies, NEUMESH_OT_copy_launcher,
+           NEUMESH_OT_install_dependencies)
 
 
 def register():

@@ -9,11 +9,52 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty, PointerProperty, 
 
 
 def field_abspath(obj) -> str:
-    """Absolute path of the field file of ``obj`` ('' if none). '//' paths resolve against the .blend."""
-    p = getattr(getattr(obj, "neumesh", None), "field_path", "") or ""
+    """Absolute path of the field file of ``obj`` ('' if none). '//' paths resolve against the .blend;
+    when that file does not exist but the location recorded at the last save does, that one (a .blend
+    saved to another folder by a Blender that does not tell add-ons where, see :func:`_save_pre`)."""
+    s = getattr(obj, "neumesh", None)
+    p = getattr(s, "field_path", "") or ""
     if not p.strip():
         return ""
-    return os.path.normpath(bpy.path.abspath(p))
+    path = os.path.normpath(bpy.path.abspath(p))
+    if not os.path.isfile(path):
+        saved = _saved_location(s)
+        if saved:
+            return saved
+    return path
+
+
+def _saved_location(s) -> str:
+    """The absolute location recorded with the path the object still has ('' when the path was changed
+    since, or the file is not there either)."""
+    saved = getattr(s, "field_path_saved", "")
+    if saved and s.field_path == getattr(s, "field_path_saved_as", None) and os.path.isfile(saved):
+        return saved
+    return ""
+
+
+def _record(s, abspath: str, path: str | None = None):
+    """Set the field path (if ``path``) and remember where it leads (``abspath``), for _saved_location."""
+    if path is not None and s.field_path != path:
+        s.field_path = path
+    if s.field_path_saved != abspath:
+        s.field_path_saved = abspath
+    if s.field_path_saved_as != s.field_path:
+        s.field_path_saved_as = s.field_path
+
+
+def missing_field_message(obj) -> str:
+    """What to say when the field file of ``obj`` is missing: the path as the user wrote it ('//' kept)
+    and, for a '//' path, what it is relative to."""
+    p = obj.neumesh.field_path.strip()
+    msg = f"object '{obj.name}': field file not found: {p}"
+    if p.startswith("//"):
+        if not bpy.data.filepath:
+            msg += (" ('//' means the folder of the .blend file, and this .blend has not been saved: save it "
+                    "in the folder the path is relative to, or choose the field file again)")
+        else:
+            msg += f" (= {os.path.normpath(bpy.path.abspath(p))})"
+    return msg
 
 
 def has_field(obj) -> bool:
@@ -24,7 +65,7 @@ def has_field(obj) -> bool:
 def set_field_path(obj, path: str):
     """Store ``path`` on ``obj``; relative to the .blend ('//...') when the .blend has been saved."""
     path = os.path.abspath(bpy.path.abspath(path))
-    obj.neumesh.field_path = _maybe_relative(path, bpy.data.filepath)
+    _record(obj.neumesh, path, _maybe_relative(path, bpy.data.filepath))
 
 
 def _maybe_relative(abspath: str, blend_path: str) -> str:
@@ -40,13 +81,25 @@ def _maybe_relative(abspath: str, blend_path: str) -> str:
 _REL = {"options": {"PATH_SUPPORTS_BLEND_RELATIVE"}} if bpy.app.version >= (4, 5, 0) else {}
 
 
+def _tag_object(self, _context):
+    """A changed field path or switch: re-evaluate the object, so a Rendered viewport redraws."""
+    try:
+        self.id_data.update_tag()
+    except Exception:  # noqa: BLE001 - e.g. while the file is being written
+        pass
+
+
 class NeuMeshObjectSettings(bpy.types.PropertyGroup):
     field_path: StringProperty(
         name="Field file", description="NeuMesh field (.neumesh) rendered on this mesh's vertices",
-        subtype="FILE_PATH", default="", **_REL,
+        subtype="FILE_PATH", default="", update=_tag_object, **_REL,
     )
     enabled: BoolProperty(name="Render field", description="Render this object's field with NeuMesh",
-                          default=True)
+                          default=True, update=_tag_object)
+    # where field_path_saved_as (the field path as it was then) led when it was set or the .blend was
+    # last saved; used while the path is unchanged and does not resolve (see _save_pre)
+    field_path_saved: StringProperty(name="Field file at last save", default="", options={"HIDDEN"})
+    field_path_saved_as: StringProperty(name="Field path at last save", default="", options={"HIDDEN"})
 
 
 class NeuMeshSceneSettings(bpy.types.PropertyGroup):
@@ -56,6 +109,8 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
                            description="Divide the dataset image resolution by this")
     scaffold_method: EnumProperty(
         name="Scaffold method",
+        description="How the scaffold (the mesh the field is stored on; every vertex keeps the learned codes "
+                    "of the surface around it) is built from the dataset's photos",
         items=[("auto", "Auto", "Visual hull carved by stereo with masks, photometric density "
                                 "without"),
                ("hull", "Visual hull", "Fastest; needs masks / alpha"),
@@ -65,11 +120,14 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
         default="auto",
     )
     scaffold_vertices: IntProperty(name="Scaffold vertices", default=100_000, min=0, max=5_000_000,
-                                   description="Vertex count the scaffold is resampled to (0 = grid's own)")
+                                   description="Vertex count the scaffold (the mesh the field is stored on) is "
+                                               "resampled to: more vertices hold finer detail and cost memory "
+                                               "and time (0 = the grid's own count)")
     train_steps: IntProperty(name="Steps", default=2000, min=1, max=10_000_000)
     train_object: PointerProperty(name="Mesh", type=bpy.types.Object,
                                   poll=lambda self, o: o.type == "MESH",
-                                  description="Mesh object (scaffold) whose field is trained")
+                                  description="The scaffold: the mesh whose field is trained (every vertex "
+                                              "keeps the learned codes of the surface around it)")
     output_dir: StringProperty(name="Output folder", subtype="DIR_PATH", default="//neumesh_renders/", **_REL)
     render_cameras: EnumProperty(
         name="Cameras", items=[("ACTIVE", "Scene camera", "Render the scene camera"),
@@ -82,32 +140,73 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
                                             "time. The viewport uses 1")
     viewport_preview: BoolProperty(name="Progressive viewport", default=True,
                                    description="Rendered viewport shading draws low-resolution previews first")
+    photo_colour_set: BoolProperty(name="Photo colours set", default=False, options={"HIDDEN"},
+                                   description="The view transform was set to 'Standard' when NeuMesh was "
+                                               "first chosen as this scene's render engine")
+
+
+def _objects_with_field_paths():
+    for obj in bpy.data.objects:
+        s = getattr(obj, "neumesh", None)
+        if s is not None and s.field_path.strip():
+            yield obj, s
 
 
 @persistent
 def _save_pre(*args):
-    """Before saving: store field paths relative to the .blend's new location ('//...')."""
+    """Before saving: store field paths relative to the .blend's new location ('//...'), and each
+    file's absolute location in ``field_path_saved``.
+
+    Blender 4.x/5.x pass the path being written. Blender 3.x passes nothing (its save_pre gets
+    ``(None, None)``), so a Save As to another folder cannot be told from a plain save there: the
+    '//' path is kept relative to the folder it was made for, and the absolute location saved beside
+    it repairs it when the file is opened from the new folder (:func:`_load_post`) or rendered
+    (:func:`field_abspath`). After any save, :func:`_save_post` makes the paths in memory relative to
+    where the file now is."""
     target = ""
     for a in args:
         if isinstance(a, str) and a:
             target = a
-    if not target:
-        target = bpy.data.filepath
-    if not target:
-        return
-    old = bpy.data.filepath
-    for obj in bpy.data.objects:
-        s = getattr(obj, "neumesh", None)
-        if s is None or not s.field_path.strip():
-            continue
+    for _obj, s in _objects_with_field_paths():
         p = s.field_path
-        if p.startswith("//"):
-            if not old:
-                continue
-            p = os.path.normpath(bpy.path.abspath(p, start=os.path.dirname(old)))
-        new = _maybe_relative(os.path.abspath(p), target)
-        if new != s.field_path:
-            s.field_path = new
+        if p.startswith("//") and not bpy.data.filepath:
+            continue  # relative to nothing yet; nothing to record
+        abspath = os.path.normpath(bpy.path.abspath(p)) if p.startswith("//") else os.path.abspath(p)
+        if not os.path.isfile(abspath):
+            abspath = _saved_location(s) or abspath
+        _record(s, abspath, _maybe_relative(abspath, target) if target else None)
+
+
+@persistent
+def _save_post(*_args):
+    """After saving (and after Save Copy, which leaves the open file where it was): field paths in
+    memory relative to where the .blend now is, pointing at the files :func:`_save_pre` recorded."""
+    _relink(only_missing=False)
+
+
+@persistent
+def _load_post(*_args):
+    """After opening a .blend: a '//' field path that does not resolve from the file's folder, whose
+    location recorded at the last save exists, is made relative to the new folder (a Save As to
+    another folder in Blender 3.x, see :func:`_save_pre`)."""
+    _relink(only_missing=True)
+
+
+def _relink(only_missing: bool):
+    if not bpy.data.filepath:
+        return
+    for obj, s in _objects_with_field_paths():
+        saved, p = _saved_location(s), s.field_path
+        if not saved:
+            continue
+        if only_missing and (not p.startswith("//") or os.path.isfile(bpy.path.abspath(p))):
+            continue
+        new = _maybe_relative(saved, bpy.data.filepath)
+        if new != p:
+            _record(s, saved, new)
+            if only_missing:
+                print(f"NeuMesh: object '{obj.name}': field path {p} does not resolve from this .blend's "
+                      f"folder; using {new} ({saved}), where the file was when the .blend was saved")
 
 
 classes = (NeuMeshObjectSettings, NeuMeshSceneSettings)
@@ -118,13 +217,20 @@ def register():
         bpy.utils.register_class(c)
     bpy.types.Object.neumesh = PointerProperty(type=NeuMeshObjectSettings)
     bpy.types.Scene.neumesh = PointerProperty(type=NeuMeshSceneSettings)
-    if _save_pre not in bpy.app.handlers.save_pre:
-        bpy.app.handlers.save_pre.append(_save_pre)
+    for handlers, fn in _HANDLERS():
+        if fn not in handlers:
+            handlers.append(fn)
+
+
+def _HANDLERS():
+    h = bpy.app.handlers
+    return ((h.save_pre, _save_pre), (h.save_post, _save_post), (h.load_post, _load_post))
 
 
 def unregister():
-    if _save_pre in bpy.app.handlers.save_pre:
-        bpy.app.handlers.save_pre.remove(_save_pre)
+    for handlers, fn in _HANDLERS():
+        if fn in handlers:
+            handlers.remove(fn)
     del bpy.types.Scene.neumesh
     del bpy.types.Object.neumesh
     for c in reversed(classes):

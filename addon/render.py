@@ -91,6 +91,8 @@ def collect(depsgraph, for_render: bool = True) -> list[Item]:
         if not props.has_field(orig):
             continue
         path = props.field_abspath(orig)
+        if not os.path.isfile(path):
+            raise FileNotFoundError(props.missing_field_message(orig))
         field = get_field(orig.name_full, path)
         verts = sync.evaluated_world_vertices(orig, depsgraph, expected_count=int(field.num_vertices),
                                               for_render=for_render)

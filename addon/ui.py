@@ -1,11 +1,31 @@
-"""Panels: 3D View sidebar tab 'NeuMesh', Object properties field path, Render properties."""
+"""Panels: 3D View sidebar tab 'NeuMesh', Object properties field path, Render properties.
+
+The sidebar is narrow (about 280 px at its default width, less than half of it for a label beside a
+field), so every property whose name would be cut is drawn with its label above it, buttons are
+stacked rather than put side by side, and longer messages are wrapped to the region's width
+(:func:`text.wrapped_label`).
+"""
 from __future__ import annotations
 
 import bpy
 
-from . import operators, worker
+from . import colour, operators, worker
+from .text import text_width, wrapped_label
+
+SCAFFOLD_HELP = ("The scaffold is the mesh the field is stored on: every vertex keeps the learned codes "
+                 "of the surface around it, so moving or bending the mesh moves the field with it. Build "
+                 "it from the dataset's photos, or import a mesh of the object")
 
 
+def _labelled(layout, data, prop, label, **kw):
+    """A property with its label above it (the sidebar is too narrow for both on one row)."""
+    col = layout.column(align=True)
+    col.label(text=label)
+    col.prop(data, prop, text="", **kw)
+    return col
+
+
+# ---------------------------------------------------------------------------------------- sidebar
 class _Sidebar:
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
@@ -13,63 +33,77 @@ class _Sidebar:
 
 
 class NEUMESH_PT_data(_Sidebar, bpy.types.Panel):
-    bl_label = "NeuMesh data"
+    bl_label = "Dataset"
+    bl_description = "The photos and their cameras that a field is trained on"
 
     def draw(self, context):
         s = context.scene.neumesh
         col = self.layout.column()
-        col.prop(s, "dataset_path")
+        _labelled(col, s, "dataset_path", "Dataset folder")
         col.prop(s, "downscale")
-        op = col.operator("neumesh.import_dataset", icon="OUTLINER_OB_CAMERA")
+        op = col.operator("neumesh.import_dataset", text="Import Cameras", icon="OUTLINER_OB_CAMERA")
         op.directory = s.dataset_path
         op.downscale = s.downscale
-        col.prop(s, "scaffold_method")
-        col.prop(s, "scaffold_vertices")
-        row = col.row(align=True)
-        row.operator("neumesh.build_scaffold", icon="MESH_ICOSPHERE")
-        row.operator("neumesh.import_mesh", icon="IMPORT")
+        col.label(text=f"{len(operators.dataset_cameras())} dataset camera(s)")
+
+
+class NEUMESH_PT_scaffold(_Sidebar, bpy.types.Panel):
+    bl_label = "Scaffold"
+    bl_description = SCAFFOLD_HELP
+
+    def draw(self, context):
+        s = context.scene.neumesh
+        col = self.layout.column()
+        _labelled(col, s, "scaffold_method", "Method")
+        col.prop(s, "scaffold_vertices", text="Vertices")
+        col.operator("neumesh.build_scaffold", text="Build from Photos", icon="MESH_ICOSPHERE")
+        col.operator("neumesh.import_mesh", text="Import Mesh", icon="IMPORT")
 
 
 class NEUMESH_PT_train(_Sidebar, bpy.types.Panel):
     bl_label = "Training"
+    bl_description = "Train the field of a scaffold mesh on the dataset, in the background"
 
     def draw(self, context):
         s = context.scene.neumesh
         col = self.layout.column()
-        col.prop(s, "train_object")
+        _labelled(col, s, "train_object", "Scaffold mesh")
         col.prop(s, "train_steps")
         job = worker.current()
+        width = text_width(context)
         if job is not None and job.running:
-            col.label(text=job.status_text(), icon="SORTTIME")
+            for i, line in enumerate(job.status_lines()):
+                wrapped_label(col, line, width, icon="SORTTIME" if i == 0 else "NONE", context=context)
             if hasattr(col, "progress"):
                 col.progress(factor=job.fraction, text=f"{job.step}/{job.total_steps}")
             col.operator("neumesh.train_cancel", icon="CANCEL")
         else:
             row = col.row(align=True)
-            row.operator("neumesh.train", icon="PLAY").resume = False
+            row.operator("neumesh.train", text="Train", icon="PLAY").resume = False
             row.operator("neumesh.train", text="Resume", icon="FF").resume = True
             if job is not None:
-                col.label(text=job.status_text(),
-                          icon={"DONE": "CHECKMARK", "ERROR": "ERROR"}.get(job.state, "INFO"))
+                icon = {"DONE": "CHECKMARK", "ERROR": "ERROR"}.get(job.state, "INFO")
+                for i, line in enumerate(job.status_lines()):
+                    wrapped_label(col, line, width, icon=icon if i == 0 else "NONE", context=context)
 
 
 class NEUMESH_PT_field(_Sidebar, bpy.types.Panel):
-    bl_label = "Field & render"
+    bl_label = "Field & Render"
+    bl_description = "The field file of the active mesh, and rendering to image files"
 
     def draw(self, context):
         col = self.layout.column()
         obj = context.active_object
         if obj is not None and obj.type == "MESH":
-            col.prop(obj.neumesh, "field_path")
+            _labelled(col, obj.neumesh, "field_path", f"Field of '{obj.name}'")
             col.prop(obj.neumesh, "enabled")
-        col.operator("neumesh.load_field", icon="FILE_FOLDER")
+        col.operator("neumesh.load_field", text="Load Field", icon="FILE_FOLDER")
         s = context.scene.neumesh
         col.separator()
-        col.prop(s, "render_cameras")
+        _labelled(col, s, "render_cameras", "Render cameras")
         col.prop(s, "render_samples")
-        col.prop(s, "output_dir")
-        col.operator("neumesh.render_images", icon="RENDER_STILL")
-        col.label(text=f"{len(operators.dataset_cameras())} dataset camera(s)")
+        _labelled(col, s, "output_dir", "Output folder")
+        col.operator("neumesh.render_images", text="Render to Images", icon="RENDER_STILL")
 
 
 class NEUMESH_PT_object(bpy.types.Panel):
@@ -103,12 +137,20 @@ class NEUMESH_PT_render(bpy.types.Panel):
         col = self.layout.column()
         col.prop(scene.render, "film_transparent")
         col.prop(scene.neumesh, "render_samples")
-        vs = scene.view_settings
-        if vs.view_transform != "Standard" or scene.render.dither_intensity != 0:
-            col.label(text="Exact field colours: view transform 'Standard', dither 0", icon="INFO")
+        issues = colour.photo_colour_issues(scene)
+        width = text_width(context)
+        if issues:
+            box = col.box()
+            wrapped_label(box, "Colours look flat: " + ", ".join(issues) + ". NeuMesh fields hold the "
+                          "photos' colours; show them with 'Standard'.", width, icon="ERROR", context=context)
+            box.operator("neumesh.photo_colour", icon="COLOR")
+        elif scene.render.dither_intensity != 0:
+            wrapped_label(col, "Dither adds noise of about 1/255; set it to 0 (Output > Post Processing) "
+                          "for the field's exact pixel values.", width, icon="INFO", context=context)
 
 
-classes = (NEUMESH_PT_data, NEUMESH_PT_train, NEUMESH_PT_field, NEUMESH_PT_object, NEUMESH_PT_render)
+classes = (NEUMESH_PT_data, NEUMESH_PT_scaffold, NEUMESH_PT_train, NEUMESH_PT_field, NEUMESH_PT_object,
+           NEUMESH_PT_render)
 
 
 def register():

@@ -78,6 +78,18 @@ class TrainJob:
                     f"{self.rays_per_sec / 1000:.1f}k rays/s{eta}")
         return f"NeuMesh training: {self.state.lower()} {self.message}".strip()
 
+    def status_lines(self) -> list[str]:
+        """The status as short lines for the narrow sidebar (each is wrapped further if needed)."""
+        if self.state == "TRAINING":
+            psnr = "" if not np.isfinite(self.psnr) else f", PSNR {self.psnr:.2f} dB"
+            eta = "" if not np.isfinite(self.eta_s) else f", ETA {_duration(self.eta_s)}"
+            return [f"Step {self.step}/{self.total_steps}", f"Loss {self.loss:.4f}{psnr}",
+                    f"{self.rays_per_sec / 1000:.1f}k rays/s{eta}"]
+        lines = [f"Training: {self.state.lower()}"]
+        if self.message:
+            lines.append(self.message)
+        return lines
+
     # ---------------------------------------------------------------- thread
     def _callback(self, p):
         self.step = int(getattr(p, "step", self.step))
@@ -146,6 +158,15 @@ class TrainJob:
             except Exception:  # noqa: BLE001
                 pass
             self.finished_at = time.time()
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return f"{seconds} s"
+    if seconds < 3600:
+        return f"{seconds // 60} min {seconds % 60:02d} s"
+    return f"{seconds // 3600} h {seconds % 3600 // 60:02d} min"
 
 
 _job: TrainJob | None = None

@@ -11,23 +11,15 @@ import json
 import os
 import sys
 
-import addon_utils
 import bpy
 
-argv = sys.argv[sys.argv.index("--") + 1:]
-zip_path, field_path, out_dir = argv[:3]
-os.makedirs(out_dir, exist_ok=True)
-
-if bpy.app.version >= (4, 2, 0):
-    bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
-    module = "bl_ext.user_default.neumesh"
-else:
-    bpy.ops.preferences.addon_install(filepath=zip_path, overwrite=True)
-    module = "neumesh"
-addon_utils.enable(module, default_set=True)
-bpy.ops.wm.save_userpref()
-
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from real_blender_common import install_addon, script_args  # noqa: E402
+
+zip_path, field_path, out_dir = script_args()[:3]
+os.makedirs(out_dir, exist_ok=True)
+module = install_addon(zip_path)
+
 import numpy as np  # noqa: E402  (available once the add-on put NEUMESH_PYTHONPATH on sys.path)
 from helpers import add_armature_bend, add_camera, exact_colour_settings  # noqa: E402
 

@@ -108,3 +108,70 @@ def test_real_blender_renders_animation_with_neumesh_engine(addon_zip, trained_f
     assert f1[root_px].std() > 0.02  # those pixels show the field, not background
     tip_px = near(np.concatenate([tip1, tip2]), 3.0)
     assert (diff[tip_px] > 0.1).sum() >= 10 and diff[tip_px].max() > 0.25
+
+
+def _facts(log):
+    return json.loads(next(l for l in log.splitlines() if l.startswith("NEUMESH_FACTS "))[14:])
+
+
+def _need_torch():
+    if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
+        pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
+
+
+def test_check_dependencies_exits_cleanly_and_uses_torchs_blas(addon_zip, tmp_path):
+    """'Check dependencies' imports torch: Blender must still exit normally (it segfaulted at exit,
+    code 139, when torch was imported without the add-on's guard), and torch's matrix multiplies must
+    run on torch's own BLAS even where this Blender links another one (Debian's links the reference
+    libblas.so.3); with the rebinding switched off the check names the slow library and the launcher
+    command, and that command works."""
+    _need_torch()
+    env = _env(tmp_path)
+    cmd = [BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_deps.py"), "--",
+           addon_zip]
+    log = _run(cmd, env)  # asserts exit code 0
+    f = _facts(log)
+    assert f["result"] == ["FINISHED"] and f["missing"] == [] and f["rebind_error"] == ""
+    assert f["own"] and f["sgemm"] == f["torch_lib"] and f["gflops"] > 0 and f["remedy"] == ""
+    assert "NeuMesh: matrix multiply" in log and "with torch's own BLAS" in log
+
+    off = _facts(_run(cmd, dict(env, NEUMESH_NO_BLAS_REBIND="1")))
+    if off["own"]:
+        pytest.skip(f"this blender ({BLENDER}) does not link another BLAS: nothing to rebind")
+    # what the user is told without the rebinding, and the remedy it names
+    assert os.path.basename(off["sgemm"]).startswith(("libblas", "libopenblas", "libcblas", "libatlas"))
+    assert off["remedy"] == f"LD_PRELOAD={f['torch_lib']} blender"
+    assert "slow BLAS" in off["message"]
+    assert any(os.path.realpath(p) == os.path.realpath(off["sgemm"]) for p in f["foreign"]), f["foreign"]
+    assert f["rebound"] >= 1
+    preloaded = dict(env, NEUMESH_NO_BLAS_REBIND="1", LD_PRELOAD=f["torch_lib"])
+    pre = _facts(_run(cmd, preloaded))
+    assert pre["own"] and pre["sgemm"] == f["torch_lib"] and pre["remedy"] == ""
+
+
+def test_save_as_to_another_folder_keeps_the_field(addon_zip, trained_field, tmp_path):
+    """Blender 3.x gives save handlers no file name (save_pre gets (None, None)): a Save As into
+    another folder must still leave a file whose field is found, in a new Blender process."""
+    _need_torch()
+    env = _env(tmp_path)
+    out = tmp_path / "work"
+    field = tmp_path / "fields" / "blob.neumesh"
+    field.parent.mkdir()
+    shutil.copy(trained_field, field)
+    f = _facts(_run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_saveas.py"),
+                     "--", addon_zip, str(field), str(out)], env))
+    assert f["path_first"] == "//../../fields/blob.neumesh"
+    assert f["path_after_save_as"] == "//../../../fields/blob.neumesh"
+    if tuple(f["version"]) < (4, 0, 0):
+        assert f["save_pre_args"][-1] == [None, None]  # what made the bug: no target path
+    # a new process opens the moved file, says where its field is, and renders it
+    expr = ("import bpy; print('FIELD_PATH', [o.neumesh.field_path for o in bpy.data.objects "
+            "if o.type == 'MESH'])")
+    log = _run([BLENDER, "-b", f["second"], "--python-expr", expr, "-E", "NEUMESH",
+                "-o", str(out / "frame_####"), "-f", "1"], env)
+    assert "not found" not in log, log[-3000:]
+    assert "FIELD_PATH ['//../../../fields/blob.neumesh']" in log, log[-3000:]
+    from PIL import Image
+
+    img = np.asarray(Image.open(out / "frame_0001.png").convert("RGB"), np.float32) / 255
+    assert img.shape == (40, 48, 3) and img.std() > 0.02  # the field is in the picture

@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Installs what the Blender side of the project needs:
 #   * the Debian `blender` binary (3.4, headless `blender -b`), used by blender_tests/test_real_blender.py
+#   * Xvfb (`xvfb-run`), a virtual display in which blender_tests/test_real_blender_ui.py opens a real
+#     Blender window (software OpenGL) and takes screenshots of the add-on's panels
 #   * a `pip install --target` folder (<repo>/.blender_torch) with torch & co for that binary's Python.
 # The add-on finds the folder through NEUMESH_PYTHONPATH (the tests set it) or the add-on preference
 # "Existing environment". bpy==5.0.1 for the in-venv tests is installed by the top-level setup.
@@ -14,13 +16,19 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 PY="${PYTHON:-$ROOT/.venv/bin/python}"
 TARGET="${NEUMESH_BLENDER_TORCH:-$ROOT/.blender_torch}"
 
-if ! command -v blender >/dev/null 2>&1; then
+APT_PKGS=()
+command -v blender >/dev/null 2>&1 || APT_PKGS+=(blender)
+command -v xvfb-run >/dev/null 2>&1 || APT_PKGS+=(xvfb xauth libgl1-mesa-dri)  # software OpenGL for the window
+if [ "${#APT_PKGS[@]}" -gt 0 ]; then
     if [ "${SKIP_APT:-0}" != "1" ] && command -v apt-get >/dev/null 2>&1; then
-        echo "[setup_blender] installing Debian blender"
+        echo "[setup_blender] installing Debian ${APT_PKGS[*]}"
         export DEBIAN_FRONTEND=noninteractive
         apt-get update -qq
-        apt-get install -y -qq --no-install-recommends blender >/dev/null
+        apt-get install -y -qq --no-install-recommends "${APT_PKGS[@]}" >/dev/null
     fi
+fi
+if ! command -v xvfb-run >/dev/null 2>&1; then
+    echo "[setup_blender] no xvfb-run; the real-window test will be skipped"
 fi
 if ! command -v blender >/dev/null 2>&1; then
     echo "[setup_blender] no blender binary; the real-Blender test will be skipped"

@@ -1,0 +1,85 @@
+"""Text that fits: labels wrapped to the width of the region they are drawn in.
+
+Blender's labels do not wrap; a long one is cut with an ellipsis in the middle ("Exact field
+colo…andard', dither 0"). These helpers measure with the interface font (``blf``) and split text into
+as many labels as it needs.
+"""
+from __future__ import annotations
+
+import bpy
+
+
+def wrap_text(text: str, max_width: float, measure) -> list[str]:
+    """Greedy word wrap of ``text`` into lines whose ``measure(line)`` (pixels) is <= ``max_width``.
+    A word wider than a line (a long path) is split after '/' or, failing that, between characters."""
+    lines: list[str] = []
+    for para in str(text).split("\n"):
+        line = ""
+        for word in para.split(" "):
+            cand = word if not line else line + " " + word
+            if measure(cand) <= max_width:
+                line = cand
+                continue
+            if line:
+                lines.append(line)
+                line = ""
+            while measure(word) > max_width and len(word) > 1:  # split a long word
+                cut = len(word) - 1
+                while cut > 1 and measure(word[:cut]) > max_width:
+                    cut -= 1
+                slash = word.rfind("/", 1, cut)
+                cut = slash + 1 if slash > 0 else cut
+                lines.append(word[:cut])
+                word = word[cut:]
+            line = word
+        lines.append(line)
+    return lines
+
+
+def ui_scale(context=None) -> float:
+    try:
+        scale = float((context or bpy.context).preferences.system.ui_scale)
+    except Exception:  # noqa: BLE001
+        scale = 0.0
+    return scale if scale > 0 else 1.0  # 0 in background mode (no window)
+
+
+def text_measure(context=None):
+    """``measure(text) -> pixels`` in the interface font, as the UI draws labels."""
+    scale = ui_scale(context)
+    try:
+        points = float((context or bpy.context).preferences.ui_styles[0].widget.points)
+    except Exception:  # noqa: BLE001
+        points = 11.0
+    try:
+        import blf
+
+        def measure(s, _px=points * scale):
+            if bpy.app.version >= (4, 0, 0):
+                blf.size(0, _px)
+            else:
+                blf.size(0, points, int(72 * scale))
+            return blf.dimensions(0, s)[0]
+
+        if measure("abc xyz") > 0:
+            return measure
+    except Exception:  # noqa: BLE001
+        pass
+    # no fonts (Blender in background mode measures every text as 0 wide): a fair average width
+    return lambda s: len(s) * 0.6 * points * scale
+
+
+def text_width(context) -> float:
+    """Pixels available for a label in the current region (margins and an icon taken off)."""
+    region = getattr(context, "region", None)
+    width = region.width if region is not None and region.width > 1 else 300
+    return max(40.0, width - 48 * ui_scale(context))
+
+
+def wrapped_label(layout, text: str, width: float, icon: str = "NONE", context=None):
+    """``text`` as as many labels as it needs to fit ``width`` pixels (the icon on the first line)."""
+    col = layout.column(align=True)
+    lines = wrap_text(text, width, text_measure(context)) or [""]
+    for i, line in enumerate(lines):
+        col.label(text=line, icon=icon if i == 0 else "BLANK1" if icon != "NONE" else "NONE")
+    return col

@@ -1,0 +1,41 @@
+"""Shared by the scripts that run inside a real `blender` (test_real_blender*.py drive them).
+
+    install_addon(zip_path) -> module name: installs the zip the way the running Blender takes it
+    (legacy add-on before 4.2, extension from 4.2 on), enables it and saves the user preferences, so
+    later `blender` processes with the same BLENDER_USER_* folders have it enabled.
+    facts(**kw): prints one line 'NEUMESH_FACTS {json}' that the test reads back.
+"""
+import json
+import os
+import sys
+
+import addon_utils
+import bpy
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def script_args():
+    return sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
+
+
+def install_addon(zip_path):
+    if bpy.app.version >= (4, 2, 0):
+        bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
+        module = "bl_ext.user_default.neumesh"
+    else:
+        bpy.ops.preferences.addon_install(filepath=zip_path, overwrite=True)
+        module = "neumesh"
+    addon_utils.enable(module, default_set=True)
+    bpy.ops.wm.save_userpref()
+    if HERE not in sys.path:
+        sys.path.insert(0, HERE)
+    return module
+
+
+def addon_module(module=None):
+    return sys.modules[module or ("bl_ext.user_default.neumesh" if bpy.app.version >= (4, 2, 0) else "neumesh")]
+
+
+def facts(**kw):
+    print("NEUMESH_FACTS " + json.dumps(kw, default=str), flush=True)
