@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from .data.cameras import Cameras, intrinsics_from_fov, opencv_to_opengl, opengl_to_opencv, pixel_rays
 from .data.scene import ImageSet, Scene
-from .errors import CheckpointError, DataError, NeuMeshError, VertexMismatchError, WeightsUnavailableError
+from .errors import (CheckpointError, DataError, NeuMeshError, NoSemanticsError, SelectionError, VertexMismatchError,
+                     WeightsUnavailableError)
 from .mesh import Mesh, load_mesh, save_mesh
 from .field.field import FieldConfig, NeuMeshField
 from .render.renderer import Cancelled, RenderOutput, RenderSettings, render_camera, render_rays
@@ -18,6 +19,7 @@ from .imageio import read_image, save_image
 from .data.loader import load_scene
 from .data.synthetic import default_scene_dir, make_default_scene
 from . import edit  # noqa: E402  (nm.edit: EditRecord, save_edited, ...)
+from . import semantics  # noqa: E402  (nm.semantics: distill_semantics, select_region, extractors)
 
 __version__ = "0.1.0"
 
@@ -29,7 +31,7 @@ def create_field(mesh: Mesh, config: FieldConfig | None = None, device="cpu") ->
 
 __all__ = [
     "Cameras", "Cancelled", "CheckpointError", "DataError", "FieldConfig", "ImageSet", "Mesh",
-    "NeuMeshError", "NeuMeshField", "RenderOutput", "RenderSettings", "Scene", "TrainConfig",
+    "NeuMeshError", "NeuMeshField", "NoSemanticsError", "SelectionError", "RenderOutput", "RenderSettings", "Scene", "TrainConfig",
     "TrainProgress", "TrainResult", "VertexMismatchError", "WeightsUnavailableError", "create_field",
     "default_scene_dir", "evaluate", "intrinsics_from_fov", "load_field", "load_mesh", "load_scene",
     "make_default_scene", "opencv_to_opengl", "opengl_to_opencv", "pixel_rays", "read_image",

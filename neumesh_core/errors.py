@@ -19,3 +19,11 @@ class CheckpointError(NeuMeshError):
 
 class WeightsUnavailableError(NeuMeshError):
     """Pretrained weights (LPIPS/DINO/...) are not present in the local cache."""
+
+
+class NoSemanticsError(NeuMeshError):
+    """A semantic operation (selection, semantic render) on a field without semantic codes."""
+
+
+class SelectionError(NeuMeshError):
+    """A click or point does not give a region (background, outside the image, nothing similar)."""
