@@ -1,4 +1,4 @@
-"""`neumesh` command line: train, render, eval, demo (+ scaffold, fit)."""
+"""`neumesh` command line: train, render, eval, demo (+ scaffold, fit, semantics)."""
 from __future__ import annotations
 
 import argparse
@@ -388,6 +388,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .scaffold.cli import add_commands, add_scaffold_options
 
     add_commands(sub)
+    from .semantics.cli import add_commands as add_semantics_commands
+
+    add_semantics_commands(sub)
     p = sub.add_parser("fit", help="images alone -> scaffold -> trained field -> evaluation (resumable)",
                        description="Build the scaffold (skipped when OUT/scaffold.ply exists), train the "
                                    "field (resumes OUT/field.neumesh), evaluate on 'val'. Progress per stage.")

@@ -226,6 +226,8 @@ def make_multipart_scene(out_dir: str, resolution: int = 96, n_train: int = 40, 
     K = np.array([[f, 0, resolution / 2], [0, f, resolution / 2], [0, 0, 1]], np.float64)
     gl_flip = np.diag([1.0, -1.0, -1.0, 1.0])
     for s_i, (split, centres) in enumerate(pos.items()):
+        if len(centres) == 0:
+            continue   # no file for an empty split (a loader would refuse it)
         os.makedirs(os.path.join(out_dir, split), exist_ok=True)
         frames = []
         for i, c in enumerate(centres):

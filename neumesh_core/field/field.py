@@ -24,7 +24,7 @@ takes the single-decoder code path (no per-sample grouping).
 wide) and a small semantic decoder (``sem_decoder``: sem_dim -> ``sem_features``), filled by
 distillation from 2D image features (:mod:`neumesh_core.semantics`).  As in NeuMesh++ the codes are
 interpolated first (the same normalised inverse-distance weights w_k as everything else) and decoded
-once per sample (:meth:`NeuMeshField.decode_semantics`); the renderer composites the decoded features
+once per sample (:meth:`NeuMeshField.decode_semantics`; an MLP with one hidden layer); the renderer composites the decoded features
 with the colour's compositing weights.  ``sem_dim = 0`` (the default) means no semantic branch: no
 decoder exists and nothing is decoded, so such a field renders and costs exactly as before.
 """
@@ -286,8 +286,8 @@ class NeuMeshField(nn.Module):
             return None
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(1)
+            # one hidden layer: the code is already a learned per-vertex embedding
             return nn.Sequential(nn.Linear(cfg.sem_dim, cfg.sem_hidden), nn.ReLU(inplace=True),
-                                 nn.Linear(cfg.sem_hidden, cfg.sem_hidden), nn.ReLU(inplace=True),
                                  nn.Linear(cfg.sem_hidden, cfg.sem_features))
 
     @property

@@ -117,7 +117,7 @@ class ColourTextureExtractor(FeatureExtractor):
         does not move it), and texture: local contrast over local mean (also shading-invariant) and the
         structure tensor's anisotropy (stripes vs dots vs flat).
         """
-        from scipy.ndimage import sobel
+        from scipy.ndimage import binary_erosion, sobel
         from skimage.color import rgb2lab
 
         cfg = self.config
@@ -128,6 +128,9 @@ class ColourTextureExtractor(FeatureExtractor):
         ab = lab[..., 1:] / 60.0
         chroma = (image[..., :2] / np.maximum(image.sum(-1, keepdims=True), 0.05) - 1.0 / 3.0) * 3.0
         gx, gy = sobel(L, 1), sobel(L, 0)
+        if fg is not None:   # gradients that reach into the background describe the silhouette, not texture
+            inner = binary_erosion(fg > 0, iterations=1)
+            gx, gy = gx * inner, gy * inner
         chans = []
         for frac in cfg.scales:
             s = float(frac) * min(h, w)
@@ -315,12 +318,16 @@ def load_dino_weights(model, path: str) -> None:
         if k.startswith(("pooler.", "classifier.", "head.")):
             continue
         clean[k] = v
-    missing, unexpected = model.load_state_dict(clean, strict=False)
-    if missing or unexpected:
+    own = model.state_dict()
+    missing = [k for k in own if k not in clean]
+    unexpected = [k for k in clean if k not in own]
+    wrong = [k for k in own if k in clean and tuple(clean[k].shape) != tuple(own[k].shape)]
+    if missing or unexpected or wrong:
         raise WeightsUnavailableError(
-            f"{path} does not fit this architecture ({len(missing)} missing, {len(unexpected)} unexpected "
-            f"entries, e.g. {(list(missing) + list(unexpected))[:3]}); is it the model.safetensors of the "
-            "matching Hugging Face DINO repository?")
+            f"{path} does not fit this architecture ({len(missing)} missing, {len(unexpected)} unexpected, "
+            f"{len(wrong)} misshapen entries, e.g. {(wrong + missing + unexpected)[:3]}); is it the "
+            "model.safetensors of the matching Hugging Face DINO repository?")
+    model.load_state_dict(clean, strict=True)
 
 
 class DinoExtractor(FeatureExtractor):
