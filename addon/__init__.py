@@ -26,9 +26,9 @@ try:
 except Exception as _exc:  # noqa: BLE001
     print(f"NeuMesh: dependency folder unavailable: {_exc}")
 
-from . import edits, engine, operators, prefs, props, ui  # noqa: E402
+from . import edits, engine, operators, prefs, props, semantics, ui  # noqa: E402
 
-_modules = (prefs, props, operators, engine, ui, edits)
+_modules = (prefs, props, operators, engine, ui, edits, semantics)   # semantics: a child panel of edits
 
 
 def register():

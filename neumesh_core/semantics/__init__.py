@@ -6,7 +6,7 @@
 * :mod:`.select` - :func:`select_region`: click -> surface seeds -> DBSCAN -> region growing over the
   mesh -> vertex indices.
 """
-from .distill import DistillConfig, DistillProgress, DistillResult, distill_semantics
+from .distill import DistillConfig, DistillProgress, DistillResult, distill_semantics, semantics_record
 from .select import SelectConfig, Selection, SelectionContext, select_at_point, select_region
 from .segment import FeatureSegmenter, SamSegmenter, make_segmenter
 from .extractors import (EXTRACTORS, ColourTextureConfig, ColourTextureExtractor, DinoExtractor, FeatureExtractor,
@@ -15,4 +15,4 @@ from .extractors import (EXTRACTORS, ColourTextureConfig, ColourTextureExtractor
 __all__ = ["EXTRACTORS", "ColourTextureConfig", "ColourTextureExtractor", "DinoExtractor", "DistillConfig",
            "DistillProgress", "DistillResult", "FeatureExtractor", "FeatureSegmenter", "SamSegmenter",
            "SelectConfig", "Selection", "SelectionContext", "distill_semantics", "find_dino_weights",
-           "make_extractor", "make_segmenter", "select_at_point", "select_region"]
+           "make_extractor", "make_segmenter", "select_at_point", "select_region", "semantics_record"]

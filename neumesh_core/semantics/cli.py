@@ -55,7 +55,7 @@ def cmd_semantics(args) -> int:
     import neumesh_core as nm
     from neumesh_core.edit import save_edited
 
-    from .distill import DistillConfig, distill_semantics
+    from .distill import DistillConfig, distill_semantics, semantics_record
     from .extractors import make_extractor
 
     try:
@@ -87,17 +87,3 @@ def cmd_semantics(args) -> int:
           f"rays {res.timings.get('rays_s', 0):.1f}s, training {res.timings.get('train_s', 0):.1f}s, "
           f"total {time.perf_counter() - t0:.1f}s; wrote {out}")
     return 0
-
-
-def semantics_record(field, result):
-    """The edit record of a distillation (every vertex's semantic code changed) for ``save_edited``:
-    the file's header then says how the codes were made; undo is stepping back to the parent file."""
-    import numpy as np
-
-    from neumesh_core.edit import EditRecord
-
-    n = field.num_decoders
-    info = {"extractor": field.semantics_info.get("extractor", {}).get("name"), "steps": result.steps_done,
-            "loss": result.final_loss, "seconds": round(result.seconds, 1)}
-    return EditRecord(op="semantics", vertices=np.arange(field.num_vertices), old={}, new={},
-                      decoders_before=n, decoders_after=n, info=info)

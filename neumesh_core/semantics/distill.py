@@ -322,3 +322,17 @@ def distill_semantics(field, data: Union[Scene, ImageSet], extractor: Optional[F
         "seconds": round(seconds, 2), "cancelled": cancelled}
     return DistillResult(step, loss_v, seconds, cancelled, bank.num_rays, int(bank.weight.shape[0]), n_feat,
                          timings, history)
+
+
+def semantics_record(field, result: DistillResult):
+    """The edit record of a distillation, for :func:`neumesh_core.edit.save_edited`: every vertex's
+    semantic code changed, and the record's info (the file header's history) says how.  The semantic
+    branch is new structure, not rows, so it is undone by going back to the parent file (the add-on's
+    "Undo edit"), not by :meth:`EditRecord.undo`, which leaves it in place."""
+    from ..edit import EditRecord
+
+    n = field.num_decoders
+    info = {"extractor": field.semantics_info.get("extractor", {}).get("name"), "steps": result.steps_done,
+            "loss": result.final_loss, "seconds": round(result.seconds, 1)}
+    return EditRecord(op="semantics", vertices=np.arange(field.num_vertices), old={}, new={},
+                      decoders_before=n, decoders_after=n, info=info)
