@@ -2,6 +2,7 @@
 # One command to set everything up on a fresh machine (Debian, Python 3.11, root or sudo for apt):
 #   * .venv with torch==2.13.0 (the local CPU wheel; pinned FIRST so nothing pulls CUDA builds),
 #     neumesh (editable) + test deps + bpy==5.0.1 (Blender 5.0 as a Python module, for blender_tests)
+#     + transformers (the DINO extractor's architecture; its tests use random weights)
 #   * Debian's `blender` binary (3.4) and a torch folder for its Python (scripts/setup_blender.sh)
 # Idempotent: re-running only installs what is missing.
 set -euo pipefail
@@ -13,6 +14,6 @@ if [ ! -x .venv/bin/python ]; then
 fi
 VPIP=".venv/bin/python -m pip --disable-pip-version-check -q"
 $VPIP install "torch==2.13.0"
-$VPIP install "numpy<2" -e ".[test,blender]"
+$VPIP install "numpy<2" -e ".[test,blender,dino]"
 bash scripts/setup_blender.sh
 .venv/bin/python -c "import torch, neumesh_core, bpy; print('setup ok: torch', torch.__version__, '| bpy', bpy.app.version_string)"

@@ -1,14 +1,15 @@
 """neumesh_core: NeuMesh++ neural radiance fields on mesh scaffolds (torch; no bpy).
 
 Public API (see README.md): load_scene, load_mesh, create_field, train, save_field, load_field,
-render_camera, evaluate, save_image, make_default_scene; edits: swap_texture, fill_texture, paint_texture (nm.edit).
+render_camera, evaluate, save_image, make_default_scene; edits: swap_texture, fill_texture,
+paint_texture (nm.edit); semantics: nm.semantics.
 """
 from __future__ import annotations
 
 from .data.cameras import Cameras, intrinsics_from_fov, opencv_to_opengl, opengl_to_opencv, pixel_rays
 from .data.scene import ImageSet, Scene
-from .errors import (CheckpointError, DataError, EditError, NeuMeshError, VertexMismatchError,
-                     WeightsUnavailableError)
+from .errors import (CheckpointError, DataError, EditError, NeuMeshError, NoSemanticsError, SelectionError,
+                     VertexMismatchError, WeightsUnavailableError)
 from .mesh import Mesh, load_mesh, save_mesh
 from .field.field import FieldConfig, NeuMeshField
 from .render.renderer import Cancelled, RenderOutput, RenderSettings, render_camera, render_rays
@@ -20,6 +21,7 @@ from .data.loader import load_scene
 from .data.synthetic import default_scene_dir, make_default_scene
 from . import edit  # noqa: E402  (nm.edit: EditRecord, save_edited, ...)
 from .edit import CornerUVs, fill_texture, paint_layer, paint_texture, swap_texture  # noqa: E402
+from . import semantics  # noqa: E402  (nm.semantics: distill_semantics, select_region, extractors)
 
 __version__ = "0.1.0"
 
@@ -30,10 +32,11 @@ def create_field(mesh: Mesh, config: FieldConfig | None = None, device="cpu") ->
 
 
 __all__ = [
-    "Cameras", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "EditError", "FieldConfig", "ImageSet", "Mesh",
-    "NeuMeshError", "NeuMeshField", "RenderOutput", "RenderSettings", "Scene", "TrainConfig",
-    "TrainProgress", "TrainResult", "VertexMismatchError", "WeightsUnavailableError", "create_field",
-    "default_scene_dir", "evaluate", "fill_texture", "intrinsics_from_fov", "load_field", "load_mesh", "load_scene",
-    "make_default_scene", "opencv_to_opengl", "opengl_to_opencv", "paint_layer", "paint_texture", "pixel_rays", "read_image",
-    "render_camera", "render_rays", "save_field", "save_image", "save_mesh", "swap_texture", "train",
+    "Cameras", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "EditError", "FieldConfig", "ImageSet",
+    "Mesh", "NeuMeshError", "NeuMeshField", "NoSemanticsError", "RenderOutput", "RenderSettings", "Scene",
+    "SelectionError", "TrainConfig", "TrainProgress", "TrainResult", "VertexMismatchError",
+    "WeightsUnavailableError", "create_field", "default_scene_dir", "evaluate", "fill_texture",
+    "intrinsics_from_fov", "load_field", "load_mesh", "load_scene", "make_default_scene", "opencv_to_opengl",
+    "opengl_to_opencv", "paint_layer", "paint_texture", "pixel_rays", "read_image", "render_camera", "render_rays",
+    "save_field", "save_image", "save_mesh", "swap_texture", "train",
 ]

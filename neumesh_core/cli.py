@@ -1,4 +1,4 @@
-"""`neumesh` command line: train, render, eval, demo (+ scaffold, fit, edit)."""
+"""`neumesh` command line: train, render, eval, demo (+ scaffold, fit, edit, semantics)."""
 from __future__ import annotations
 
 import argparse
@@ -390,6 +390,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_commands(sub)
     add_edit_commands(sub)
+
+    from .semantics.cli import add_commands as add_semantics_commands
+
+    add_semantics_commands(sub)
     p = sub.add_parser("fit", help="images alone -> scaffold -> trained field -> evaluation (resumable)",
                        description="Build the scaffold (skipped when OUT/scaffold.ply exists), train the "
                                    "field (resumes OUT/field.neumesh), evaluate on 'val'. Progress per stage.")

@@ -24,3 +24,11 @@ class WeightsUnavailableError(NeuMeshError):
 class EditError(NeuMeshError, ValueError):
     """An edit cannot run with the given input (empty region, missing UVs, incompatible fields...).
     Nothing was changed."""
+
+
+class NoSemanticsError(NeuMeshError):
+    """A semantic operation (selection, semantic render) on a field without semantic codes."""
+
+
+class SelectionError(NeuMeshError):
+    """A click or point does not give a region (background, outside the image, nothing similar)."""

@@ -27,6 +27,14 @@ rotated region, a fill from a template) stores, for each vertex it writes, the r
 vertex's rest frame into the frame of the code's origin (``tex_frame``, (N,3,3)); normals and view
 directions are rotated by it before they reach the decoder (post: per neighbour; early: per neighbour,
 then w-weighted means).  A field without texture frames (every trained field) skips this entirely.
+
+**Semantics.** A field may carry a semantic code per vertex (``sem_codes``, ``FieldConfig.sem_dim``
+wide) and a small semantic decoder (``sem_decoder``: sem_dim -> ``sem_features``), filled by
+distillation from 2D image features (:mod:`neumesh_core.semantics`).  As in NeuMesh++ the codes are
+interpolated first (the same normalised inverse-distance weights w_k as everything else) and decoded
+once per sample (:meth:`NeuMeshField.decode_semantics`; an MLP with one hidden layer); the renderer composites the decoded features
+with the colour's compositing weights.  ``sem_dim = 0`` (the default) means no semantic branch: no
+decoder exists and nothing is decoded, so such a field renders and costs exactly as before.
 """
 from __future__ import annotations
 
@@ -51,7 +59,9 @@ class FieldConfig:
 
     geo_dim: int = 6            # geometry code per vertex
     tex_dim: int = 15           # texture code per vertex
-    sem_dim: int = 0            # semantic code slot (filled by semantic distillation; 0 = unused)
+    sem_dim: int = 0            # semantic code per vertex (filled by semantic distillation; 0 = none)
+    sem_features: int = 0       # width of the decoded semantic feature (0 = no semantic decoder)
+    sem_hidden: int = 64        # semantic decoder width
     k: int = 4                  # neighbours per sample
     radius: float = 0.0         # neighbour search radius; 0 = auto (radius_scale x mean edge length)
     radius_scale: float = 2.5
@@ -72,6 +82,15 @@ class FieldConfig:
             raise ValueError(f"interpolation must be 'post' or 'early', not {self.interpolation!r}")
         if self.k < 1 or self.hidden < 1:
             raise ValueError("k and hidden must be positive")
+        if self.sem_dim < 0 or self.sem_features < 0 or self.sem_hidden < 1:
+            raise ValueError("sem_dim and sem_features must be >= 0 and sem_hidden positive")
+        if (self.sem_dim > 0) != (self.sem_features > 0):
+            raise ValueError(f"a semantic branch needs both sem_dim and sem_features (got {self.sem_dim} "
+                             f"and {self.sem_features}); set both to 0 for a field without semantics")
+
+    @property
+    def has_semantics(self) -> bool:
+        return self.sem_dim > 0
 
     @classmethod
     def from_dict(cls, d: dict) -> "FieldConfig":
@@ -131,7 +150,10 @@ class NeuMeshField(nn.Module):
         self.geo_codes = nn.Parameter(torch.randn(n, cfg.geo_dim, generator=g) * cfg.code_init_std)
         self.tex_codes = nn.Parameter(torch.randn(n, cfg.tex_dim, generator=g) * cfg.code_init_std)
         self.mod_colors = nn.Parameter(torch.zeros(n, 3))
-        self.sem_codes = nn.Parameter(torch.zeros(n, cfg.sem_dim), requires_grad=False)
+        self.sem_codes = nn.Parameter(torch.randn(n, cfg.sem_dim, generator=g) * cfg.code_init_std,
+                                      requires_grad=False)   # trained by semantics.distill only
+        # what made the semantic codes (extractor, feature width, ...): saved in the field file's header
+        self.semantics_info: dict = {}
         # True while training: code lookups give row-sparse gradients (see :meth:`rows`)
         self.sparse_grads = False
         # training-time coarse code levels added to geo/tex codes (field.pyramid.CodePyramid); not a
@@ -145,6 +167,7 @@ class NeuMeshField(nn.Module):
             self.geo_decoder = _mlp(cfg.geo_dim + pe + 1, cfg.hidden, 1)
             rad = _mlp(cfg.tex_dim + pe + 1 + cfg.sh_degree ** 2 + 3, cfg.hidden, 3)
         self.rad_decoders = nn.ModuleList([rad] + [copy.deepcopy(rad) for _ in range(num_decoders - 1)])
+        self.sem_decoder = self._new_sem_decoder(cfg)
         # which radiance decoder each vertex's texture code belongs to (all 0 in a trained field)
         self.register_buffer("decoder_id", torch.zeros(n, dtype=torch.int16))
         # per-vertex rotation from the vertex's rest frame into the frame its texture code was trained
@@ -300,6 +323,59 @@ class NeuMeshField(nn.Module):
                 out = y.new_zeros(rad_in.shape[0], y.shape[1])
             out = out.index_copy(0, rows, y)
         return out if out is not None else rad_in.new_zeros(0, 3)
+
+    # ------------------------------------------------------------------ semantics
+    @staticmethod
+    def _new_sem_decoder(cfg: FieldConfig) -> Optional[nn.Module]:
+        if not cfg.has_semantics:
+            return None
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(1)
+            # one hidden layer: the code is already a learned per-vertex embedding
+            return nn.Sequential(nn.Linear(cfg.sem_dim, cfg.sem_hidden), nn.ReLU(inplace=True),
+                                 nn.Linear(cfg.sem_hidden, cfg.sem_features))
+
+    @property
+    def has_semantics(self) -> bool:
+        return self.sem_decoder is not None
+
+    def enable_semantics(self, sem_dim: int, sem_features: int, hidden: int = 64, seed: int = 0) -> None:
+        """(Re)create the semantic branch: fresh per-vertex codes (``sem_dim`` wide, small random values)
+        and a fresh decoder to ``sem_features`` channels.  Nothing else in the field changes."""
+        cfg = FieldConfig.from_dict({**asdict(self.config), "sem_dim": int(sem_dim),
+                                     "sem_features": int(sem_features), "sem_hidden": int(hidden)})
+        if not cfg.has_semantics:
+            raise ValueError("enable_semantics needs sem_dim > 0 and sem_features > 0")
+        dev = self.geo_codes.device
+        g = torch.Generator().manual_seed(seed)
+        codes = torch.randn(self.num_vertices, cfg.sem_dim, generator=g) * cfg.code_init_std
+        self.config = cfg
+        self.sem_codes = nn.Parameter(codes.to(dev), requires_grad=False)
+        self.sem_decoder = self._new_sem_decoder(cfg).to(dev)
+        self.semantics_info = {}
+
+    def _require_semantics(self) -> None:
+        if not self.has_semantics:
+            from ..errors import NoSemanticsError
+
+            raise NoSemanticsError(
+                "this field has no semantic codes; distil them first: `neumesh semantics --field F "
+                "--data DIR` (or 'Distil semantics' in Blender's NeuMesh > Edit panel)")
+
+    def decode_semantics(self, nb: Neighbourhood) -> torch.Tensor:
+        """Semantic features (M, sem_features) of samples: codes interpolated with the neighbours'
+        weights w_k, then decoded once (NeuMesh++'s early interpolation for semantics)."""
+        self._require_semantics()
+        code = (self.rows(self.sem_codes, nb.idx) * nb.w[..., None]).sum(1)
+        return self.sem_decoder(code)
+
+    def vertex_semantics(self, vertices: Optional[torch.Tensor] = None, chunk: int = 65536) -> torch.Tensor:
+        """Decoded semantic feature of each vertex's own code, (N or len(vertices), sem_features)."""
+        self._require_semantics()
+        codes = self.sem_codes if vertices is None else self.sem_codes[vertices]
+        with torch.no_grad():
+            return torch.cat([self.sem_decoder(codes[s:s + chunk]) for s in range(0, len(codes), chunk)]) \
+                if len(codes) else codes.new_zeros(0, self.config.sem_features)
 
     # ------------------------------------------------------------------ queries
     def rows(self, table: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:

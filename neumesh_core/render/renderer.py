@@ -48,19 +48,24 @@ def _as_list(fields):
 
 def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=None,
                 settings: Optional[RenderSettings] = None, train: bool = False,
-                jitter: Optional[torch.Tensor] = None, vertex_ids: bool = False) -> dict:
+                jitter: Optional[torch.Tensor] = None, vertex_ids: bool = False,
+                semantics: bool = False) -> dict:
     """Render rays (R,3) through one field or a list of fields (composited jointly, sorted by depth).
 
     Returns tensors: rgb (R,3), opacity (R,), depth (R,) (expected distance, normalised by opacity;
     inf where empty), mod_rgb (R,3), n_samples (int).  With ``train`` the decoders run with autograd;
     otherwise colours are decoded only for samples that survive marching.  With ``vertex_ids`` the
     output also lists, per field, the sorted unique scaffold vertices the samples looked up (for
-    regularisers over the touched vertices; off by default, it costs a sort per call).
+    regularisers over the touched vertices; off by default, it costs a sort per call).  With
+    ``semantics`` the output also holds ``sem`` (R,C): the fields' decoded semantic features composited
+    with the colour's weights (every field must have a semantic branch of the same width); colour,
+    opacity and depth are computed exactly as without it.
     ``background``: None (black / premultiplied), an (3,) colour, or (R,3) per-ray colours.
     """
     settings = settings or RenderSettings()
     fl = _as_list(fields)
     n = origins.shape[0]
+    sem_width = _semantic_width(fl) if semantics else 0
     parts = []
     touched = []
     for f in fl:
@@ -79,25 +84,37 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
             with torch.no_grad():
                 _, rgb, mod = f.decode(s.aux, d, with_rgb=True, with_sigma=False)
             sigma = s.sigmas
-        parts.append((s.ray_indices, s.t_starts, s.t_ends, sigma, rgb, mod))
+        part = (s.ray_indices, s.t_starts, s.t_ends, sigma, rgb, mod)
+        if semantics:
+            with torch.set_grad_enabled(train and torch.is_grad_enabled()):
+                part = part + (f.decode_semantics(s.aux),)
+        parts.append(part)
     if not parts:
         z = torch.zeros(n, device=origins.device)
         rgb = torch.zeros(n, 3, device=origins.device)
         out = {"rgb": rgb, "opacity": z, "depth": torch.full_like(z, float("inf")),
                "mod_rgb": rgb.clone(), "n_samples": 0}
+        if semantics:
+            out["sem"] = torch.zeros(n, sem_width, device=origins.device)
     else:
         if len(parts) == 1:
-            ri, ts, te, sig, rgb, mod = parts[0]
+            cols = parts[0]
         else:
-            ri, ts, te, sig, rgb, mod = (torch.cat(x) for x in zip(*parts))
-            order = torch.argsort(ts)
-            order = order[torch.sort(ri[order], stable=True).indices]
-            ri, ts, te, sig, rgb, mod = ri[order], ts[order], te[order], sig[order], rgb[order], mod[order]
-        c = composite(ri, ts, te, sig, {"rgb": rgb, "mod_rgb": mod}, n)
+            cols = [torch.cat(x) for x in zip(*parts)]
+            order = torch.argsort(cols[1])
+            order = order[torch.sort(cols[0][order], stable=True).indices]
+            cols = [x[order] for x in cols]
+        ri, ts, te, sig, rgb, mod = cols[:6]
+        values = {"rgb": rgb, "mod_rgb": mod}
+        if semantics:
+            values["sem"] = cols[6]
+        c = composite(ri, ts, te, sig, values, n)
         depth = torch.where(c["opacity"] > 1e-6, c["depth"] / c["opacity"].clamp_min(1e-6),
                             torch.full_like(c["depth"], float("inf")))
         out = {"rgb": c["rgb"], "opacity": c["opacity"], "depth": depth, "mod_rgb": c["mod_rgb"],
                "n_samples": int(ri.shape[0])}
+        if semantics:
+            out["sem"] = c["sem"]
     if vertex_ids:
         out["vertex_ids"] = touched
     if background is not None:
@@ -156,6 +173,19 @@ def mod_colour_weights(fields, origins: torch.Tensor, dirs: torch.Tensor,
     return out
 
 
+def _semantic_width(fields) -> int:
+    for f in fields:
+        if not getattr(f, "has_semantics", False):
+            f._require_semantics()
+    widths = {int(f.config.sem_features) for f in fields}
+    if len(widths) != 1:
+        from ..errors import NeuMeshError
+
+        raise NeuMeshError(f"the fields' semantic features differ in width ({sorted(widths)}); render "
+                           "their semantics one field at a time")
+    return widths.pop()
+
+
 @dataclass
 class RenderOutput:
     """One rendered camera: numpy float32 arrays."""
@@ -166,6 +196,7 @@ class RenderOutput:
     mod_rgb: np.ndarray   # (H,W,3) rendered modification colour
     n_samples: int = 0
     seconds: float = 0.0
+    sem: Optional[np.ndarray] = None   # (H,W,C) composited semantic features (render_camera(semantics=True))
 
     def rgba(self, background=None) -> np.ndarray:
         """(H,W,4) straight-alpha RGBA. ``background``: the colour the rgb was composited on."""
@@ -179,13 +210,15 @@ class RenderOutput:
 
 def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0, 1.0),
                   settings: Optional[RenderSettings] = None,
-                  progress: Optional[Callable[[float], Optional[bool]]] = None) -> RenderOutput:
+                  progress: Optional[Callable[[float], Optional[bool]]] = None,
+                  semantics: bool = False) -> RenderOutput:
     """Render one pinhole camera (K (3,3) pixels, c2w (4,4) OpenCV) from a field or list of fields.
 
     ``settings.supersample`` S > 1 averages S x S rays per pixel (S^2 times the work): anti-aliasing
     that matches photographs' area-averaged pixels.
     ``background`` None leaves rgb premultiplied (black).  ``progress(fraction)`` returning False
-    cancels with :class:`Cancelled`.
+    cancels with :class:`Cancelled`.  ``semantics``: also composite the fields' semantic features
+    (``RenderOutput.sem``, premultiplied by opacity like ``mod_rgb``).
     """
     import time
 
@@ -204,6 +237,7 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     opac = torch.zeros(n)
     depth_w = torch.zeros(n)   # opacity-weighted depth, normalised at the end
     mod = torch.zeros(n, 3)
+    sem = torch.zeros(n, _semantic_width(fl)) if semantics else None
     n_samples = 0
     total = len(offsets) * n
     with torch.no_grad():
@@ -211,7 +245,8 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
             origins, dirs = pixel_rays(K, c2w, width, height, device=device, offset=off)
             for s in range(0, n, settings.chunk_rays):
                 e = min(n, s + settings.chunk_rays)
-                out = render_rays(fl, origins[s:e], dirs[s:e], background, settings, train=False)
+                out = render_rays(fl, origins[s:e], dirs[s:e], background, settings, train=False,
+                                  semantics=semantics)
                 op = out["opacity"].cpu()
                 rgb[s:e] += out["rgb"].cpu()
                 opac[s:e] += op
@@ -220,6 +255,8 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
                 else:
                     depth_w[s:e] += torch.where(op > 1e-6, out["depth"].cpu() * op, torch.zeros_like(op))
                 mod[s:e] += out["mod_rgb"].cpu()
+                if sem is not None:
+                    sem[s:e] += out["sem"].cpu()
                 n_samples += out["n_samples"]
                 if progress is not None and progress((k * n + e) / total) is False:
                     raise Cancelled("rendering cancelled")
@@ -230,4 +267,5 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     inv = 1.0 / len(offsets)
     return RenderOutput((rgb * inv).view(height, width, 3).numpy(), (opac * inv).view(height, width).numpy(),
                         depth.view(height, width).numpy(), (mod * inv).view(height, width, 3).numpy(),
-                        n_samples, time.perf_counter() - t0)
+                        n_samples, time.perf_counter() - t0,
+                        None if sem is None else (sem * inv).view(height, width, -1).numpy())

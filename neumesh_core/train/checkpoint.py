@@ -9,6 +9,10 @@ Versions: 1 (one radiance decoder ``rad_decoder``; scaffold buffers at the top l
 decoders ``rad_decoders.<i>`` with a per-vertex ``decoder_id``, and ``tex_frame`` (N,3,3) when a
 texture edit rotated the frames of the codes it brought; scaffold buffers under ``scaffold.``).
 Version-1 files load as single-decoder fields with every vertex bound to decoder 0.
+
+Semantics (optional in both versions): ``field_config.sem_dim``/``sem_features`` > 0 means the file
+holds ``param/sem_codes`` (N, sem_dim) and ``param/sem_decoder.*``; the header's ``semantics`` entry
+says how they were distilled.  A file without them loads as a field without semantics.
 """
 from __future__ import annotations
 
@@ -120,6 +124,8 @@ def save_field(field, path: str, optimizer: Optional[torch.optim.Optimizer] = No
             "num_decoders": field.num_decoders}
     if edit:
         meta["edit"] = edit
+    if getattr(field, "has_semantics", False) and getattr(field, "semantics_info", None):
+        meta["semantics"] = field.semantics_info
     _atomic_write(path, lambda tmp: save_file(tensors, tmp, metadata={"neumesh": json.dumps(meta)}))
 
 
@@ -192,6 +198,8 @@ def load_field(path: str, device="cpu"):
         field = NeuMeshField(mesh, cfg, num_decoders=_num_decoders(t))
         with torch.no_grad():
             for name, p in field.named_parameters():
+                if name == "sem_codes" and p.shape[1] == 0 and "param/sem_codes" not in t:
+                    continue   # no semantic slot stored: nothing to load
                 src = t[f"param/{name}"]
                 if p.shape != src.shape:
                     raise CheckpointError(f"{path}: parameter {name} has shape {tuple(src.shape)}, "
@@ -221,6 +229,8 @@ def load_field(path: str, device="cpu"):
     except KeyError as exc:
         raise CheckpointError(f"{path}: missing entry {exc}; the file is incomplete") from exc
     field._checkpoint_meta = meta
+    if field.has_semantics:
+        field.semantics_info = dict(meta.get("semantics") or {})
     field._checkpoint_optim = {k[6:]: v for k, v in t.items() if k.startswith("optim/")}
     return field.to(device)
 

@@ -1,0 +1,243 @@
+#!/usr/bin/env python3
+"""Semantic distillation and one-click selection: timings, pictures, and IoU where labels exist.
+
+1. Distillation of a trained field with the weight-free extractor ("colour-texture", or --extractor):
+   time per stage (2D features, marching the ray bank, training).
+2. Selection from one click per --click NAME:VIEW:X:Y (VIEW indexes --split; X, Y pixels from the
+   top-left): seconds from the click to the vertex indices, the first click with the selection context
+   built (vertex features + neighbour graph: what the add-on's first click pays), later clicks with it
+   cached (the add-on keeps it), and the redo slider (another threshold, cached context).
+   With --blender the same clicks also go through the add-on's Select by click operator in bpy (click
+   to vertex group and edit-mode selection).
+3. A picture per click: the view as the field renders it with the click marked, and the selection
+   tinted orange (--pictures PNG, one row per click).
+4. On the built-in multi-part scene (the data folder holds part_labels.npy) the clicks are chosen from
+   the ground truth when none are given, and the IoU per part is reported.
+
+    nice -n 10 .venv/bin/python benchmarks/bench_semantics.py --field F --data DIR \\
+        [--click bucket:0:120:200 ...] [--pictures docs/semantics_lego.png] [--save F_sem.neumesh]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+
+
+def parse_click(s: str):
+    try:
+        name, view, x, y = s.split(":")
+        return name, int(view), (float(x), float(y))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--click wants NAME:VIEW:X:Y, got {s!r}") from exc
+
+
+def label_clicks(data: str, split: str):
+    """One click per part of the multi-part scene: the pixel deepest inside the part, over the views."""
+    from scipy.ndimage import distance_transform_edt
+
+    import neumesh_core as nm
+    from neumesh_core.data import multipart as mp
+
+    cams = nm.load_scene(data).split(split).cameras
+    best = {}
+    for i in range(len(cams)):
+        lab = mp.label_image(cams.K[i], cams.c2w[i], cams.width, cams.height)
+        for p, name in enumerate(mp.PART_NAMES):
+            dt = distance_transform_edt(lab == p)
+            if name not in best or dt.max() > best[name][0]:
+                y, x = np.unravel_index(dt.argmax(), dt.shape)
+                best[name] = (dt.max(), i, (x + 0.5, y + 0.5), p)
+    return [(name, i, xy, p) for name, (_, i, xy, p) in best.items()]
+
+
+def tinted_render(field, K, c2w, w, h, vertices, tint=(1.0, 0.55, 0.0), amount=0.7, dim=0.35):
+    """The field's render with the selected vertices' modification colours pulled towards ``tint`` and
+    every other vertex darkened by ``dim`` (a temporary change, undone before returning)."""
+    import torch
+
+    import neumesh_core as nm
+
+    idx = torch.as_tensor(np.asarray(vertices, np.int64))
+    old = field.mod_colors.detach().clone()
+    try:
+        with torch.no_grad():
+            field.mod_colors.sub_(dim)
+            field.mod_colors[idx] = old[idx] + amount * (torch.tensor(tint) - 0.5)
+        return nm.render_camera(field, K, c2w, w, h, background=(1, 1, 1)).rgb
+    finally:
+        with torch.no_grad():
+            field.mod_colors.copy_(old)
+
+
+def _mark(img, xy, r=4):
+    out = img.copy()
+    h, w = img.shape[:2]
+    x, y = int(xy[0]), int(xy[1])
+    for dx in range(-r, r + 1):
+        for px, py in ((x + dx, y), (x, y + dx)):
+            if 0 <= px < w and 0 <= py < h:
+                out[py, px] = (1.0, 0.0, 1.0)
+    return out
+
+
+def blender_clicks(field_path: str, cams, clicks, threshold: float):
+    """Seconds per click through the add-on operator (bpy), first and later clicks."""
+    import tempfile
+
+    base = tempfile.mkdtemp(prefix="neumesh_bench_sem_")
+    for v, s in (("BLENDER_USER_RESOURCES", "user"), ("XDG_CACHE_HOME", "cache"), ("TMPDIR", "tmp")):
+        os.makedirs(os.path.join(base, s), exist_ok=True)
+        os.environ[v] = os.path.join(base, s)
+    tempfile.tempdir = os.environ["TMPDIR"]
+    import bpy
+    import addon_utils
+
+    import build_addon
+
+    zip_path = build_addon.build(os.path.join(base, "neumesh.zip"))
+    bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
+    addon_utils.enable("bl_ext.user_default.neumesh", default_set=True)
+    addon = sys.modules["bl_ext.user_default.neumesh"]
+    assert bpy.ops.neumesh.load_field(filepath=field_path, new_object=True) == {"FINISHED"}
+    scene = bpy.context.scene
+    out = []
+    for name, view, xy, *_ in clicks:
+        K = cams.K[view]
+        c2w = cams.c2w[view]
+        flat_view = np.linalg.inv(c2w @ np.diag([1.0, -1.0, -1.0, 1.0])).reshape(-1).tolist()
+        # an OpenGL projection with Blender's conventions for K (k_from_projection inverted)
+        w, h = cams.width, cams.height
+        P = np.zeros((4, 4))
+        P[0, 0], P[0, 2] = 2 * K[0, 0] / w, 1 - 2 * K[0, 2] / w
+        P[1, 1], P[1, 2] = 2 * K[1, 1] / h, 2 * K[1, 2] / h - 1
+        P[2, 2], P[2, 3], P[3, 2] = -1.0, -0.02, -1.0
+        t = time.perf_counter()
+        res = bpy.ops.neumesh.select_by_click(view_matrix=flat_view, window_matrix=P.reshape(-1).tolist(),
+                                              view_size=(w, h), pixel=xy, group_name=name, threshold=threshold)
+        dt = time.perf_counter() - t
+        obj = bpy.context.active_object
+        n = sum(1 for v in obj.data.vertices if v.select)
+        out.append({"name": name, "seconds": dt, "result": sorted(res), "vertices_selected": n})
+        print(f"  blender click {name}: {dt:.2f}s, {n} vertices selected")
+    del scene, addon
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--field", required=True, help="trained field (.neumesh); with --skip-distil, one with semantics")
+    ap.add_argument("--data", required=True, help="its dataset")
+    ap.add_argument("--split", default="val", help="split whose cameras the clicks index (default val)")
+    ap.add_argument("--click", action="append", type=parse_click, default=[], metavar="NAME:VIEW:X:Y")
+    ap.add_argument("--extractor", default=None, help="2D features (default colour-texture)")
+    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--rays-per-view", type=int, default=4096)
+    ap.add_argument("--threshold", type=float, default=0.75, help="selection similarity (default 0.75)")
+    ap.add_argument("--skip-distil", action="store_true", help="use the field's own semantic codes")
+    ap.add_argument("--save", help="write the distilled field here (reuse it with --skip-distil)")
+    ap.add_argument("--pictures", help="PNG with one row per click (view | selection)")
+    ap.add_argument("--picture-size", type=int, default=256, help="tile size in the picture (default 256)")
+    ap.add_argument("--blender", action="store_true", help="also time the clicks through the add-on in bpy")
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--name", default=None, help="results file name (default semantics_<field stem>.json)")
+    args = ap.parse_args(argv)
+
+    import torch
+
+    import neumesh_core as nm
+    from _results import write_results
+    from neumesh_core.semantics import (DistillConfig, SelectConfig, SelectionContext, distill_semantics,
+                                        make_extractor, select_region)
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    field = nm.load_field(args.field)
+    scene = nm.load_scene(args.data)
+    result = {"field": args.field, "data": args.data, "vertices": field.num_vertices,
+              "machine": {"cpus": os.cpu_count(), "threads": torch.get_num_threads(), "platform": platform.platform()}}
+    print(f"field {args.field}: {field.num_vertices} vertices")
+    if not args.skip_distil:
+        ex = make_extractor(args.extractor)
+        cfg = DistillConfig(steps=args.steps, rays_per_view=args.rays_per_view, log_every=100)
+
+        def cb(p):
+            if p.stage == "train" and p.step % 500 == 0:
+                print(f"  train {p.step}/{p.total} loss {p.loss:.4f} ({p.elapsed_s:.0f}s)", flush=True)
+
+        res = distill_semantics(field, scene, ex, cfg, callback=cb)
+        result["distill"] = {"extractor": ex.name, "steps": res.steps_done, "loss": res.final_loss,
+                             "seconds": res.seconds, "bank_rays": res.bank_rays, "bank_samples": res.bank_samples,
+                             "views": len(scene.split(cfg.split)), **res.timings}
+        print(f"distillation ({ex.name}): {res.seconds:.1f}s = features {res.timings['features_s']:.1f}s + rays "
+              f"{res.timings['rays_s']:.1f}s + training {res.timings['train_s']:.1f}s ({res.steps_done} steps, "
+              f"loss {res.final_loss:.4f}, {res.bank_rays} rays)")
+        if args.save:
+            nm.save_field(field, args.save)
+            print(f"saved {args.save}")
+    cams = scene.split(args.split).cameras
+    labels_path = os.path.join(args.data, "part_labels.npy")
+    labels = np.load(labels_path) if os.path.isfile(labels_path) else None
+    clicks = [(n, v, xy, None) for n, v, xy in args.click]
+    if not clicks and labels is not None:
+        clicks = label_clicks(args.data, args.split)
+    if not clicks:
+        print("no --click given and no part labels: nothing to select")
+    cfg = SelectConfig(threshold=args.threshold)
+    rows, tiles = [], []
+    ctx = None
+    for name, view, xy, part in clicks:
+        K, c2w, w, h = cams.K[view], cams.c2w[view], cams.width, cams.height
+        t = time.perf_counter()
+        cold = ctx is None
+        ctx = ctx if ctx is not None else SelectionContext(field, cfg)
+        sel = select_region(field, (K, c2w, w, h), xy, cfg, context=ctx)
+        dt = time.perf_counter() - t
+        t = time.perf_counter()
+        redo = select_region(field, (K, c2w, w, h), xy, SelectConfig(threshold=min(0.95, args.threshold + 0.1)),
+                             context=ctx)
+        dt_redo = time.perf_counter() - t
+        row = {"name": name, "view": view, "pixel": list(xy), "seconds": dt, "context_built": cold,
+               "redo_seconds": dt_redo, "vertices": int(len(sel.vertices)), "redo_vertices": int(len(redo.vertices)),
+               "info": {k: v for k, v in sel.info.items() if isinstance(v, (int, float))}}
+        if labels is not None and part is not None:
+            gt = np.nonzero(labels == part)[0]
+            row["iou"] = len(np.intersect1d(sel.vertices, gt)) / len(np.union1d(sel.vertices, gt))
+        rows.append(row)
+        print(f"click {name} (view {view}, pixel {xy[0]:.0f},{xy[1]:.0f}): {len(sel.vertices)} vertices in {dt:.2f}s"
+              f"{' (context built)' if cold else ''}; redo at {min(0.95, args.threshold + 0.1):.2f}: {dt_redo:.2f}s"
+              + (f"; IoU {row['iou']:.3f}" if "iou" in row else ""))
+        if args.pictures:
+            base = nm.render_camera(field, K, c2w, w, h, background=(1, 1, 1)).rgb
+            tint = tinted_render(field, K, c2w, w, h, sel.vertices)
+            tiles.append(np.concatenate([_mark(np.clip(base, 0, 1), xy), np.clip(tint, 0, 1)], 1))
+    result["clicks"] = rows
+    if rows:
+        result["click_seconds"] = {"first": rows[0]["seconds"], "max_later": max([r["seconds"] for r in rows[1:]] or [0]),
+                                   "max_redo": max(r["redo_seconds"] for r in rows)}
+    if args.blender and clicks:
+        path = args.save if args.save and not args.skip_distil else args.field
+        result["blender_clicks"] = blender_clicks(path, cams, clicks, args.threshold)
+    if tiles:
+        from skimage.transform import resize
+
+        s = args.picture_size
+        rows_img = [resize(t, (s, 2 * s, 3), anti_aliasing=True) for t in tiles]
+        nm.save_image(args.pictures, np.concatenate(rows_img, 0))
+        print(f"wrote {args.pictures} ({os.path.getsize(args.pictures) // 1024} KB)")
+        result["pictures"] = args.pictures
+    name = args.name or "semantics_" + os.path.splitext(os.path.basename(args.field))[0] + ".json"
+    write_results(result, name)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,166 @@
+"""Semantics in Blender: Select by click (driven with a camera view and a pixel, and with the stored
+viewport matrices the modal click records) writes the clicked part as a vertex group and the edit-mode
+selection; Distil semantics runs the core in the background; semantic colours."""
+from __future__ import annotations
+
+import os
+import shutil
+
+import bpy
+import numpy as np
+import pytest
+
+from helpers import add_camera
+
+W, H = 64, 64
+
+
+@pytest.fixture(scope="module")
+def parts_data(tmp_path_factory):
+    """(dataset dir, field without semantics, field with semantics, labels): the multi-part scene,
+    48 px, trained and distilled briefly with the core."""
+    import torch
+
+    import neumesh_core as nm
+    from neumesh_core.data import multipart as mp
+
+    d = str(tmp_path_factory.mktemp("parts"))
+    saved = torch.get_num_threads()
+    torch.set_num_threads(1)   # see tests/semantics/conftest.py: busy 2-core machines
+    try:
+        mp.make_multipart_scene(d, resolution=48, n_train=16, n_val=1, n_test=0, grid=40)
+        scene = nm.load_scene(d)
+        field = nm.create_field(nm.load_mesh(os.path.join(d, "mesh.ply")), nm.FieldConfig(interpolation="early"))
+        nm.train(field, scene, nm.TrainConfig(steps=150, rays_per_batch=1024, log_every=50))
+        plain = os.path.join(d, "parts.neumesh")
+        nm.save_field(field, plain)
+        nm.semantics.distill_semantics(field, scene, config=nm.semantics.DistillConfig(
+            steps=200, rays_per_view=1024, rays_per_batch=4096))
+        sem = os.path.join(d, "parts_sem.neumesh")
+        nm.save_field(field, sem)
+    finally:
+        torch.set_num_threads(saved)
+    return d, plain, sem, np.load(os.path.join(d, "part_labels.npy"))
+
+
+def _scene(path):
+    assert bpy.ops.neumesh.load_field(filepath=path, new_object=True) == {"FINISHED"}
+    obj = bpy.context.active_object
+    cam = add_camera((3.4, -1.6, 1.6), look_at=(0.25, 0.0, 0.3), lens=40.0, name="cam")
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y = W, H
+    scene.render.resolution_percentage = 100
+    return obj, cam
+
+
+def _click_on(addon, cam, part):
+    """The pixel deepest inside ``part``'s image region in the camera's view (ground-truth tracer)."""
+    from scipy.ndimage import distance_transform_edt
+
+    from neumesh_core.data import multipart as mp
+
+    K, c2w, w, h = addon.camera.camera_K_c2w(cam, bpy.context.scene)
+    dt = distance_transform_edt(mp.label_image(K, c2w, w, h) == part)
+    assert dt.max() > 2, "the part is not visible from the test camera"
+    y, x = np.unravel_index(dt.argmax(), dt.shape)
+    return (x + 0.5, y + 0.5)
+
+
+def _group(obj, name):
+    vg = obj.vertex_groups[name]
+    return np.array(sorted(v.index for v in obj.data.vertices if any(g.group == vg.index for g in v.groups)))
+
+
+def test_click_creates_the_parts_vertex_group(addon, parts_data):
+    _, _, sem, labels = parts_data
+    obj, cam = _scene(sem)
+    head = _click_on(addon, cam, 1)
+    assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="head") == {"FINISHED"}
+    got = _group(obj, "head")
+    gt = np.nonzero(labels == 1)[0]
+    precision = np.isin(got, gt).mean()
+    recall = np.isin(gt, got).mean()
+    assert precision > 0.9 and recall > 0.8, (precision, recall)
+    assert obj.vertex_groups.active.name == "head"
+    sel = np.zeros(len(obj.data.vertices), bool)
+    obj.data.vertices.foreach_get("select", sel)
+    assert np.array_equal(np.nonzero(sel)[0], got)          # the edit-mode selection is the group
+    # the redo panel's slider: a stricter similarity re-runs the growth and keeps a subset
+    assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="head", threshold=0.97) == {"FINISHED"}
+    strict = _group(obj, "head")
+    assert len(strict) < len(got) and np.isin(strict, got).all()
+    # Add mode: the base joins the same group
+    base = _click_on(addon, cam, 3)
+    assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=base, group_name="head", mode="ADD") == {"FINISHED"}
+    both = _group(obj, "head")
+    assert np.isin(strict, both).all() and np.isin(np.nonzero(labels == 3)[0], both).mean() > 0.8
+    # in edit mode the selection shows there too
+    bpy.ops.object.mode_set(mode="EDIT")
+    assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head) == {"FINISHED"}
+    assert obj.mode == "EDIT"
+    bpy.ops.object.mode_set(mode="OBJECT")
+    assert np.array_equal(_group(obj, addon.semantics.DEFAULT_GROUP), got)
+
+
+def test_the_viewport_click_path_uses_the_stored_view(addon, parts_data):
+    """What the modal click stores (viewport view and window matrices, region size, region mouse
+    coordinates) gives the same region as the camera path."""
+    _, _, sem, labels = parts_data
+    obj, cam = _scene(sem)
+    head = _click_on(addon, cam, 1)
+    dg = bpy.context.evaluated_depsgraph_get()
+    P = cam.evaluated_get(dg).calc_matrix_camera(dg, x=W, y=H)
+    V = cam.matrix_world.inverted()
+    flat = lambda m: [v for row in m for v in row]  # noqa: E731
+    assert bpy.ops.neumesh.select_by_click(view_matrix=flat(V), window_matrix=flat(P), view_size=(W, H),
+                                           pixel=head, group_name="viewport") == {"FINISHED"}
+    assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="camera") == {"FINISHED"}
+    assert np.array_equal(_group(obj, "viewport"), _group(obj, "camera"))
+
+
+def test_click_errors(addon, parts_data):
+    _, plain, sem, _ = parts_data
+    obj, cam = _scene(sem)
+    with pytest.raises(RuntimeError, match="background"):
+        bpy.ops.neumesh.select_by_click(camera="cam", pixel=(0.5, 0.5))
+    with pytest.raises(RuntimeError, match="no view"):
+        bpy.ops.neumesh.select_by_click(pixel=(10, 10))
+    assert "NeuMesh selection" not in obj.vertex_groups
+    obj2, _ = _scene(plain)
+    with pytest.raises(RuntimeError, match="no semantic codes"):
+        bpy.ops.neumesh.select_by_click(camera="cam", pixel=_click_on(addon, cam, 1))
+
+
+def test_distil_semantics_operator_writes_an_edit(addon, parts_data, tmp_path):
+    import neumesh_core as nm
+
+    d, plain, _, _ = parts_data
+    src = str(tmp_path / "parts.neumesh")
+    shutil.copy(plain, src)
+    obj, _ = _scene(src)
+    bpy.context.scene.neumesh.dataset_path = d
+    bpy.context.scene.neumesh_semantics.steps = 3
+    assert bpy.ops.neumesh.distil_semantics(wait=True, max_views=2, rays_per_view=64) == {"FINISHED"}
+    out = addon.props.field_abspath(obj)
+    assert out == str(tmp_path / "parts.edit-001.neumesh")
+    f = nm.load_field(out)
+    assert f.has_semantics and f.semantics_info["steps"] == 3
+    assert nm.edit.edit_info(out)["op"] == "semantics"
+    assert bpy.ops.neumesh.undo_edit() == {"FINISHED"} and addon.props.field_abspath(obj) == src
+    bpy.context.scene.neumesh.dataset_path = str(tmp_path / "missing")
+    with pytest.raises(RuntimeError, match="dataset folder"):
+        bpy.ops.neumesh.distil_semantics(wait=True)
+
+
+def test_semantic_colours(addon, parts_data):
+    _, _, sem, labels = parts_data
+    obj, _ = _scene(sem)
+    assert bpy.ops.neumesh.semantic_colours() == {"FINISHED"}
+    attr = obj.data.color_attributes[addon.semantics.COLOUR_ATTRIBUTE]
+    rgba = np.empty(len(obj.data.vertices) * 4, np.float32)
+    attr.data.foreach_get("color", rgba)
+    rgb = rgba.reshape(-1, 4)[:, :3]
+    means = np.stack([rgb[labels == p].mean(0) for p in range(4)])
+    # parts get different colours: every pair of part means differs clearly
+    gaps = [np.abs(means[i] - means[j]).max() for i in range(4) for j in range(i + 1, 4)]
+    assert min(gaps) > 0.1, means
