@@ -64,7 +64,19 @@ def commit_edit(obj, field, record, parent_path: str) -> str:
         raise
     props.set_field_path(obj, out)
     render.adopt(obj.name_full, out, field)
+    _register(obj, field, out)
     return out
+
+
+def _register(obj, field, path):
+    """The scene's record of which file holds this field's key (joined objects find it there)."""
+    from . import identity
+
+    try:
+        for scene in obj.users_scene or (bpy.context.scene,):
+            identity.register_field(scene, field, path)
+    except Exception as exc:  # noqa: BLE001 - only joins of this object later would miss it
+        print(f"NeuMesh: could not record the field of '{obj.name}': {exc}")
 
 
 def _edit_module(nm):
@@ -116,21 +128,22 @@ def edit_copy(field):
 
 
 def region_of(obj, group: str, field, what: str):
-    """Field vertex indices of vertex group ``group`` of ``obj``; :class:`EditError` when the group is
-    missing or empty, or the mesh's vertices are not the field's."""
-    from . import sync
+    """Field vertex indices of vertex group ``group`` of ``obj`` (mesh vertices mapped to field vertices
+    through their identity attributes, see identity.py); :class:`EditError` when the group is missing
+    or empty, or its vertices cannot be mapped."""
+    from . import identity, sync
 
     if not group:
         raise EditError(f"{what}: choose a vertex group of '{obj.name}'")
     if obj.vertex_groups.get(group) is None:
         raise EditError(f"{what}: '{obj.name}' has no vertex group '{group}'")
-    if len(obj.data.vertices) != field.num_vertices:
-        raise EditError(f"'{obj.name}' has {len(obj.data.vertices)} vertices but its field has "
-                        f"{field.num_vertices}; edit the mesh the field was trained on")
     idx = sync.vertex_group_indices(obj, group)
     if len(idx) == 0:
         raise EditError(f"{what}: vertex group '{group}' of '{obj.name}' is empty; assign vertices to it")
-    return idx
+    try:
+        return identity.field_rows(obj, field, idx, what)
+    except identity.IdentityError as exc:
+        raise EditError(str(exc)) from exc
 
 
 class EditJob:
@@ -304,6 +317,7 @@ class NEUMESH_OT_undo_edit(bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: the field this edit was made from is missing: {parent}")
             return {"CANCELLED"}
         props.set_field_path(obj, parent)
+        _register(obj, render.get_field(obj.name_full, parent), parent)
         self.report({"INFO"}, f"NeuMesh: '{obj.name}' shows {os.path.basename(parent)}")
         return {"FINISHED"}
 
@@ -330,6 +344,7 @@ class NEUMESH_OT_revert_field(bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: the trained field is missing: {root}")
             return {"CANCELLED"}
         props.set_field_path(obj, root)
+        _register(obj, render.get_field(obj.name_full, root), root)
         self.report({"INFO"}, f"NeuMesh: '{obj.name}' shows the trained field {os.path.basename(root)}")
         return {"FINISHED"}
 

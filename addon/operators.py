@@ -8,7 +8,7 @@ import bpy
 from ._np import np
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
-from . import camera, core, props, render, sync, worker
+from . import camera, core, identity, props, render, sync, worker
 
 DATASET_COLLECTION = "NeuMesh Dataset"
 
@@ -301,6 +301,12 @@ def finish_training():
         obj = bpy.data.objects.get(job.object_name)
         if obj is not None:
             props.set_field_path(obj, job.field_path)
+            try:   # the trained mesh is the field's scaffold: mark its vertices with their ids
+                field = render.get_field(obj.name_full, job.field_path)
+                if len(obj.data.vertices) == field.num_vertices:
+                    identity.attach(bpy.context, obj, field, job.field_path)
+            except Exception as exc:  # noqa: BLE001 - the field still renders by vertex order
+                print(f"NeuMesh: could not mark the vertices of '{obj.name}': {exc}")
     _set_status(None)
     _redraw_all()
 
@@ -385,7 +391,7 @@ class NEUMESH_OT_load_field(bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: '{obj.name}' has {len(obj.data.vertices)} vertices but the field "
                                    f"has {field.num_vertices}; enable 'New object' to create its mesh")
             return {"CANCELLED"}
-        props.set_field_path(obj, path)
+        identity.attach(context, obj, field, path)   # path, vertex ids (topology edits keep the field)
         obj.neumesh.enabled = True
         context.scene.neumesh.train_object = obj  # Training > Scaffold mesh: the mesh this field is on
         self.report({"INFO"}, f"NeuMesh: field {os.path.basename(path)} on '{obj.name}'")

@@ -166,21 +166,70 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
         items = render.collect(depsgraph, for_render=True)
         if not items:
             raise EditError("no object with a field is in the scene")
-        targets, fields = [], []
+        from . import identity, props
+
+        targets, fields, plans = [], [], []
         for it in items:
-            obj = bpy.data.objects.get(it.key)
-            field = edit_copy(render.get_field(it.key, it.path))
-            field.set_vertices(it.vertices)         # paint lands on the surface as it is posed now
-            targets.append((obj, field, it.path))
-            fields.append(field)
+            obj = bpy.data.objects.get(it.key.split("#")[0])
+            if it.field is None:                     # the object's own field, vertex by vertex
+                field = edit_copy(render.get_field(it.key, it.path))
+                field.set_vertices(it.vertices)      # paint lands on the surface as it is posed now
+                targets.append((obj, field, it.path))
+                plans.append(None)
+                fields.append(field)
+                continue
+            shown = edit_copy(it.field)              # a field remapped onto the object's mesh
+            shown.set_vertices(it.vertices)
+            fields.append(shown)
+            own = props.field_abspath(obj)
+            if it.path != own:                       # joined in from another field: shown, not edited
+                targets.append((obj, None, it.path))
+                plans.append("skip")
+                continue
+            source = edit_copy(render.get_field(obj.name_full, own))
+            d = render._DERIVED[it.key]
+            ids = identity._remap().resolve_ids(source, d.vid, d.rest)
+            targets.append((obj, source, own))
+            plans.append((source, ids))
 
         def run(progress):
-            return nm.edit.paint_fields(fields, K, c2w, W, H, layer, progress=progress)
+            recs = nm.edit.paint_fields(fields, K, c2w, W, H, layer, progress=progress)
+            out = []
+            for rec, plan, shown in zip(recs, plans, fields):
+                if rec is None or plan is None:
+                    out.append(rec)
+                elif plan == "skip":
+                    out.append(None)
+                else:
+                    out.append(_onto_source(nm, rec, shown, *plan))
+            return out
         return targets, run
 
     def summary(self, record):
         i = record.info
         return f"{i.get('painted_pixels', 0)} painted pixels, {i.get('seconds', 0):.1f} s"
+
+
+def _onto_source(nm, record, shown, source, ids):
+    """Carry a paint record of a remapped field (``shown``, vertex i = ``source`` vertex ``ids[i]``,
+    or a new vertex where -1) onto the source field: each painted source vertex takes the mean of the
+    painted colours of its copies; new vertices have no colour of their own and are left out."""
+    import torch
+
+    rows = np.asarray(record.vertices)
+    src = ids[rows]
+    keep = src >= 0
+    if not keep.any():
+        return None
+    new = shown.mod_colors.detach().cpu().numpy()[rows[keep]]
+    uniq, inv = np.unique(src[keep], return_inverse=True)
+    acc = np.zeros((len(uniq), 3))
+    np.add.at(acc, inv, new)
+    acc /= np.bincount(inv, minlength=len(uniq))[:, None]
+    rec = nm.edit.EditRecord.begin("paint_texture", source, uniq, ("mod_colors",))
+    with torch.no_grad():
+        source.mod_colors[torch.as_tensor(uniq)] = torch.as_tensor(acc, dtype=source.mod_colors.dtype)
+    return rec.finish(source, **record.info)
 
 
 class NEUMESH_PT_paint(bpy.types.Panel):

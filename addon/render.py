@@ -67,13 +67,120 @@ def adopt(key: str, path: str, field):
 def clear_cache():
     with _LOCK:
         _CACHE.clear()
+        _DERIVED.clear()
+        _SOURCES.clear()
 
 
 @dataclass
 class Item:
-    key: str           # object name
+    key: str           # object name (or "object#key" for a field remapped onto the object's mesh)
     path: str          # absolute field path
     vertices: np.ndarray  # (N,3) float32 world space, evaluated
+    field: object = None  # a remapped field (None: the object's own cached field)
+
+
+@dataclass
+class _Derived:
+    """A field remapped onto an object's mesh, and what it was made from."""
+
+    source: object
+    signature: tuple
+    vid: np.ndarray
+    rest: np.ndarray
+    field: object
+
+
+_DERIVED: dict[str, _Derived] = {}
+_SOURCES: dict[str, _Entry] = {}   # fields loaded for a joined-in key (read-only; shared)
+
+
+def _source(path: str):
+    """A field loaded read-only for remapping (fields joined into an object from elsewhere)."""
+    nm = core.get()
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"NeuMesh field file not found: {path}")
+    stamp = _stamp(path)
+    with _LOCK:
+        e = _SOURCES.get(path)
+        if e is None or e.stamp != stamp:
+            e = _SOURCES[path] = _Entry(path, stamp, nm.load_field(path), None)
+            STATS["loads"] += 1
+        return e.field
+
+
+def _derived(name: str, source, vid, rest, signature, faces_fn):
+    """The cached remapped field for ``name``, rebuilt when its source or vertex identity changed."""
+    from .identity import _remap
+
+    with _LOCK:
+        d = _DERIVED.get(name)
+        if d is not None and d.source is source and d.signature == signature and \
+                np.array_equal(d.vid, vid) and np.array_equal(d.rest, rest):
+            return d.field
+        rm = _remap()
+        ids = rm.resolve_ids(source, vid, rest)
+        field = rm.remap_field(source, ids, rest, faces_fn())
+        STATS["remaps"] = STATS.get("remaps", 0) + 1
+        _DERIVED[name] = _Derived(source, signature, vid.copy(), rest.copy(), field)
+        _CACHE.pop(name, None)
+        return field
+
+
+def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
+    """Items for one object: its own field by order (no identity attributes, or an exact identity
+    map), else one remapped field per field key in its mesh."""
+    from . import identity
+
+    own = get_field(orig.name_full, path)
+    mesh = ob.data if hasattr(ob, "data") and hasattr(ob.data, "attributes") else None
+    ident = identity.read(mesh) if mesh is not None else None
+    if ident is None:   # the strict path: the evaluated mesh must be the field's vertices in order
+        try:
+            verts = sync.evaluated_world_vertices(orig, depsgraph, expected_count=int(own.num_vertices),
+                                                  for_render=for_render)
+        except sync.TopologyError as exc:
+            raise sync.TopologyError(
+                f"{exc}. The mesh has no NeuMesh vertex ids (point attributes {', '.join(identity.ATTRS)}), "
+                "which let a field follow deleted, separated, joined or subdivided vertices: they were "
+                "removed, or the field was attached before they existed. Undo the change, or Load field "
+                "on the field's own mesh (New object) to get them back") from exc
+        return [Item(orig.name_full, path, verts)]
+    vid, rest, key = ident
+    verts = sync.to_world(sync.mesh_vertices(mesh), ob.matrix_world)
+    own_key = identity.key_of(own)
+    if len(vid) == own.num_vertices and (key == own_key).all() and np.array_equal(vid, np.arange(len(vid))):
+        ok = identity._remap().resolve_ids(own, vid, rest)
+        if (ok >= 0).all():   # exactly the field's vertices, in order: the field itself
+            _DERIVED.pop(orig.name_full, None)
+            return [Item(orig.name_full, path, verts)]
+    items = []
+    signature = (len(mesh.vertices), len(mesh.polygons), len(mesh.loops))
+    tri = None
+    # keys this scene knows; any other value (interpolated by a modifier between vertices, or lost)
+    # makes a new vertex of the object's own field
+    known = {own_key: (own, path)}
+    for k in np.unique(key):
+        if int(k) != own_key:
+            spath = identity.lookup(depsgraph.scene, int(k))
+            if spath is not None and os.path.isfile(spath):
+                known[int(k)] = (_source(spath), spath)
+    key = np.where(np.isin(key, list(known)), key, own_key)
+    for k in np.unique(key):
+        sel = np.nonzero(key == k)[0]
+        source, spath = known[int(k)]
+
+        def faces_fn(sel=sel):
+            nonlocal tri
+            if tri is None:
+                tri = sync.mesh_triangles(mesh)
+            pos = np.full(len(vid), -1, np.int64)
+            pos[sel] = np.arange(len(sel))
+            f = pos[tri]
+            return f[(f >= 0).all(1)]
+        name = f"{orig.name_full}#{int(k)}"
+        field = _derived(name, source, vid[sel], rest[sel], signature + (int(k),), faces_fn)
+        items.append(Item(name, spath, verts[sel], field))
+    return items
 
 
 def collect(depsgraph, for_render: bool = True) -> list[Item]:
@@ -93,15 +200,17 @@ def collect(depsgraph, for_render: bool = True) -> list[Item]:
         path = props.field_abspath(orig)
         if not os.path.isfile(path):
             raise FileNotFoundError(props.missing_field_message(orig))
-        field = get_field(orig.name_full, path)
-        verts = sync.evaluated_world_vertices(orig, depsgraph, expected_count=int(field.num_vertices),
-                                              for_render=for_render)
-        items.append(Item(orig.name_full, path, verts))
+        items.extend(_object_items(ob, orig, path, depsgraph, for_render))
     return items
 
 
 def _apply_vertices(item: Item):
-    e = _CACHE[item.key]
+    if item.field is not None:
+        e = _CACHE.get(item.key)
+        if e is None or e.field is not item.field:
+            e = _CACHE[item.key] = _Entry(item.path, None, item.field, None)
+    else:
+        e = _CACHE[item.key]
     if e.last_vertices is not None and e.last_vertices.shape == item.vertices.shape and \
             np.array_equal(e.last_vertices, item.vertices):
         return e.field
@@ -129,7 +238,8 @@ def render_items(items: list[Item], K, c2w, width: int, height: int, transparent
     with _LOCK:
         fields = []
         for it in items:
-            get_field(it.key, it.path)
+            if it.field is None:
+                get_field(it.key, it.path)
             fields.append(_apply_vertices(it))
         out = nm.render_camera(fields if len(fields) > 1 else fields[0], np.asarray(K, np.float32),
                                np.asarray(c2w, np.float32), int(width), int(height), background=bg,

@@ -37,8 +37,9 @@ def selection_history(obj) -> np.ndarray:
     return np.asarray(hist, np.int64)
 
 
-def selected_pairs(target, source) -> np.ndarray:
-    """(P,2) (source vertex, target vertex) pairs from the selection order in Edit Mode."""
+def selected_pairs(target, source, target_field=None, source_field=None) -> np.ndarray:
+    """(P,2) (source vertex, target vertex) pairs from the selection order in Edit Mode, as field
+    vertex ids when the fields are given (else mesh vertex indices)."""
     if source == target:
         h = selection_history(target)
         if len(h) % 2:
@@ -54,12 +55,21 @@ def selected_pairs(target, source) -> np.ndarray:
     if len(pairs) < 3:
         raise EditError(f"correspondences: {len(pairs)} pairs selected; select at least 3 (or turn off "
                         "'Use selected pairs' for the automatic alignment)")
+    if target_field is not None and source_field is not None:
+        from . import identity
+
+        pairs = np.stack([identity.vertex_ids(source, source_field, pairs[:, 0]),
+                          identity.vertex_ids(target, target_field, pairs[:, 1])], 1)
+        if (pairs < 0).any():
+            raise EditError("correspondences: some selected vertices are new (made by subdivision or extrusion) "
+                            "and belong to no field vertex; pick vertices of the original mesh")
     return pairs
 
 
-def corner_uvs(obj, uv_map: str):
-    """The mesh's UV map as per-corner (vertex, uv) pairs (seams keep each side's UV)."""
-    from . import sync
+def corner_uvs(obj, uv_map: str, field=None):
+    """The mesh's UV map as per-corner (vertex, uv) pairs (seams keep each side's UV); with ``field``
+    the corners' vertices are field vertex ids (corners of new vertices are left out)."""
+    from . import identity, sync
 
     nm = core.get()
     me = obj.data
@@ -71,7 +81,11 @@ def corner_uvs(obj, uv_map: str):
     n = len(me.loops)
     vi = np.empty(n, dtype=np.int32)
     me.loops.foreach_get("vertex_index", vi)
-    return nm.CornerUVs(vi.astype(np.int64), uv)
+    vi = vi.astype(np.int64)
+    if field is not None:
+        keep, vi = identity.corner_rows(obj, field, vi)
+        uv = uv[keep]
+    return nm.CornerUVs(vi, uv)
 
 
 def _source_field(obj, target_obj, target_field):
@@ -145,7 +159,7 @@ class NEUMESH_OT_swap_texture(EditOperator, bpy.types.Operator):
         src_obj, src_field = _source_field(src_obj, target, field)
         t_idx = region_of(target, self.target_group, field, "target")
         s_idx = region_of(src_obj, self.source_group, src_field or field, "source")
-        pairs = selected_pairs(target, src_obj) if self.use_pairs else None
+        pairs = selected_pairs(target, src_obj, field, src_field or field) if self.use_pairs else None
         work = edit_copy(field)
         source = edit_copy(src_field) if src_field is not None else None
         cfg = nm.edit.SwapConfig(nonrigid=self.nonrigid)
@@ -202,8 +216,8 @@ class NEUMESH_OT_fill_texture(EditOperator, bpy.types.Operator):
         tmpl_obj, tmpl_field = _source_field(tmpl_obj, target, field)
         t_idx = region_of(target, self.target_group, field, "target")
         s_idx = region_of(tmpl_obj, self.template_group, tmpl_field or field, "template")
-        t_uv = corner_uvs(target, self.target_uv)
-        s_uv = corner_uvs(tmpl_obj, self.template_uv)
+        t_uv = corner_uvs(target, self.target_uv, field)
+        s_uv = corner_uvs(tmpl_obj, self.template_uv, tmpl_field or field)
         work = edit_copy(field)
         template = edit_copy(tmpl_field) if tmpl_field is not None else None
         scale = float(self.scale)
