@@ -291,6 +291,35 @@ def _status(context, text):
         pass
 
 
+def _point_back(op, context, which: str):
+    """Point the active object at the file its field was edited from (``which="parent"``) or at the
+    trained root of the chain (``"root"``); reports and returns the operator result."""
+    obj = context.active_object
+    path = None
+    try:
+        path = field_path_of(obj)
+        edit = _edit_module(core.get())
+        target = edit.parent_of(path) if which == "parent" else edit.root_of(path)
+    except (EditError, core.CoreUnavailable) as exc:
+        op.report({"ERROR"}, f"NeuMesh: {exc}")
+        return {"CANCELLED"}
+    except Exception as exc:  # noqa: BLE001 - e.g. a corrupt header
+        op.report({"ERROR"}, f"NeuMesh: cannot read {path}: {exc}")
+        return {"CANCELLED"}
+    if target is None:
+        op.report({"WARNING"}, f"NeuMesh: '{obj.name}' shows the trained field; there is no edit to undo")
+        return {"CANCELLED"}
+    if not os.path.isfile(target):
+        what = "the field this edit was made from" if which == "parent" else "the trained field"
+        op.report({"ERROR"}, f"NeuMesh: {what} is missing: {target}")
+        return {"CANCELLED"}
+    props.set_field_path(obj, target)
+    _register(obj, render.get_field(obj.name_full, target), target)
+    shown = "the trained field " if which == "root" else ""
+    op.report({"INFO"}, f"NeuMesh: '{obj.name}' shows {shown}{os.path.basename(target)}")
+    return {"FINISHED"}
+
+
 class NEUMESH_OT_undo_edit(bpy.types.Operator):
     """Point the object back at the field file this edit was made from (the edited file stays on disk;
     Ctrl+Z does the same within this session)"""
@@ -300,26 +329,7 @@ class NEUMESH_OT_undo_edit(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
-        obj = context.active_object
-        try:
-            path = field_path_of(obj)
-            parent = _edit_module(core.get()).parent_of(path)
-        except (EditError, core.CoreUnavailable) as exc:
-            self.report({"ERROR"}, f"NeuMesh: {exc}")
-            return {"CANCELLED"}
-        except Exception as exc:  # noqa: BLE001 - e.g. a corrupt header
-            self.report({"ERROR"}, f"NeuMesh: cannot read {path}: {exc}")
-            return {"CANCELLED"}
-        if parent is None:
-            self.report({"WARNING"}, f"NeuMesh: '{obj.name}' shows the trained field; there is no edit to undo")
-            return {"CANCELLED"}
-        if not os.path.isfile(parent):
-            self.report({"ERROR"}, f"NeuMesh: the field this edit was made from is missing: {parent}")
-            return {"CANCELLED"}
-        props.set_field_path(obj, parent)
-        _register(obj, render.get_field(obj.name_full, parent), parent)
-        self.report({"INFO"}, f"NeuMesh: '{obj.name}' shows {os.path.basename(parent)}")
-        return {"FINISHED"}
+        return _point_back(self, context, "parent")
 
 
 class NEUMESH_OT_revert_field(bpy.types.Operator):
@@ -330,23 +340,7 @@ class NEUMESH_OT_revert_field(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
-        obj = context.active_object
-        try:
-            path = field_path_of(obj)
-            root = _edit_module(core.get()).root_of(path)
-        except (EditError, core.CoreUnavailable) as exc:
-            self.report({"ERROR"}, f"NeuMesh: {exc}")
-            return {"CANCELLED"}
-        except Exception as exc:  # noqa: BLE001
-            self.report({"ERROR"}, f"NeuMesh: cannot read {path}: {exc}")
-            return {"CANCELLED"}
-        if not os.path.isfile(root):
-            self.report({"ERROR"}, f"NeuMesh: the trained field is missing: {root}")
-            return {"CANCELLED"}
-        props.set_field_path(obj, root)
-        _register(obj, render.get_field(obj.name_full, root), root)
-        self.report({"INFO"}, f"NeuMesh: '{obj.name}' shows the trained field {os.path.basename(root)}")
-        return {"FINISHED"}
+        return _point_back(self, context, "root")
 
 
 class NEUMESH_PT_edit(bpy.types.Panel):
@@ -372,6 +366,25 @@ class NEUMESH_PT_edit(bpy.types.Panel):
         row = col.row(align=True)
         row.operator("neumesh.undo_edit", icon="LOOP_BACK")
         row.operator("neumesh.revert_field", text="Revert", icon="FILE_REFRESH")
+
+
+class EditSubPanel:
+    """Base of the panels under *Edit field*: the active object must carry a field;
+    subclasses implement ``draw_edit(context, layout, obj)``."""
+
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "NeuMesh"
+    bl_parent_id = "NEUMESH_PT_edit"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        obj = context.active_object
+        col = self.layout.column()
+        if obj is None or obj.type != "MESH" or not props.field_abspath(obj):
+            col.label(text="Select an object with a field", icon="INFO")
+            return
+        self.draw_edit(context, col, obj)
 
 
 classes = (NEUMESH_OT_undo_edit, NEUMESH_OT_revert_field, NEUMESH_PT_edit)

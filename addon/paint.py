@@ -16,7 +16,7 @@ from bpy.props import StringProperty
 
 from ._np import np
 from . import camera, core, render
-from .edits import EditError, EditOperator, edit_copy
+from .edits import EditError, EditOperator, EditSubPanel, edit_copy
 
 PAINT_IMAGE = "NeuMesh Paint"
 _KEYS = ("neumesh_K", "neumesh_c2w", "neumesh_size", "neumesh_original", "neumesh_camera")
@@ -232,16 +232,13 @@ def _onto_source(nm, record, shown, source, ids):
     return rec.finish(source, **record.info)
 
 
-class NEUMESH_PT_paint(bpy.types.Panel):
+class NEUMESH_PT_paint(EditSubPanel, bpy.types.Panel):
     bl_label = "Paint texture"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "NeuMesh"
-    bl_parent_id = "NEUMESH_PT_edit"
-    bl_options = {"DEFAULT_CLOSED"}
 
-    def draw(self, context):
-        col = self.layout.column()
+    def draw(self, context):   # painting covers every field in view: no active object needed
+        self.draw_edit(context, self.layout.column(), context.active_object)
+
+    def draw_edit(self, context, col, obj):
         col.label(text="1. Render the camera view to paint on")
         col.operator("neumesh.paint_view", icon="BRUSH_DATA")
         col.label(text="2. Paint on it in the Image Editor")

@@ -13,7 +13,7 @@ from bpy.props import BoolProperty, FloatProperty, PointerProperty, StringProper
 
 from ._np import np
 from . import core, props
-from .edits import EditError, EditOperator, edit_copy, field_for_edit, region_of
+from .edits import EditError, EditOperator, EditSubPanel, edit_copy, field_for_edit, region_of
 
 
 def _mesh_with_field(obj):
@@ -228,21 +228,11 @@ class NEUMESH_OT_fill_texture(EditOperator, bpy.types.Operator):
         return [(target, work, path)], run
 
 
-class NEUMESH_PT_swap(bpy.types.Panel):
+class NEUMESH_PT_swap(EditSubPanel, bpy.types.Panel):
     bl_label = "Swap texture"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "NeuMesh"
-    bl_parent_id = "NEUMESH_PT_edit"
-    bl_options = {"DEFAULT_CLOSED"}
 
-    def draw(self, context):
+    def draw_edit(self, context, col, obj):
         s = context.scene.neumesh_edit
-        obj = context.active_object
-        col = self.layout.column()
-        if not _mesh_with_field(obj):
-            col.label(text="Select an object with a field", icon="INFO")
-            return
         col.prop_search(s, "swap_target_group", obj, "vertex_groups", text="Target")
         col.prop(s, "swap_source")
         src = s.swap_source or obj
@@ -251,21 +241,11 @@ class NEUMESH_PT_swap(bpy.types.Panel):
         col.operator("neumesh.swap_texture", icon="UV_SYNC_SELECT")
 
 
-class NEUMESH_PT_fill(bpy.types.Panel):
+class NEUMESH_PT_fill(EditSubPanel, bpy.types.Panel):
     bl_label = "Fill texture"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "NeuMesh"
-    bl_parent_id = "NEUMESH_PT_edit"
-    bl_options = {"DEFAULT_CLOSED"}
 
-    def draw(self, context):
+    def draw_edit(self, context, col, obj):
         s = context.scene.neumesh_edit
-        obj = context.active_object
-        col = self.layout.column()
-        if not _mesh_with_field(obj):
-            col.label(text="Select an object with a field", icon="INFO")
-            return
         col.prop_search(s, "fill_target_group", obj, "vertex_groups", text="Target")
         col.prop_search(s, "fill_target_uv", obj.data, "uv_layers", text="Target UV")
         col.prop(s, "fill_template")

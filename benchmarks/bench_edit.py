@@ -28,21 +28,13 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.cli import turntable_cameras  # noqa: E402
 from neumesh_core.data.synthetic import default_mesh  # noqa: E402
+from neumesh_core.edit.fill import planar_uvs  # noqa: E402
 from _results import write_results  # noqa: E402
 
 
 def _region_near(points: np.ndarray, axis: int, sign: float, n: int) -> np.ndarray:
     order = np.argsort(-sign * points[:, axis])
     return np.sort(order[:n])
-
-
-def _planar_uv(points: np.ndarray) -> np.ndarray:
-    """UVs by projection on the region's two widest principal axes, scaled to [0,1]."""
-    x = points - points.mean(0)
-    _, _, vt = np.linalg.svd(x, full_matrices=False)
-    uv = x @ vt[:2].T
-    uv -= uv.min(0)
-    return uv / max(float(uv.max()), 1e-12)
 
 
 def _render_time(field, cam, repeats: int) -> float:
@@ -108,7 +100,7 @@ def main(argv=None) -> int:
 
     fill_field = copy.deepcopy(field)
     t = time.perf_counter()
-    frec = nm.fill_texture(fill_field, target, _planar_uv(V[target]), other, source, _planar_uv(V[source]),
+    frec = nm.fill_texture(fill_field, target, planar_uvs(V[target]), other, source, planar_uvs(V[source]),
                            scale=3.0)
     fill_s = time.perf_counter() - t
     print(f"fill (planar UVs, scale 3): {fill_s:.3f} s; undo of the swap {undo_s * 1000:.1f} ms")

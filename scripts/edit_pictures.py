@@ -23,6 +23,7 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import neumesh_core as nm  # noqa: E402
+from neumesh_core.edit.fill import planar_uvs  # noqa: E402
 
 
 def vertex_colours(field) -> np.ndarray:
@@ -47,14 +48,6 @@ def lego_regions(field):
     tracks = np.nonzero(box & brown)[0]
     plate = np.nonzero((v[:, 2] > -0.42) & (v[:, 2] < -0.3) & (np.abs(v[:, 0]) < 0.3) & (v[:, 1] > 0.3))[0]
     return {"bucket": bucket, "tracks": tracks, "plate": plate}
-
-
-def planar_uv(points: np.ndarray) -> np.ndarray:
-    x = points - points.mean(0)
-    _, _, vt = np.linalg.svd(x, full_matrices=False)
-    uv = x @ vt[:2].T
-    uv -= uv.min(0)
-    return uv / max(float(uv.max()), 1e-12)
 
 
 def best_views(field, region, cams, n=2):
@@ -129,8 +122,8 @@ def main(argv=None) -> int:
     views = best_views(lego, reg["bucket"], cams)
     filled = copy.deepcopy(lego)
     v = lego.rest_vertices.numpy()
-    rec = nm.fill_texture(filled, reg["bucket"], planar_uv(v[reg["bucket"]]), filled, reg["tracks"],
-                          planar_uv(v[reg["tracks"]]), scale=2.0)
+    rec = nm.fill_texture(filled, reg["bucket"], planar_uvs(v[reg["bucket"]]), filled, reg["tracks"],
+                          planar_uvs(v[reg["tracks"]]), scale=2.0)
     figures["fill"] = {"target_vertices": rec.num_changed, "template_vertices": len(reg["tracks"]),
                        "seconds": rec.info["seconds"], "views": [int(i) for i in views]}
     sheet([[render(lego, cams, i) for i in views], [render(filled, cams, i) for i in views]],

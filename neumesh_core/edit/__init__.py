@@ -9,7 +9,7 @@ edited fields are saved beside the file they came from (:func:`save_edited`), ne
 """
 from .align import Similarity, arap_icp, initial_alignment, rigid_icp, umeyama
 from .files import edit_info, next_edit_path, parent_of, root_of, save_edited
-from .fill import CornerUVs, FillConfig, fill_texture
+from .fill import CornerUVs, FillConfig, fill_texture, planar_uvs
 from .paint import PaintConfig, paint_fields, paint_layer, paint_texture
 from .record import EditRecord, as_vertex_ids
 from .swap import SwapConfig, swap_texture
@@ -17,5 +17,5 @@ from .transfer import idw_neighbours
 
 __all__ = ["CornerUVs", "EditRecord", "FillConfig", "PaintConfig", "Similarity", "SwapConfig", "arap_icp",
            "as_vertex_ids", "edit_info", "fill_texture", "idw_neighbours", "initial_alignment", "next_edit_path",
-           "paint_fields", "paint_layer", "paint_texture", "parent_of", "rigid_icp", "root_of", "save_edited",
+           "paint_fields", "paint_layer", "paint_texture", "parent_of", "planar_uvs", "rigid_icp", "root_of", "save_edited",
            "swap_texture", "umeyama"]

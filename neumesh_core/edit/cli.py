@@ -27,6 +27,17 @@ def _report(record, out: str) -> None:
                       **_jsonable(record.info)}, indent=1))
 
 
+def _target_and_other(args, other_path):
+    """Check the output path, then load the field to edit and the other field (source / template; the
+    same object when ``other_path`` is empty or the field itself)."""
+    from .files import check_out_path
+
+    check_out_path(args.field, args.out)   # before the work, not only when saving
+    target = _load(args.field, args.device)
+    same = not other_path or os.path.abspath(other_path) == os.path.abspath(args.field)
+    return target, target if same else _load(other_path, args.device)
+
+
 def _save(field, parent, record, out):
     from .files import save_edited
 
@@ -34,14 +45,10 @@ def _save(field, parent, record, out):
 
 
 def cmd_swap(args) -> int:
-    from .files import check_out_path
     from .io import read_pairs, read_region
     from .swap import SwapConfig, swap_texture
 
-    check_out_path(args.field, args.out)   # before the work, not only when saving
-    target = _load(args.field, args.device)
-    source = target if not args.source or os.path.abspath(args.source) == os.path.abspath(args.field) \
-        else _load(args.source, args.device)
+    target, source = _target_and_other(args, args.source)
     region = read_region(args.region, target.num_vertices)
     src_region = read_region(args.source_region, source.num_vertices) if args.source_region else region
     pairs = read_pairs(args.pairs) if args.pairs else None
@@ -56,14 +63,10 @@ def cmd_swap(args) -> int:
 
 def cmd_fill(args) -> int:
     from ..errors import EditError
-    from .files import check_out_path
     from .fill import fill_texture
     from .io import read_region, read_uvs
 
-    check_out_path(args.field, args.out)   # before the work, not only when saving
-    target = _load(args.field, args.device)
-    template = target if not args.template or os.path.abspath(args.template) == os.path.abspath(args.field) \
-        else _load(args.template, args.device)
+    target, template = _target_and_other(args, args.template)
     region = read_region(args.region, target.num_vertices)
     uv = read_uvs(args.uv, target.num_vertices)
     if args.template_uv is None and template is not target:

@@ -80,6 +80,17 @@ def _as_corners(uv, vertices_given, vertices_sorted, what: str) -> CornerUVs:
     return c.restricted(vertices_sorted, what)
 
 
+def planar_uvs(points: np.ndarray) -> np.ndarray:
+    """(N,2) UVs in [0,1] by projecting ``points`` (N,3) on their two widest principal axes (a quick
+    unwrap for a roughly flat region; keeps aspect: the longer side spans [0,1])."""
+    x = np.asarray(points, np.float64)
+    x = x - x.mean(0)
+    _, _, vt = np.linalg.svd(x, full_matrices=False)
+    uv = x @ vt[:2].T
+    uv -= uv.min(0)
+    return uv / max(float(uv.max()), 1e-12)
+
+
 _WRAP = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], np.float64)
 
 
@@ -148,4 +159,4 @@ def fill_texture(target, target_vertices, target_uv, template=None, template_ver
     return record
 
 
-__all__ = ["CornerUVs", "FillConfig", "fill_plan", "fill_texture"]
+__all__ = ["CornerUVs", "FillConfig", "fill_plan", "fill_texture", "planar_uvs"]

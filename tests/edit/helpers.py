@@ -25,33 +25,37 @@ def render(field, view=0.0):
     return nm.render_camera(field, K, c2w, SIZE, SIZE)
 
 
-def touched_pixels(field, vertices, view=0.0) -> np.ndarray:
+def _samples(field, K, c2w, size):
+    o, d = nm.pixel_rays(K, c2w, size, size)
+    return march_rays(o, d, field.grid, field.sigma_fn, default_step(field, RenderSettings()))
+
+
+def _per_pixel(size, rays, flags):
+    out = torch.zeros(size * size, dtype=torch.bool)
+    out[rays[flags]] = True
+    return out.view(size, size).numpy()
+
+
+def touched_pixels(field, vertices, view=0.0, cam=None, size=SIZE) -> np.ndarray:
     """(H,W) bool: pixels whose rendered samples look up any of ``vertices`` (texture edits leave the
-    densities alone, so the same samples are taken before and after an edit)."""
-    K, c2w = camera(view)
-    o, d = nm.pixel_rays(K, c2w, SIZE, SIZE)
-    s = march_rays(o, d, field.grid, field.sigma_fn, default_step(field, RenderSettings()))
+    densities alone, so the same samples are taken before and after an edit).  ``cam``: (K, c2w)
+    instead of the view angle."""
+    K, c2w = cam if cam is not None else camera(view)
+    s = _samples(field, K, c2w, size)
     hit = torch.zeros(field.num_vertices, dtype=torch.bool)
     hit[torch.as_tensor(np.asarray(vertices))] = True
-    per_sample = (hit[s.aux.idx] & s.aux.valid).any(1)
-    out = torch.zeros(SIZE * SIZE, dtype=torch.bool)
-    out[s.ray_indices[per_sample]] = True
-    return out.view(SIZE, SIZE).numpy()
+    return _per_pixel(size, s.ray_indices, (hit[s.aux.idx] & s.aux.valid).any(1))
 
 
-def only_touching(field, vertices, view=0.0) -> np.ndarray:
+def only_touching(field, vertices, view=0.0, cam=None, size=SIZE) -> np.ndarray:
     """(H,W) bool: pixels with samples whose every neighbour lies in ``vertices``, and no other samples."""
-    K, c2w = camera(view)
-    o, d = nm.pixel_rays(K, c2w, SIZE, SIZE)
-    s = march_rays(o, d, field.grid, field.sigma_fn, default_step(field, RenderSettings()))
+    K, c2w = cam if cam is not None else camera(view)
+    s = _samples(field, K, c2w, size)
     inside = torch.zeros(field.num_vertices, dtype=torch.bool)
     inside[torch.as_tensor(np.asarray(vertices))] = True
     pure = (inside[s.aux.idx] | ~s.aux.valid).all(1)
-    bad = torch.zeros(SIZE * SIZE, dtype=torch.bool)
-    bad[s.ray_indices[~pure]] = True
-    any_ = torch.zeros(SIZE * SIZE, dtype=torch.bool)
-    any_[s.ray_indices] = True
-    return (any_ & ~bad).view(SIZE, SIZE).numpy()
+    any_ = _per_pixel(size, s.ray_indices, torch.ones_like(pure))
+    return any_ & ~_per_pixel(size, s.ray_indices, ~pure)
 
 
 def masked_psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:

@@ -138,3 +138,16 @@ def test_bad_uvs_are_refused_and_change_nothing(blob_mesh):
     with pytest.raises(ValueError, match="tex_dim"):
         fill_texture(f, np.arange(50), uvs, textured_field(blob_mesh, tex_dim=4), np.arange(50), uvs)
     assert torch.equal(f.tex_codes, before) and f.num_decoders == 1
+
+
+def test_planar_uvs_unwrap_a_flat_region_to_the_unit_square():
+    from neumesh_core.edit import planar_uvs
+
+    mesh, uv = _grid(8)
+    R = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]
+    got = planar_uvs(mesh.vertices @ R.T + 5.0)     # a tilted, moved copy of the grid
+    assert got.min() >= 0 and np.isclose(got.max(), 1.0)
+    d_got = np.linalg.norm(got[:, None] - got[None], axis=-1)
+    d_uv = np.linalg.norm(uv[:, None] - uv[None], axis=-1)
+    # distances kept up to one scale (a square's principal axes may lie along its diagonals)
+    assert np.allclose(d_got / d_got.max(), d_uv / d_uv.max(), atol=1e-9)

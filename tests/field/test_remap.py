@@ -10,6 +10,7 @@ import neumesh_core as nm
 from neumesh_core.field.remap import field_key, is_identity, remap_field, resolve_ids
 
 from ..conftest import textured_field
+from ..edit.helpers import only_touching
 
 
 def _cam(size=40, az=0.0):
@@ -65,27 +66,9 @@ def test_a_subset_renders_only_its_part(blob_mesh):
     assert g.num_vertices == len(keep)
     full, part = _render(f, az=90.0), _render(g, az=90.0)
     assert part.opacity.sum() < 0.8 * full.opacity.sum()      # the deleted half is gone
-    pure = _pure_pixels(f, keep, 90.0)
+    pure = only_touching(f, keep, cam=_cam(40, 90.0), size=40)
     assert pure.sum() > 100
     assert np.abs(part.rgb[pure] - full.rgb[pure]).max() < 2e-3
-
-
-def _pure_pixels(f, vertices, az, size=40):
-    """Pixels whose samples all look up only ``vertices`` (and have samples)."""
-    from neumesh_core.render.renderer import RenderSettings, default_step
-    from neumesh_core.sampling.marcher import march_rays
-
-    K, c2w = _cam(size, az)
-    o, d = nm.pixel_rays(K, c2w, size, size)
-    s = march_rays(o, d, f.grid, f.sigma_fn, default_step(f, RenderSettings()))
-    inside = torch.zeros(f.num_vertices, dtype=torch.bool)
-    inside[torch.as_tensor(vertices)] = True
-    ok = (inside[s.aux.idx] | ~s.aux.valid).all(1)
-    bad = torch.zeros(size * size, dtype=torch.bool)
-    bad[s.ray_indices[~ok]] = True
-    has = torch.zeros(size * size, dtype=torch.bool)
-    has[s.ray_indices] = True
-    return (has & ~bad).view(size, size).numpy()
 
 
 def test_a_moved_duplicate_renders_like_the_original_moved(blob_mesh):
