@@ -319,6 +319,16 @@ def _select_vertices(me, mask) -> None:
         bm.free()
 
 
+def viewport_region_at(area, x: int, y: int):
+    """The 3D view's main ('WINDOW') region of ``area`` under window coordinates (x, y), or None."""
+    if area is None or area.type != "VIEW_3D":
+        return None
+    for r in area.regions:
+        if r.type == "WINDOW" and r.x <= x < r.x + r.width and r.y <= y < r.y + r.height and r.data is not None:
+            return r
+    return None
+
+
 class NEUMESH_OT_select_by_click(bpy.types.Operator):
     """Click on the rendered object: the part under the cursor becomes a vertex group and the edit-mode
     selection (Esc cancels)"""
@@ -371,12 +381,13 @@ class NEUMESH_OT_select_by_click(bpy.types.Operator):
             self._end(context)
             return {"CANCELLED"}
         if event.type == "LEFTMOUSE" and event.value == "PRESS":
-            region, rv3d = context.region, context.region_data
+            # the operator may have been started from the sidebar: find the 3D view region under the
+            # mouse (window coordinates), not the region it was invoked from
+            region = viewport_region_at(context.area, event.mouse_x, event.mouse_y)
+            if region is None:
+                return {"PASS_THROUGH"}   # a click on the sidebar/header: not a pick
             self._end(context)
-            if region is None or rv3d is None or region.type != "WINDOW":
-                self.report({"ERROR"}, "NeuMesh: click inside the 3D viewport")
-                return {"CANCELLED"}
-            self.store_view(region, rv3d, event.mouse_region_x, event.mouse_region_y)
+            self.store_view(region, region.data, event.mouse_x - region.x, event.mouse_y - region.y)
             return self.execute(context)
         return {"PASS_THROUGH"}   # navigation keeps working while waiting for the click
 

@@ -10,7 +10,7 @@
    With --blender the same clicks also go through the add-on's Select by click operator in bpy (click
    to vertex group and edit-mode selection).
 3. A picture per click: the view as the field renders it with the click marked, and the selection
-   tinted orange (--pictures PNG, one row per click).
+   tinted magenta and the rest darkened (--pictures PNG, one row per click).
 4. On the built-in multi-part scene (the data folder holds part_labels.npy) the clicks are chosen from
    the ground truth when none are given, and the IoU per part is reported.
 
@@ -59,7 +59,7 @@ def label_clicks(data: str, split: str):
     return [(name, i, xy, p) for name, (_, i, xy, p) in best.items()]
 
 
-def tinted_render(field, K, c2w, w, h, vertices, tint=(1.0, 0.55, 0.0), amount=0.7, dim=0.35):
+def tinted_render(field, K, c2w, w, h, vertices, tint=(1.0, 0.0, 1.0), amount=0.8, dim=0.35):
     """The field's render with the selected vertices' modification colours pulled towards ``tint`` and
     every other vertex darkened by ``dim`` (a temporary change, undone before returning)."""
     import torch
@@ -223,9 +223,6 @@ def main(argv=None) -> int:
     if rows:
         result["click_seconds"] = {"first": rows[0]["seconds"], "max_later": max([r["seconds"] for r in rows[1:]] or [0]),
                                    "max_redo": max(r["redo_seconds"] for r in rows)}
-    if args.blender and clicks:
-        path = args.save if args.save and not args.skip_distil else args.field
-        result["blender_clicks"] = blender_clicks(path, cams, clicks, args.threshold)
     if tiles:
         from skimage.transform import resize
 
@@ -234,6 +231,13 @@ def main(argv=None) -> int:
         nm.save_image(args.pictures, np.concatenate(rows_img, 0))
         print(f"wrote {args.pictures} ({os.path.getsize(args.pictures) // 1024} KB)")
         result["pictures"] = args.pictures
+    if args.blender and clicks:
+        path = args.field
+        if not args.skip_distil:   # the add-on reads the distilled field from a file
+            path = args.save or os.path.join(os.environ.get("TMPDIR", "/tmp"), "bench_semantics_field.neumesh")
+            if not args.save:
+                nm.save_field(field, path)
+        result["blender_clicks"] = blender_clicks(path, cams, clicks, args.threshold)
     name = args.name or "semantics_" + os.path.splitext(os.path.basename(args.field))[0] + ".json"
     write_results(result, name)
     return 0
