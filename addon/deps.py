@@ -32,6 +32,8 @@ DEPENDENCIES = (
     ("scipy", "scipy", False, "scipy"),
     ("pykdtree", "pykdtree", False, "pykdtree"),
     ("trimesh", "trimesh", False, "trimesh"),
+    ("sklearn", "scikit-learn", False, "scikit-learn"),    # semantic selection (DBSCAN)
+    ("skimage", "scikit-image", False, "scikit-image"),    # semantic distillation (superpixels)
 )
 PIP_REQUIREMENTS = tuple(d[3] for d in DEPENDENCIES)
 

@@ -77,6 +77,7 @@ class Item:
     path: str          # absolute field path
     vertices: np.ndarray  # (N,3) float32 world space, evaluated
     field: object = None  # a remapped field (None: the object's own cached field)
+    mesh_index: np.ndarray | None = None   # the mesh vertices of a remapped field (its vertex order)
 
 
 @dataclass
@@ -179,8 +180,26 @@ def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
             return f[(f >= 0).all(1)]
         name = f"{orig.name_full}#{int(k)}"
         field = _derived(name, source, vid[sel], rest[sel], signature + (int(k),), faces_fn)
-        items.append(Item(name, spath, verts[sel], field))
+        items.append(Item(name, spath, verts[sel], field, sel))
     return items
+
+
+def object_field(obj, depsgraph):
+    """(field, mesh_index) of ``obj`` posed as it renders now: its own field's vertices as the mesh's
+    vertices (``mesh_index`` None: vertex i is mesh vertex i), or for a remapped mesh the remapped field
+    of the object's own field and the mesh vertex of each of its vertices."""
+    from . import props
+
+    path = props.field_abspath(obj)
+    ob = obj.evaluated_get(depsgraph)
+    items = _object_items(ob, obj, path, depsgraph, True)
+    own = [it for it in items if it.field is None or it.path == path]
+    it = own[0] if own else items[0]
+    with _LOCK:
+        if it.field is None:
+            get_field(it.key, it.path)
+        field = _apply_vertices(it)
+    return field, it.mesh_index
 
 
 def collect(depsgraph, for_render: bool = True) -> list[Item]:

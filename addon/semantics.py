@@ -256,14 +256,17 @@ _CONTEXTS: dict = {}   # object name -> SelectionContext (vertex features + grap
 
 
 def _posed_field(obj, context):
-    """The object's field (the render cache's instance) posed at the object's evaluated vertices."""
-    path = _field_path(obj)
-    field = render.get_field(obj.name_full, path)
+    """(field, mesh_index): the object's field posed at its evaluated vertices (the render cache's
+    instance; for a mesh changed by topology edits, the field remapped onto it) and the mesh vertex of
+    each field vertex (None: the same order)."""
+    _field_path(obj)
     depsgraph = context.evaluated_depsgraph_get()
-    verts = sync.evaluated_world_vertices(obj, depsgraph, expected_count=int(field.num_vertices))
-    with render._LOCK:
-        render._apply_vertices(render.Item(obj.name_full, path, verts))
-    return field
+    n_eval = len(obj.evaluated_get(depsgraph).data.vertices)
+    if n_eval != len(obj.data.vertices):
+        raise SemanticsError(f"'{obj.name}' has modifiers that add or remove vertices ({n_eval} evaluated, "
+                             f"{len(obj.data.vertices)} in the mesh); disable them (e.g. Subdivision Surface) "
+                             "while selecting, so the selection lands on the mesh's own vertices")
+    return render.object_field(obj, depsgraph)
 
 
 def _context_for(obj, field, nm):
@@ -429,10 +432,7 @@ class NEUMESH_OT_select_by_click(bpy.types.Operator):
         try:
             nm = core.get()
             K, c2w, w, h = self._view(context)
-            field = _posed_field(obj, context)
-            if len(obj.data.vertices) != field.num_vertices:
-                raise SemanticsError(f"'{obj.name}' has {len(obj.data.vertices)} vertices but its field has "
-                                     f"{field.num_vertices}")
+            field, mesh_index = _posed_field(obj, context)
             ctx = _context_for(obj, field, nm)
             cfg = nm.semantics.SelectConfig(threshold=self.threshold,
                                             segmenter="features" if self.use_segmenter else None)
@@ -444,7 +444,8 @@ class NEUMESH_OT_select_by_click(bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
         name = self.group_name.strip() or DEFAULT_GROUP
-        write_selection(obj, sel.vertices, name, replace=self.mode == "REPLACE")
+        picked = np.asarray(sel.vertices) if mesh_index is None else mesh_index[np.asarray(sel.vertices)]
+        write_selection(obj, picked, name, replace=self.mode == "REPLACE")
         self.report({"INFO"}, f"NeuMesh: {len(sel.vertices)} vertices in group '{name}' "
                               f"({time.perf_counter() - t0:.2f}s)")
         return {"FINISHED"}
@@ -462,8 +463,13 @@ class NEUMESH_OT_semantic_colours(bpy.types.Operator):
         obj = context.active_object
         try:
             nm = core.get()
-            field = render.get_field(obj.name_full, _field_path(obj))
+            _field_path(obj)
+            field, mesh_index = render.object_field(obj, context.evaluated_depsgraph_get())
             feats = field.vertex_semantics().cpu().numpy().astype(np.float64)
+            if mesh_index is not None:   # a remapped mesh: features onto its vertices (others stay 0)
+                full = np.zeros((len(obj.data.vertices), feats.shape[1]))
+                full[mesh_index] = feats
+                feats = full
         except (SemanticsError, core.CoreUnavailable) as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}

@@ -164,3 +164,25 @@ def test_semantic_colours(addon, parts_data):
     # parts get different colours: every pair of part means differs clearly
     gaps = [np.abs(means[i] - means[j]).max() for i in range(4) for j in range(i + 1, 4)]
     assert min(gaps) > 0.1, means
+
+
+def test_click_after_deleting_part_of_the_mesh_selects_mesh_vertices(addon, parts_data):
+    """Topology edits: after deleting the base, the click maps the remapped field's vertices back to
+    the mesh's own vertex indices (which shifted with the deletion)."""
+    import bmesh
+
+    _, _, sem, labels = parts_data
+    obj, cam = _scene(sem)
+    head = _click_on(addon, cam, 1)
+    bm = bmesh.new()
+    bm.from_mesh(obj.data)
+    bm.verts.ensure_lookup_table()
+    bmesh.ops.delete(bm, geom=[bm.verts[int(i)] for i in np.nonzero(labels == 3)[0]], context="VERTS")
+    bm.to_mesh(obj.data)
+    bm.free()
+    kept = np.nonzero(labels != 3)[0]               # mesh vertex i is now field vertex kept[i]
+    assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="head") == {"FINISHED"}
+    got = _group(obj, "head")
+    gt = np.nonzero(labels[kept] == 1)[0]
+    inter = len(np.intersect1d(got, gt))
+    assert inter / len(got) > 0.9 and inter / len(gt) > 0.8
