@@ -217,49 +217,9 @@ def _local_rotations(rest: np.ndarray, cur: np.ndarray, edges: np.ndarray, both=
     return polar_rotations(S)
 
 
-def _cofactor(M: np.ndarray) -> np.ndarray:
-    """Cofactor matrices of (n,3,3) M: det(M) M^{-T}, from cross products of the columns."""
-    c0, c1, c2 = M[:, :, 0], M[:, :, 1], M[:, :, 2]
-    return np.stack([np.cross(c1, c2), np.cross(c2, c0), np.cross(c0, c1)], axis=2)
-
-
-def polar_rotations(S: np.ndarray, iterations: int = 12) -> np.ndarray:
-    """(n,3,3) proper rotations nearest to the (n,3,3) matrices ``S`` (the rotation factor of their polar
-    decomposition, as the SVD U diag(1,1,det) V^T gives it).
-
-    Fast path: Higham's scaled Newton iteration R <- (zeta R + (zeta R)^-T) / 2 with closed-form 3x3
-    inverses (a few vectorised cross products instead of a batched SVD, ~10x faster); rows that are
-    near singular, have a negative determinant or do not converge go through the SVD reference
-    (:func:`polar_rotations_svd`).
-    """
-    S = np.asarray(S, np.float64)
-    scale = np.linalg.norm(S.reshape(len(S), 9), axis=1)[:, None, None]
-    R = S / np.maximum(scale, 1e-300)
-    det = np.einsum("nij,nij->n", R, _cofactor(R)) / 3.0    # sum_ij R_ij cof_ij = 3 det(R)
-    ok = det > 1e-6          # |R| = 1, so det <= 0.19; smaller means near singular (or a reflection)
-    Rk = R[ok]
-    for _ in range(iterations):
-        cof = _cofactor(Rk)
-        d = np.einsum("nij,nij->n", Rk, cof) / 3.0          # det, as (1/3) trace(R^T cof(R))
-        inv_t = cof / d[:, None, None]
-        zeta = (np.linalg.norm(inv_t.reshape(-1, 9), axis=1) / np.linalg.norm(Rk.reshape(-1, 9), axis=1)) ** 0.5
-        nxt = 0.5 * (zeta[:, None, None] * Rk + inv_t / zeta[:, None, None])
-        delta = np.abs(nxt - Rk).max()
-        Rk = nxt
-        if delta < 1e-12:
-            break
-    out = np.empty_like(R)
-    out[ok] = Rk
-    orth = np.abs(np.einsum("nji,njk->nik", out[ok], out[ok]) - np.eye(3)).max(axis=(1, 2)) < 1e-9
-    ok_idx = np.nonzero(ok)[0]
-    ok[ok_idx[~orth]] = False
-    if (~ok).any():
-        out[~ok] = polar_rotations_svd(S[~ok])
-    return out
-
-
-def polar_rotations_svd(S: np.ndarray) -> np.ndarray:
-    """Reference for :func:`polar_rotations`: U diag(1,1,det(U V^T)) V^T from a batched SVD."""
+def polar_rotations(S: np.ndarray) -> np.ndarray:
+    """(n,3,3) proper rotations nearest to the (n,3,3) matrices ``S``: U diag(1,1,det(U V^T)) V^T from a
+    batched SVD (the rotation factor of the polar decomposition; identity for a zero matrix)."""
     U, _, Vt = np.linalg.svd(np.asarray(S, np.float64))
     det = np.linalg.det(U @ Vt)
     U[:, :, 2] *= np.where(det < 0, -1.0, 1.0)[:, None]
@@ -270,7 +230,7 @@ def polar_rotations_svd(S: np.ndarray) -> np.ndarray:
 
 
 def arap_icp(src_points: np.ndarray, src_edges: np.ndarray, dst_points: np.ndarray,
-             iterations: int = 20, stiffness=(20.0, 10.0, 5.0, 2.0, 1.0), max_distance: Optional[float] = None,
+             iterations: int = 12, stiffness=(10.0, 3.0, 1.0), max_distance: Optional[float] = None,
              tree=None, progress: Optional[Callable[[float], bool]] = None) -> NonRigidResult:
     """As-rigid-as-possible regularised non-rigid ICP of a source region onto target points.
 

@@ -174,7 +174,7 @@ def add_commands(sub) -> None:
     q.add_argument("--pairs", help="3 or more correspondences: rows 'source_vertex target_vertex' or "
                                    "six numbers 'sx sy sz tx ty tz' (.npy or text); default: automatic")
     q.add_argument("--rigid", action="store_true", help="skip the non-rigid refinement")
-    q.add_argument("--iterations", type=int, default=20, help="non-rigid ICP iterations (default 20)")
+    q.add_argument("--iterations", type=int, default=12, help="non-rigid ICP iterations (default 12)")
     q.add_argument("--no-scale", action="store_true", help="rigid alignment without scaling")
     q.add_argument("--no-frames", action="store_true",
                    help="do not rotate normals/view directions into the source's orientation")

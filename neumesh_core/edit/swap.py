@@ -35,9 +35,9 @@ class SwapConfig:
 
     k: int = 4                          # source vertices blended per target vertex
     nonrigid: bool = True               # run the ARAP non-rigid refinement after the similarity
-    nonrigid_iterations: int = 20
-    stiffness: tuple = (20.0, 10.0, 5.0, 2.0, 1.0)   # ARAP weight per iteration, stiff to flexible
-    max_match_edges: float = 5.0        # non-rigid matches farther than this (x mean edge) are ignored
+    nonrigid_iterations: int = 12
+    stiffness: tuple = (10.0, 3.0, 1.0)  # ARAP weight per iteration, stiff to flexible
+    max_match_edges: float = 20.0       # non-rigid matches farther than this (x mean edge) are ignored
     refine_pairs: bool = False          # with pairs: also refine the similarity by rigid ICP
     with_scale: bool = True             # the similarity may scale (Umeyama with scale)
     match_orientation: bool = True      # texture frames: the source decoder sees its own orientation
