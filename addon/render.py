@@ -149,6 +149,15 @@ def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
     vid, rest, key = ident
     verts = sync.to_world(sync.mesh_vertices(mesh), ob.matrix_world)
     own_key = identity.key_of(own)
+    # keys this scene knows; any other value (interpolated by a modifier between vertices, lost, or the
+    # key of this object's field before it was trained further) counts as the object's own field
+    known = {own_key: (own, path)}
+    for k in np.unique(key):
+        if int(k) != own_key:
+            spath = identity.lookup(depsgraph.scene, int(k))
+            if spath is not None and os.path.isfile(spath):
+                known[int(k)] = (_source(spath), spath)
+    key = np.where(np.isin(key, list(known)), key, own_key)
     if len(vid) == own.num_vertices and (key == own_key).all() and np.array_equal(vid, np.arange(len(vid))):
         ok = identity._remap().resolve_ids(own, vid, rest)
         if (ok >= 0).all():   # exactly the field's vertices, in order: the field itself
@@ -157,15 +166,6 @@ def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
     items = []
     signature = (len(mesh.vertices), len(mesh.polygons), len(mesh.loops))
     tri = None
-    # keys this scene knows; any other value (interpolated by a modifier between vertices, or lost)
-    # makes a new vertex of the object's own field
-    known = {own_key: (own, path)}
-    for k in np.unique(key):
-        if int(k) != own_key:
-            spath = identity.lookup(depsgraph.scene, int(k))
-            if spath is not None and os.path.isfile(spath):
-                known[int(k)] = (_source(spath), spath)
-    key = np.where(np.isin(key, list(known)), key, own_key)
     for k in np.unique(key):
         sel = np.nonzero(key == k)[0]
         source, spath = known[int(k)]

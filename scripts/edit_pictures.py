@@ -2,7 +2,7 @@
 (and a swap from DTU scan24 onto lego, which needs the source decoder to travel).
 
     .venv/bin/python scripts/edit_pictures.py --lego runs/lego/field.neumesh \
-        --lego-data ../shared/data/nerf_synthetic/lego --dtu runs/dtu/field.neumesh --out docs
+        --lego-data ../shared/data/nerf_synthetic/lego --dtu runs/dtu/field.neumesh --out docs/images
 
 Regions are picked the way an artist would with a box select, here as boxes in each scene's
 coordinates plus a colour test on the field's own decoded colour (lego's tracks are the dark brown
@@ -108,7 +108,7 @@ def main(argv=None) -> int:
     ap.add_argument("--lego", required=True, help="trained lego field")
     ap.add_argument("--lego-data", required=True, help="lego dataset (its val cameras are used)")
     ap.add_argument("--dtu", help="trained DTU scan24 field (for the swap from DTU)")
-    ap.add_argument("--out", default="docs", help="output folder (default docs)")
+    ap.add_argument("--out", default="docs/images", help="output folder (default docs/images)")
     args = ap.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
     figures = {}
