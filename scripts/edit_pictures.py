@@ -1,14 +1,18 @@
-"""The README's edit pictures, re-runnable: texture fill, texture swap and texture painting on lego
-(and a swap from DTU scan24 onto lego, which needs the source decoder to travel).
+"""The README's edit pictures, re-runnable: texture fill, texture swap and texture painting on lego.
+The swap takes its texture from another trained field (the built-in scene by default), which only
+renders right because that field's decoder travels with its codes.
 
+    .venv/bin/neumesh train --data ~/.cache/neumesh/<default scene> --steps 1500 --out runs/blob.neumesh
     .venv/bin/python scripts/edit_pictures.py --lego runs/lego/field.neumesh \
-        --lego-data ../shared/data/nerf_synthetic/lego --dtu runs/dtu/field.neumesh --out docs/images
+        --lego-data ../shared/data/nerf_synthetic/lego --source runs/blob.neumesh --out docs/images
 
 Regions are picked the way an artist would with a box select, here as boxes in each scene's
 coordinates plus a colour test on the field's own decoded colour (lego's tracks are the dark brown
-vertices in the tracks' box).  UVs for the fill are planar projections (each region's two widest
-principal axes).  Writes edit_fill.png, edit_swap_dtu.png and edit_paint.png (before on top, after
-below), and edit_pictures.json with the figures of each edit.
+vertices in the tracks' box); the swap's source region is the cap of the source field around the
+point its surface has in ``--source-dir`` from its centre, as many vertices as the target.  UVs for
+the fill are planar projections (each region's two widest principal axes).  Writes edit_fill.png,
+edit_swap.png and edit_paint.png (before on top, after below), and edit_pictures.json with the
+figures of each edit.
 """
 from __future__ import annotations
 
@@ -107,7 +111,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--lego", required=True, help="trained lego field")
     ap.add_argument("--lego-data", required=True, help="lego dataset (its val cameras are used)")
-    ap.add_argument("--dtu", help="trained DTU scan24 field (for the swap from DTU)")
+    ap.add_argument("--source", help="another trained field whose texture the bucket takes (the swap picture)")
+    ap.add_argument("--source-dir", default="0,-1,0.3", help="where on the source to take it: a direction "
+                                                           "from its centre (default 0,-1,0.3)")
     ap.add_argument("--out", default="docs/images", help="output folder (default docs/images)")
     args = ap.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
@@ -129,26 +135,28 @@ def main(argv=None) -> int:
     sheet([[render(lego, cams, i) for i in views], [render(filled, cams, i) for i in views]],
           os.path.join(args.out, "edit_fill.png"), ["before", "fill: bucket <- tracks (UV, scale 2)"])
 
-    # swap: the bucket takes the texture of a part of DTU scan24 (another field, another decoder)
-    if args.dtu:
-        dtu = nm.load_field(args.dtu)
-        dv = dtu.rest_vertices.numpy()
-        dn = dtu.rest_normals.numpy()
-        # the most camera-facing part of the scan: vertices whose normal points to the mean camera
-        facing = np.nonzero(dn @ np.array([0.0, 0.0, -1.0]) > 0.8)[0]
-        src = facing[np.argsort(np.linalg.norm(dv[facing] - dv[facing].mean(0), axis=1))[:len(reg["bucket"])]]
+    # swap: the bucket takes the texture of a part of another field (another decoder)
+    if args.source:
+        src = nm.load_field(args.source)
+        src.eval()
+        sv = src.rest_vertices.numpy().astype(np.float64)
+        direction = np.array([float(x) for x in args.source_dir.split(",")])
+        direction /= np.linalg.norm(direction)
+        c = sv.mean(0)
+        tip = sv[np.argmax((sv - c) @ direction)]
+        cap = np.argsort(np.linalg.norm(sv - tip, axis=1))[:len(reg["bucket"])]
         swapped = copy.deepcopy(lego)
-        srec = nm.swap_texture(swapped, reg["bucket"], dtu, src)
+        srec = nm.swap_texture(swapped, reg["bucket"], src, cap)
         bad = copy.deepcopy(swapped)
-        with torch.no_grad():     # what it would look like without the source decoder
+        with torch.no_grad():     # the same codes decoded by lego's own decoder
             bad.decoder_id.zero_()
-        figures["swap_dtu"] = {k: srec.info[k] for k in ("residual_rigid", "residual", "scale", "align_s",
-                                                           "nonrigid_s", "transfer_s", "seconds")}
-        figures["swap_dtu"]["target_vertices"] = srec.num_changed
+        figures["swap"] = {k: srec.info[k] for k in ("residual_rigid", "residual", "scale", "align_s",
+                                                       "nonrigid_s", "transfer_s", "seconds")}
+        figures["swap"].update(target_vertices=srec.num_changed, source=args.source, decoders=swapped.num_decoders)
         sheet([[render(lego, cams, i) for i in views], [render(swapped, cams, i) for i in views],
                [render(bad, cams, i) for i in views]],
-              os.path.join(args.out, "edit_swap_dtu.png"),
-              ["before", "swap: bucket <- DTU scan24 (its decoder travels)", "the same codes on lego's decoder"])
+              os.path.join(args.out, "edit_swap.png"),
+              ["before", "swap: bucket <- another field (its decoder travels)", "the same codes on lego's decoder"])
 
     # paint on one view, seen from two others
     pv = best_views(lego, reg["bucket"], cams, n=1)[0]
