@@ -269,13 +269,49 @@ def _posed_field(obj, context):
     return render.object_field(obj, depsgraph)
 
 
+_PREPARING: dict = {}   # object name -> thread building its SelectionContext (see prepare_selection)
+
+
 def _context_for(obj, field, nm):
+    job = _PREPARING.pop(obj.name_full, None)
+    if job is not None:
+        job.join()   # the context started when the operator was invoked (usually done by the click)
     ctx = _CONTEXTS.get(obj.name_full)
     if ctx is None or not ctx.matches(field):
         ctx = nm.semantics.SelectionContext(field)
         _CONTEXTS.clear()   # one object's features at a time (they can be large)
         _CONTEXTS[obj.name_full] = ctx
     return ctx
+
+
+def prepare_selection(obj, context):
+    """Start building ``obj``'s selection context (vertex features, KD-tree, neighbour graph) in a
+    background thread, so that the click itself only pays for the pick and the region growing.  Called
+    when Select by click starts waiting for the click; returns the thread (None when the context is
+    already current or the object cannot be selected on: the click then reports the error)."""
+    try:
+        nm = core.get()
+        field, _ = _posed_field(obj, context)
+        field._require_semantics()
+    except Exception:  # noqa: BLE001  (errors are reported by the click, with their message)
+        return None
+    name = obj.name_full
+    ctx = _CONTEXTS.get(name)
+    if (ctx is not None and ctx.matches(field)) or name in _PREPARING:
+        return None
+
+    def build():
+        try:
+            c = nm.semantics.SelectionContext(field).prepare()
+        except Exception:  # noqa: BLE001  (rebuilt, with its error, on the click)
+            return
+        _CONTEXTS.clear()
+        _CONTEXTS[name] = c
+
+    job = threading.Thread(target=build, name="neumesh-select-context", daemon=True)
+    _PREPARING[name] = job
+    job.start()
+    return job
 
 
 def write_selection(obj, vertices, group_name: str, replace: bool = True):
@@ -368,6 +404,8 @@ class NEUMESH_OT_select_by_click(bpy.types.Operator):
             self.report({"ERROR"}, "NeuMesh: Select by click runs in a 3D viewport")
             return {"CANCELLED"}
         context.window_manager.modal_handler_add(self)
+        if context.active_object is not None:
+            prepare_selection(context.active_object, context)   # features + graph while the artist aims
         context.area.header_text_set("NeuMesh: click a part of the object (Esc / right click cancels)")
         context.window.cursor_modal_set("EYEDROPPER")
         return {"RUNNING_MODAL"}

@@ -118,6 +118,30 @@ def test_the_viewport_click_path_uses_the_stored_view(addon, parts_data):
     assert np.array_equal(_group(obj, "viewport"), _group(obj, "camera"))
 
 
+def test_context_prepared_before_the_click_gives_the_same_group(addon, parts_data):
+    """Select by click starts building the selection context when it starts waiting for the click
+    (prepare_selection, a background thread); the click then uses it and selects what a cold click
+    selects."""
+    _, _, sem, _ = parts_data
+    obj, cam = _scene(sem)
+    head = _click_on(addon, cam, 1)
+    addon.semantics._CONTEXTS.clear()
+    assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="cold") == {"FINISHED"}
+    addon.semantics._CONTEXTS.clear()
+    job = addon.semantics.prepare_selection(obj, bpy.context)
+    assert job is not None
+    job.join()
+    ctx = addon.semantics._CONTEXTS[obj.name_full]
+    assert ctx._graph is not None and ctx._tree is not None   # built before the click
+    assert addon.semantics.prepare_selection(obj, bpy.context) is None   # already current: nothing to do
+    assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="warm") == {"FINISHED"}
+    assert addon.semantics._CONTEXTS[obj.name_full] is ctx                # reused, not rebuilt
+    assert np.array_equal(_group(obj, "warm"), _group(obj, "cold"))
+    # a field without semantics: nothing is started, the click reports the error
+    plain_obj, _ = _scene(parts_data[1])
+    assert addon.semantics.prepare_selection(plain_obj, bpy.context) is None
+
+
 def test_click_errors(addon, parts_data):
     _, plain, sem, _ = parts_data
     obj, cam = _scene(sem)

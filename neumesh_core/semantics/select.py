@@ -83,6 +83,13 @@ class SelectionContext:
         """Still valid for ``field`` (same object, same pose)?"""
         return field is self.field and np.array_equal(np.asarray(field.vertices, np.float32), self.vertices)
 
+    def prepare(self) -> "SelectionContext":
+        """Build the KD-tree and the region-growing graph now (they are otherwise built by the first
+        click); the add-on calls this in a background thread while the artist moves to the click."""
+        self.tree
+        self.graph
+        return self
+
     @property
     def tree(self):
         if self._tree is None:
