@@ -67,8 +67,9 @@ def write(obj, field) -> None:
     me.update()
 
 
-def read(mesh):
-    """(vid (N,) int64, rest (N,3) float64, key (N,) int64) of a mesh, or None without the attributes."""
+def read(mesh, raw: bool = False):
+    """(vid (N,) int64, rest (N,3) float64, key (N,) int64) of a mesh, or None without the attributes.
+    ``raw``: as stored (int32, float32), for cheap comparisons between frames."""
     attrs = mesh.attributes
     if any(attrs.get(a) is None for a in ATTRS):
         return None
@@ -81,6 +82,8 @@ def read(mesh):
     attrs[ATTR_VID].data.foreach_get("value", vid)
     attrs[ATTR_KEY].data.foreach_get("value", key)
     attrs[ATTR_REST].data.foreach_get("vector", rest)
+    if raw:
+        return vid, rest.reshape(n, 3), key
     return vid.astype(np.int64), rest.reshape(n, 3).astype(np.float64), key.astype(np.int64)
 
 

@@ -69,6 +69,7 @@ def clear_cache():
         _CACHE.clear()
         _DERIVED.clear()
         _SOURCES.clear()
+        _IDENTITY_MEMO.clear()
 
 
 @dataclass
@@ -93,6 +94,9 @@ class _Derived:
 
 _DERIVED: dict[str, _Derived] = {}
 _SOURCES: dict[str, _Entry] = {}   # fields loaded for a joined-in key (read-only; shared)
+# object name -> (its field, vid, rest, key as read) of the last mesh whose ids were exactly that field's
+# vertices in order: while they do not change (the mesh only deforms), the check is one comparison
+_IDENTITY_MEMO: dict[str, tuple] = {}
 
 
 def _source(path: str):
@@ -134,7 +138,7 @@ def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
 
     own = get_field(orig.name_full, path)
     mesh = ob.data if hasattr(ob, "data") and hasattr(ob.data, "attributes") else None
-    ident = identity.read(mesh) if mesh is not None else None
+    ident = identity.read(mesh, raw=True) if mesh is not None else None
     if ident is None:   # the strict path: the evaluated mesh must be the field's vertices in order
         try:
             verts = sync.evaluated_world_vertices(orig, depsgraph, expected_count=int(own.num_vertices),
@@ -146,8 +150,13 @@ def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
                 "removed, or the field was attached before they existed. Undo the change, or Load field "
                 "on the field's own mesh (New object) to get them back") from exc
         return [Item(orig.name_full, path, verts)]
-    vid, rest, key = ident
     verts = sync.to_world(sync.mesh_vertices(mesh), ob.matrix_world)
+    signature = (len(mesh.vertices), len(mesh.polygons), len(mesh.loops))
+    items = _memo_items(orig.name_full, own, path, ident, signature, verts, depsgraph.scene)
+    if items is not None:   # the same ids as the last frame (the mesh only moved)
+        return items
+    raw = ident
+    vid, rest, key = raw[0].astype(np.int64), raw[1].astype(np.float64), raw[2].astype(np.int64)
     own_key = identity.key_of(own)
     # keys this scene knows; any other value (interpolated by a modifier between vertices, lost, or the
     # key of this object's field before it was trained further) counts as the object's own field
@@ -158,13 +167,14 @@ def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
             if spath is not None and os.path.isfile(spath):
                 known[int(k)] = (_source(spath), spath)
     key = np.where(np.isin(key, list(known)), key, own_key)
+    memo_key = (own,) + tuple(a.copy() for a in raw) + (signature,)
     if len(vid) == own.num_vertices and (key == own_key).all() and np.array_equal(vid, np.arange(len(vid))):
         ok = identity._remap().resolve_ids(own, vid, rest)
         if (ok >= 0).all():   # exactly the field's vertices, in order: the field itself
             _DERIVED.pop(orig.name_full, None)
+            _IDENTITY_MEMO[orig.name_full] = (memo_key, None)
             return [Item(orig.name_full, path, verts)]
-    items = []
-    signature = (len(mesh.vertices), len(mesh.polygons), len(mesh.loops))
+    items, plan = [], []
     tri = None
     for k in np.unique(key):
         sel = np.nonzero(key == k)[0]
@@ -181,6 +191,35 @@ def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
         name = f"{orig.name_full}#{int(k)}"
         field = _derived(name, source, vid[sel], rest[sel], signature + (int(k),), faces_fn)
         items.append(Item(name, spath, verts[sel], field, sel))
+        plan.append((int(k) if int(k) != own_key else None, name, spath, source, field, sel))
+    _IDENTITY_MEMO[orig.name_full] = (memo_key, plan)
+    return items
+
+
+def _memo_items(name: str, own, path: str, ident, signature, verts, scene):
+    """The items of the last frame for ``verts`` when the mesh's ids, its counts and every field they
+    came from are unchanged (deformation only); None when they must be worked out again."""
+    from . import identity
+
+    memo = _IDENTITY_MEMO.get(name)
+    if memo is None:
+        return None
+    (m_own, *m_raw, m_sig), plan = memo
+    if m_own is not own or m_sig != signature or not all(np.array_equal(a, b) for a, b in zip(m_raw, ident)):
+        _IDENTITY_MEMO.pop(name, None)
+        return None
+    if plan is None:
+        return [Item(name, path, verts)]
+    items = []
+    for k, dname, spath, source, field, sel in plan:
+        if k is not None and (identity.lookup(scene, k) != spath or _source(spath) is not source):
+            _IDENTITY_MEMO.pop(name, None)
+            return None
+        d = _DERIVED.get(dname)
+        if d is None or d.field is not field:
+            _IDENTITY_MEMO.pop(name, None)
+            return None
+        items.append(Item(dname, spath, verts[sel], field, sel))
     return items
 
 
