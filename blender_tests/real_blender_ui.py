@@ -11,6 +11,11 @@ test_real_blender_ui.py in two steps.
    tabs with simulated Ctrl+Wheel until the NeuMesh panels draw, switches the view to Rendered
    shading through the scene camera, presses 'Check dependencies', saves OUT_DIR/window.png with
    Blender's own screenshot operator, prints what it found (NEUMESH_FACTS) and quits.
+3. ``... -- gui OUT_DIR docs`` (scripts/make_docs_images.py) also takes the documentation's pictures
+   (selection outline and camera wires hidden) after window.png: deform.png (a Simple Deform twist on
+   the object, the viewport rendering it and the modifier in the Properties editor), edit.png (the
+   sidebar's *Edit field* panels, opened, with the panels above them unregistered) and, after
+   error.png, prefs.png (the 3D View turned into the Preferences, the add-on's entry expanded).
 
 Every NeuMesh panel's draw() is wrapped to record that it ran and whether it raised.
 """
@@ -25,6 +30,25 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from real_blender_common import addon_module, facts, install_addon, script_args  # noqa: E402
 
 ARGS = script_args()
+EDIT_PANELS = ("NEUMESH_PT_edit", "NEUMESH_PT_swap", "NEUMESH_PT_fill", "NEUMESH_PT_paint", "NEUMESH_PT_semantics")
+TOP_PANELS = ("NEUMESH_PT_data", "NEUMESH_PT_scaffold", "NEUMESH_PT_train", "NEUMESH_PT_field")
+
+
+def open_edit_panels():
+    """Show the Edit field panels open (they are closed by default). Blender keeps a panel's open or
+    closed state by its name once drawn, so the panels are registered again under new names
+    (<name>_docs, children pointing at the new parent) without DEFAULT_CLOSED."""
+    classes = [getattr(bpy.types, n) for n in EDIT_PANELS]
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)
+    for cls in classes:
+        opts = next((c.__dict__["bl_options"] for c in cls.__mro__ if isinstance(c.__dict__.get("bl_options"), set)),
+                    set())
+        attrs = {"bl_idname": cls.__name__ + "_docs", "bl_options": set(opts) - {"DEFAULT_CLOSED"}}
+        parent = next((c.__dict__["bl_parent_id"] for c in cls.__mro__ if "bl_parent_id" in c.__dict__), "")
+        if parent:
+            attrs["bl_parent_id"] = parent + "_docs"
+        bpy.utils.register_class(type(cls.__name__ + "_docs", (cls,), attrs))
 
 
 # ------------------------------------------------------------------------------------------ setup
@@ -49,8 +73,9 @@ def setup(zip_path, field_path, dataset, out_dir):
 
 # ------------------------------------------------------------------------------------------ window
 class Driver:
-    def __init__(self, out_dir):
+    def __init__(self, out_dir, docs=False):
         self.out_dir = out_dir
+        self.docs = docs
         self.t0 = time.time()
         self.drawn: dict[str, int] = {}
         self.errors: list[str] = []
@@ -103,6 +128,9 @@ class Driver:
             self.errors.append(f"driver: timed out in state {self.state}")
             self.finish()
             return None
+        if self.state == "prefs":
+            return self._tick_error(self.window(), next(a for a in self.window().screen.areas
+                                                       if a.type == "PREFERENCES"))
         win, area, sidebar, main = self.view3d()
         scene = bpy.context.scene
         if self.state == "start":
@@ -122,6 +150,9 @@ class Driver:
                 space = area.spaces.active
                 space.region_3d.view_perspective = "CAMERA"
                 space.shading.type = "RENDERED"
+                if self.docs:  # the pictures show the render, not the selection outline and camera wires
+                    space.overlay.show_outline_selected = False
+                    space.overlay.show_extras = False
                 self.goto("render")
                 return 0.5
             if self.wheel_turns > 16:
@@ -153,11 +184,56 @@ class Driver:
                               viewport=[main.x, main.y, main.width, main.height],
                               window=[win.width, win.height], ui_scale=bpy.context.preferences.system.ui_scale)
             self.facts["viewport_errors"] = self.viewport_errors()
-            # an error long enough to need several lines: the field file goes missing
+            if self.docs:
+                self.goto("deform")
+                return 0.3
+            return self.start_error()
+        if self.state == "deform":
             obj = bpy.data.objects["blob"]
-            obj.neumesh.field_path = "//a folder that does not exist/with a long name/" + "x" * 40 + ".neumesh"
-            self.goto("error")
-            return 0.5
+            mod = obj.modifiers.new("Twist", "SIMPLE_DEFORM")
+            mod.deform_method, mod.deform_axis, mod.angle = "TWIST", "Z", 1.2
+            props = next((a for a in win.screen.areas if a.type == "PROPERTIES"), None)
+            if props is not None:
+                props.spaces.active.context = "MODIFIER"
+            self.serial_before = self.preview_serial()
+            self.goto("deform_wait")
+            return 1.0
+        if self.state == "deform_wait":
+            # the preview of the deformed object (a newer render than the one before it) is drawn
+            new = self.preview_serial() > self.serial_before
+            if not (new and self.preview_done()) and time.time() - self.state_t < 90:
+                return 0.5
+            self.docs_shot("deform.png", win, area)
+            self.facts["deform_errors"] = self.viewport_errors()
+            props = next((a for a in win.screen.areas if a.type == "PROPERTIES"), None)
+            if props is not None:
+                self.facts["properties"] = [props.x, props.y, props.width, props.height]
+            # the Edit field panels, open, at the top of the sidebar: the panels above them go away
+            for name in TOP_PANELS:
+                bpy.utils.unregister_class(getattr(bpy.types, name))
+            open_edit_panels()
+            sidebar.tag_redraw()
+            self.goto("edit")
+            return 1.0
+        if self.state == "edit":
+            self.docs_shot("edit.png", win, area)
+            return self.start_error()
+        return self._tick_error(win, area)
+
+    def docs_shot(self, name, win, area):
+        path = os.path.join(self.out_dir, name)
+        with bpy.context.temp_override(window=win, area=area):
+            bpy.ops.screen.screenshot(filepath=path)
+        self.facts.setdefault("docs_shots", []).append(name)
+
+    def start_error(self):
+        # an error long enough to need several lines: the field file goes missing
+        obj = bpy.data.objects["blob"]
+        obj.neumesh.field_path = "//a folder that does not exist/with a long name/" + "x" * 40 + ".neumesh"
+        self.goto("error")
+        return 0.5
+
+    def _tick_error(self, win, area):
         if self.state == "error":
             if not addon_module().engine.VIEWPORT_MESSAGE["lines"] and time.time() - self.state_t < 60:
                 return 0.5
@@ -166,9 +242,35 @@ class Driver:
                 bpy.ops.screen.screenshot(filepath=path)
             self.facts["viewport_message"] = dict(addon_module().engine.VIEWPORT_MESSAGE)
             self.facts["error_errors"] = self.viewport_errors()
+            if self.docs:
+                self.show_preferences(area)
+                self.goto("prefs")
+                return 1.0
+            self.finish()
+            return None
+        if self.state == "prefs":
+            path = os.path.join(self.out_dir, "prefs.png")
+            with bpy.context.temp_override(window=win, area=area):
+                bpy.ops.screen.screenshot(filepath=path)
+            self.facts.setdefault("docs_shots", []).append("prefs.png")
             self.finish()
             return None
         return 0.5
+
+    def show_preferences(self, area):
+        """The 3D View becomes a Preferences editor showing the add-on's entry, expanded."""
+        import addon_utils
+
+        area.type = "PREFERENCES"
+        prefs = bpy.context.preferences
+        prefs.active_section = "ADDONS" if bpy.app.version < (4, 2, 0) else "EXTENSIONS"
+        bpy.context.window_manager.addon_search = "NeuMesh"
+        name = addon_module().__name__
+        try:  # the Add-ons list draws addon_utils' file-parsed modules: expand the add-on's entry there
+            addon_utils.modules(refresh=False)
+            addon_utils.module_bl_info(addon_utils.addons_fake_modules[name])["show_expanded"] = True
+        except Exception:  # noqa: BLE001 - extensions expand differently; the shot still shows the entry
+            traceback.print_exc()
 
     def preview_done(self):
         """The viewport's NeuMesh preview has drawn its last (finest) pass."""
@@ -180,6 +282,11 @@ class Driver:
                 return False
             return True
         return False
+
+    def preview_serial(self):
+        """The newest preview render's serial number (-1 before the first)."""
+        return max([e._preview.latest[0] for e in list(addon_module().engine._PollRedraw._engines)
+                    if getattr(e, "_preview", None) is not None and e._preview.latest is not None] or [-1])
 
     def viewport_errors(self):
         """The messages the viewport's NeuMesh engines show instead of an image ('' = none)."""
@@ -203,5 +310,6 @@ class Driver:
 if ARGS and ARGS[0] == "setup":
     setup(*ARGS[1:5])
 elif ARGS and ARGS[0] == "gui":
-    _driver = Driver(ARGS[1])
+    _docs = ARGS[2:3] == ["docs"]
+    _driver = Driver(ARGS[1], docs=_docs)
     bpy.app.timers.register(_driver.tick, first_interval=1.0)

@@ -2,8 +2,9 @@
 display (Xvfb, software OpenGL), driven by real_blender_ui.py. Skipped where `blender` or `xvfb-run`
 is missing (scripts/setup_blender.sh installs both).
 
-NEUMESH_UI_SCREENSHOT_DIR=<folder> keeps the screenshots (the add-on's documentation images are made
-this way: docs/addon_sidebar.png).
+NEUMESH_UI_SCREENSHOT_DIR=<folder> keeps the screenshots. The documentation's pictures of the add-on
+(docs/images/addon_*.png) are made by scripts/make_docs_images.py with the same two steps and a third
+mode of real_blender_ui.py (`gui OUT docs`).
 """
 from __future__ import annotations
 
