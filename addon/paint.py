@@ -16,6 +16,7 @@ from bpy.props import StringProperty
 
 from ._np import np
 from . import camera, core, render
+from .text import text_width, wrapped_label
 from .edits import EditError, EditOperator, EditSubPanel, edit_copy
 
 PAINT_IMAGE = "NeuMesh Paint"
@@ -239,10 +240,11 @@ class NEUMESH_PT_paint(EditSubPanel, bpy.types.Panel):
         self.draw_edit(context, self.layout.column(), context.active_object)
 
     def draw_edit(self, context, col, obj):
-        col.label(text="1. Render the camera view to paint on")
+        width = text_width(context)
+        wrapped_label(col, "1. Render the camera view to paint on", width, context=context)
         col.operator("neumesh.paint_view", icon="BRUSH_DATA")
-        col.label(text="2. Paint on it in the Image Editor")
-        col.label(text="3. Apply the paint to the fields")
+        wrapped_label(col, "2. Paint on it in the Image Editor", width, context=context)
+        wrapped_label(col, "3. Apply the paint to the fields", width, context=context)
         col.operator("neumesh.apply_paint", icon="CHECKMARK")
 
 

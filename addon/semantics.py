@@ -28,6 +28,7 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorPro
 
 from ._np import np
 from . import camera, core, props, render, sync
+from .text import labelled
 
 DEFAULT_GROUP = "NeuMesh selection"
 COLOUR_ATTRIBUTE = "NeuMesh semantics"
@@ -576,13 +577,13 @@ class NEUMESH_PT_semantics(bpy.types.Panel):
                 col.progress(factor=job.fraction, text=f"{job.stage} {job.step}/{job.total}")
             col.operator("neumesh.distil_cancel", icon="CANCEL")
         else:
-            col.prop(s, "extractor")
+            labelled(col, s, "extractor", "2D features")
             col.prop(s, "steps")
             col.operator("neumesh.distil_semantics", icon="SHADERFX")
             if job is not None:
                 col.label(text=job.status_text(), icon={"DONE": "CHECKMARK", "ERROR": "ERROR"}.get(job.state, "INFO"))
         col.separator()
-        col.prop(s, "group_name")
+        labelled(col, s, "group_name", "Vertex group for the clicked part")
         op = col.operator("neumesh.select_by_click", icon="EYEDROPPER")
         op.group_name = s.group_name
         col.operator("neumesh.semantic_colours", icon="COLOR")

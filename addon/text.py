@@ -83,3 +83,19 @@ def wrapped_label(layout, text: str, width: float, icon: str = "NONE", context=N
     for i, line in enumerate(lines):
         col.label(text=line, icon=icon if i == 0 else "BLANK1" if icon != "NONE" else "NONE")
     return col
+
+
+def labelled(layout, data, prop, label, **kw):
+    """A property with its label above it (the sidebar is too narrow for both on one row)."""
+    col = layout.column(align=True)
+    col.label(text=label)
+    col.prop(data, prop, text="", **kw)
+    return col
+
+
+def labelled_search(layout, data, prop, search_data, search_prop, label, **kw):
+    """``prop_search`` with its label above it (vertex groups, UV maps: names need the full width)."""
+    col = layout.column(align=True)
+    col.label(text=label)
+    col.prop_search(data, prop, search_data, search_prop, text="", **kw)
+    return col

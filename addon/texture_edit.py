@@ -14,6 +14,7 @@ from bpy.props import BoolProperty, FloatProperty, PointerProperty, StringProper
 from ._np import np
 from . import core, props
 from .edits import EditError, EditOperator, EditSubPanel, edit_copy, field_for_edit, region_of
+from .text import labelled, labelled_search
 
 
 def _mesh_with_field(obj):
@@ -233,10 +234,10 @@ class NEUMESH_PT_swap(EditSubPanel, bpy.types.Panel):
 
     def draw_edit(self, context, col, obj):
         s = context.scene.neumesh_edit
-        col.prop_search(s, "swap_target_group", obj, "vertex_groups", text="Target")
-        col.prop(s, "swap_source")
+        labelled_search(col, s, "swap_target_group", obj, "vertex_groups", "Target vertex group")
+        labelled(col, s, "swap_source", "Source object")
         src = s.swap_source or obj
-        col.prop_search(s, "swap_source_group", src, "vertex_groups", text="Source group")
+        labelled_search(col, s, "swap_source_group", src, "vertex_groups", "Source vertex group")
         col.prop(s, "swap_use_pairs")
         col.operator("neumesh.swap_texture", icon="UV_SYNC_SELECT")
 
@@ -246,12 +247,12 @@ class NEUMESH_PT_fill(EditSubPanel, bpy.types.Panel):
 
     def draw_edit(self, context, col, obj):
         s = context.scene.neumesh_edit
-        col.prop_search(s, "fill_target_group", obj, "vertex_groups", text="Target")
-        col.prop_search(s, "fill_target_uv", obj.data, "uv_layers", text="Target UV")
-        col.prop(s, "fill_template")
+        labelled_search(col, s, "fill_target_group", obj, "vertex_groups", "Target vertex group")
+        labelled_search(col, s, "fill_target_uv", obj.data, "uv_layers", "Target UV map")
+        labelled(col, s, "fill_template", "Template object")
         tmpl = s.fill_template or obj
-        col.prop_search(s, "fill_template_group", tmpl, "vertex_groups", text="Template group")
-        col.prop_search(s, "fill_template_uv", tmpl.data, "uv_layers", text="Template UV")
+        labelled_search(col, s, "fill_template_group", tmpl, "vertex_groups", "Template vertex group")
+        labelled_search(col, s, "fill_template_uv", tmpl.data, "uv_layers", "Template UV map")
         col.prop(s, "fill_scale")
         col.operator("neumesh.fill_texture", icon="TEXTURE")
 

@@ -10,19 +10,11 @@ from __future__ import annotations
 import bpy
 
 from . import colour, operators, worker
-from .text import text_width, wrapped_label
+from .text import labelled as _labelled, text_width, wrapped_label
 
 SCAFFOLD_HELP = ("The scaffold is the mesh the field is stored on: every vertex keeps the learned codes "
                  "of the surface around it, so moving or bending the mesh moves the field with it. Build "
                  "it from the dataset's photos, or import a mesh of the object")
-
-
-def _labelled(layout, data, prop, label, **kw):
-    """A property with its label above it (the sidebar is too narrow for both on one row)."""
-    col = layout.column(align=True)
-    col.label(text=label)
-    col.prop(data, prop, text="", **kw)
-    return col
 
 
 # ---------------------------------------------------------------------------------------- sidebar
