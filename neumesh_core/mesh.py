@@ -61,6 +61,13 @@ def unique_edges(faces: np.ndarray) -> np.ndarray:
     f = np.asarray(faces, dtype=np.int64)
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     e = np.sort(e, axis=1)
+    if len(e) == 0:
+        return e.reshape(0, 2)
+    # one int64 key per edge: a 1-D sort is ~5x faster than np.unique(axis=0); same (lexicographic) order
+    n = int(e[:, 1].max()) + 1
+    if n < (1 << 31):
+        keys = np.unique(e[:, 0] * n + e[:, 1])
+        return np.stack([keys // n, keys % n], 1)
     return np.unique(e, axis=0)
 
 
