@@ -137,13 +137,15 @@ def swap_texture(target, target_vertices, source=None, source_vertices=None, pai
         src_p, dst_p = _pairs_points(pairs, s_rest, t_rest)
         n_pairs = len(src_p)
         sim = umeyama(src_p, dst_p, with_scale=cfg.with_scale)
-        if cfg.refine_pairs:
-            sim, _ = rigid_icp(S_pts, T_pts, sim, with_scale=cfg.with_scale, tree=tree, dst_normals=T_nrm)
+        if cfg.refine_pairs:   # the pairs fix the scale (a free scale can collapse: initial_alignment)
+            sim, _ = rigid_icp(S_pts, T_pts, sim, with_scale=False, tree=tree, dst_normals=T_nrm)
     elif len(sv) < 4 or len(tv) < 4:
         raise EditError("automatic alignment needs at least 4 vertices in each region; select larger "
                          "regions or give 3 or more point pairs")
     else:
         sim = initial_alignment(S_pts, T_pts, dst_normals=T_nrm)
+    if not np.isfinite(sim.matrix()).all() or not sim.scale > 0:
+        raise EditError(f"the alignment failed (scale {sim.scale:g}); give 3 or more point pairs")
     x = sim.apply(S_pts)
     d_rigid = float(np.asarray(tree.query(np.ascontiguousarray(x), k=1)[0]).mean())
     t_sim = time.perf_counter() - t0

@@ -143,3 +143,27 @@ def test_polar_rotations_are_the_rotation_factor():
     got = polar_rotations(S)
     assert np.allclose(got[:50], R, atol=1e-9)
     assert np.allclose(np.linalg.det(got), 1.0) and np.allclose(got @ got.transpose(0, 2, 1), np.eye(3), atol=1e-9)
+
+
+def _open_box(n=24):
+    """Points on five faces of a unit box (no lid): a bucket-like target of another shape."""
+    g = (np.stack(np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n)), -1).reshape(-1, 2))
+    z0 = np.zeros(len(g))
+    faces = [np.c_[g, z0], np.c_[g[:, 0], z0, g[:, 1]], np.c_[g[:, 0], z0 + 1, g[:, 1]],
+             np.c_[z0, g], np.c_[z0 + 1, g]]
+    return np.unique(np.concatenate(faces).round(9), axis=0) * np.array([1.6, 1.0, 0.7])
+
+
+def test_automatic_alignment_between_different_shapes_keeps_the_extent_scale(blob_mesh):
+    """A dome onto an open box: no similarity fits both, and a free ICP scale could shrink the dome onto
+    a patch of the box (lego's bucket <- a cap of another object went to scale 4e-19).  The scale
+    stays the ratio of the extents and the aligned source spans the target."""
+    from neumesh_core.edit.align import principal_frame
+
+    pts, _, _ = _cap(blob_mesh)
+    box = _open_box()
+    A = initial_alignment(pts, box)
+    ratio = principal_frame(box)[2] / principal_frame(pts)[2]
+    assert A.scale == pytest.approx(ratio, rel=1e-9)
+    x = A.apply(pts)
+    assert np.ptp(x, axis=0).max() > 0.5 * np.ptp(box, axis=0).max()
