@@ -5,7 +5,8 @@
                                                                         # else trains --steps and saves it
 
 Each deformation of ``neumesh_core.data.deformations.DEFORMATIONS`` (bend 35/70/140 deg, twist 90 deg,
-stretch 1.3x/2x and squash 0.7x along z, a two-bone 60 deg crease with smooth weights) is applied to
+stretch 1.3x/2x and squash 0.7x along z, two-bone creases with smooth weights: 45 deg blended over most
+of the body, 60 deg with a narrow blend) is applied to
 the field's rest vertices (``field.set_vertices``) and to the mesh that the ground truth traces
 (``neumesh_core.data.mesh_truth.render_mesh_truth``: the rest-pose appearance carried with the
 surface, view direction rotated into the rest pose).  Each is rendered from ``--views`` cameras at
@@ -27,7 +28,7 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import neumesh_core as nm  # noqa: E402
-from neumesh_core.data.deformations import DEFORMATIONS  # noqa: E402
+from neumesh_core.data.deformations import DEFORMATIONS, inverted_fraction  # noqa: E402
 from neumesh_core.data.mesh_truth import render_mesh_truth  # noqa: E402
 from neumesh_core.data.synthetic import CAMERA_ANGLE_X, look_at_opencv, surface_radius  # noqa: E402
 from neumesh_core.metrics import masked_psnr, psnr, ssim  # noqa: E402
@@ -142,9 +143,12 @@ def main(argv=None) -> dict:
         r = score(field, fn, cams, args.size, keep)
         r["drop_db"] = base["psnr"] - r["psnr"]
         r["drop_fg_db"] = base["psnr_fg"] - r["psnr_fg"]
+        r["inverted_fraction"] = round(inverted_fraction(fn, field.rest_vertices.cpu().numpy(),
+                                                         field.faces.cpu().numpy()), 4)
         rows[name] = r
         print(f"{name:12s} PSNR {r['psnr']:6.2f}  SSIM {r['ssim']:.4f}  drop {r['drop_db']:5.2f} dB  "
-              f"fg PSNR {r['psnr_fg']:6.2f} drop {r['drop_fg_db']:5.2f} dB  views {r['psnr_views']}")
+              f"fg PSNR {r['psnr_fg']:6.2f} drop {r['drop_fg_db']:5.2f} dB  inverted {r['inverted_fraction']:.3f}  "
+              f"views {r['psnr_views']}")
     if keep:
         worst = sorted(rows, key=lambda n: rows[n]["psnr"])[: args.worst]
         sel = [("undeformed", *base["images"][0])]

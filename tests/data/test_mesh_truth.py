@@ -115,3 +115,15 @@ def test_deformations_are_the_identity_at_zero_strength_and_continuous():
     a = math.radians(60.0)
     rot = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
     np.testing.assert_allclose(c[high], v[high] @ rot.T, atol=1e-12)
+
+
+def test_inverted_fraction_flags_deformations_that_turn_the_surface_inside_out():
+    from neumesh_core.data.deformations import inverted_fraction
+
+    m = S.default_mesh(4)
+    v = m.vertices.astype(np.float64)
+    for name in ("bend35", "bend70", "twist90", "stretch2", "squash0.7", "crease45"):
+        assert inverted_fraction(DEFORMATIONS[name], v, m.faces) == 0.0, name
+    assert 0.01 < inverted_fraction(DEFORMATIONS["bend140"], v, m.faces) < 0.1
+    assert 0.03 < inverted_fraction(DEFORMATIONS["crease60"], v, m.faces) < 0.15
+    assert inverted_fraction(lambda x: x * np.array([1.0, 1.0, -1.0]), v, m.faces) == 1.0  # a mirror
