@@ -57,9 +57,9 @@ DEFORMATIONS = {
     "bend70": lambda v: bend(v, 70),
     "bend140": lambda v: bend(v, 140),
     "twist90": lambda v: twist(v, 90),
-    "stretch1.3": lambda v: stretch(v, 1.3),
+    "stretch1p3": lambda v: stretch(v, 1.3),
     "stretch2": lambda v: stretch(v, 2.0),
-    "squash0.7": lambda v: stretch(v, 0.7),
+    "squash0p7": lambda v: stretch(v, 0.7),
     "crease45": lambda v: crease(v, 45, blend=0.9),   # weights spread over most of the body
     "crease60": lambda v: crease(v, 60, blend=0.35),  # a narrow blend: turns 6.5% of it inside out
 }
