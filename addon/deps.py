@@ -34,6 +34,7 @@ DEPENDENCIES = (
     ("trimesh", "trimesh", False, "trimesh"),
     ("sklearn", "scikit-learn", False, "scikit-learn"),    # semantic selection (DBSCAN)
     ("skimage", "scikit-image", False, "scikit-image"),    # semantic distillation (superpixels)
+    ("xatlas", "xatlas", False, "xatlas"),                 # Bake to material (UV atlas)
 )
 PIP_REQUIREMENTS = tuple(d[3] for d in DEPENDENCIES)
 

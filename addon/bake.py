@@ -1,0 +1,245 @@
+"""Bake to material: turn the active object's field (as it renders now: edited, deformed) into a plain
+Blender object with a UV map, an image texture and a Principled BSDF material, for Cycles, EEVEE and
+export (glTF, FBX, OBJ).
+
+The core (``neumesh_core.bake.bake_texture``) unwraps the field's scaffold in its current pose with
+xatlas and bakes the colour the field shows looking straight at each texel.  That colour already holds
+the lighting of the photos the field was trained on, so the material offers two ways to use it
+(``shading``):
+
+* ``EMISSION`` (default): the texture drives the Principled BSDF's emission at strength 1 and the base
+  colour is black: the object looks like the field whatever the scene's lights (with the *Standard*
+  view transform, Cycles and EEVEE reproduce the texture's colours; AgX/Filmic tone-map them).
+* ``BASE_COLOR``: the texture is the base colour: the object takes the scene's lights, on top of the
+  light already baked into the texture (shadows and highlights of the photos stay).
+
+The new object is built from the field's vertices in world space (identity transform); the field and
+the original object are not changed.  Invoked from the UI the bake runs in a thread (progress in the
+status bar, Esc cancels); from a script it blocks.
+"""
+from __future__ import annotations
+
+import warnings
+
+import bpy
+from bpy.props import EnumProperty, IntProperty
+
+from ._np import np
+from . import core, render
+from .edits import EditError, EditJob, EditSubPanel, _status, edit_copy, field_path_of
+
+SHADING_ITEMS = (
+    ("EMISSION", "Emission", "Texture as emission (strength 1), black base colour: looks like the field "
+                             "under any lighting"),
+    ("BASE_COLOR", "Base colour", "Texture as base colour: lit by the scene, on top of the photos' light "
+                                  "baked into it"),
+)
+UV_NAME = "NeuMesh bake"
+
+
+def _input(node, *names):
+    """The first of ``names`` that ``node`` has as an input (names changed between Blender 3 and 4)."""
+    for n in names:
+        if n in node.inputs:
+            return node.inputs[n]
+    return None
+
+
+def make_material(name: str, image, shading: str, uv_name: str = UV_NAME):
+    mat = bpy.data.materials.new(name)
+    with warnings.catch_warnings():   # Blender 5: materials always use nodes; the setter is deprecated
+        warnings.simplefilter("ignore", DeprecationWarning)
+        mat.use_nodes = True
+    nt = mat.node_tree
+    nodes, links = nt.nodes, nt.links
+    bsdf = next((n for n in nodes if n.type == "BSDF_PRINCIPLED"), None) or nodes.new("ShaderNodeBsdfPrincipled")
+    tex = nodes.new("ShaderNodeTexImage")
+    tex.name = tex.label = "NeuMesh baked texture"
+    tex.image = image
+    tex.interpolation = "Linear"
+    tex.location = (bsdf.location.x - 400, bsdf.location.y)
+    uv = nodes.new("ShaderNodeUVMap")
+    uv.uv_map = uv_name
+    uv.location = (tex.location.x - 250, tex.location.y)
+    links.new(uv.outputs["UV"], tex.inputs["Vector"])
+    if shading == "EMISSION":
+        links.new(tex.outputs["Color"], _input(bsdf, "Emission Color", "Emission"))
+        _input(bsdf, "Emission Strength").default_value = 1.0
+        _input(bsdf, "Base Color").default_value = (0.0, 0.0, 0.0, 1.0)
+        spec = _input(bsdf, "Specular IOR Level", "Specular")
+        if spec is not None:
+            spec.default_value = 0.0
+    else:
+        links.new(tex.outputs["Color"], _input(bsdf, "Base Color"))
+    _input(bsdf, "Roughness").default_value = 1.0
+    mat["neumesh_shading"] = shading
+    return mat
+
+
+def make_image(name: str, texture: np.ndarray):
+    """A Blender image (sRGB, packed into the .blend) holding ``texture`` (H,W,3) display-referred."""
+    h, w = texture.shape[:2]
+    img = bpy.data.images.new(name, width=w, height=h, alpha=False)
+    rgba = np.ones((h, w, 4), np.float32)
+    rgba[..., :3] = np.clip(texture, 0, 1)
+    img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())   # Blender's row 0 is the bottom
+    img.update()
+    try:
+        img.pack()
+    except Exception as exc:  # noqa: BLE001 - still usable in this session; saving the .blend may lose it
+        print(f"NeuMesh: could not pack the baked image '{name}': {exc}")
+    return img
+
+
+def build_object(name: str, result, shading: str, collection=None):
+    """The baked object: the field's vertices (world space), its faces, UV map ``UV_NAME``, the image and
+    the material; a per-vertex colour attribute when the bake has vertex colours."""
+    from . import sync
+
+    n_field = int(result.vertex_index.max()) + 1 if len(result.vertex_index) else 0
+    verts = np.zeros((n_field, 3), np.float32)
+    verts[result.vertex_index] = result.vertices
+    faces = result.vertex_index[result.faces]
+    obj = sync.new_mesh_object(name, verts, faces, collection)
+    me = obj.data
+    uv = me.uv_layers.new(name=UV_NAME)
+    uv.data.foreach_set("uv", np.ascontiguousarray(result.uvs[result.faces].reshape(-1), np.float32))
+    if result.vertex_colors is not None and hasattr(me, "color_attributes"):
+        attr = me.color_attributes.new("NeuMesh bake", "FLOAT_COLOR", "POINT")
+        rgba = np.ones((n_field, 4), np.float32)
+        rgba[:, :3] = render.srgb_to_linear(result.vertex_colors[:n_field])
+        attr.data.foreach_set("color", rgba.ravel())
+    img = make_image(f"{name}_texture", result.texture)
+    mat = make_material(f"{name}_material", img, shading)
+    me.materials.append(mat)
+    me.polygons.foreach_set("use_smooth", np.ones(len(me.polygons), bool))
+    me.update()
+    obj["neumesh_baked_from"] = result.info.get("field_path", "")
+    return obj
+
+
+class NEUMESH_OT_bake_material(bpy.types.Operator):
+    """Bake the active object's field, as it renders now (edited and deformed), into a new object with
+    a UV map, an image texture and a Principled BSDF material (for Cycles, EEVEE and export)"""
+
+    bl_idname = "neumesh.bake_material"
+    bl_label = "Bake to material"
+    bl_options = {"REGISTER", "UNDO"}
+
+    resolution: IntProperty(name="Texture size", default=1024, min=64, max=8192,
+                            description="Width and height of the baked texture in pixels")
+    shading: EnumProperty(name="Shading", items=SHADING_ITEMS, default="EMISSION")
+    directions: IntProperty(name="Rays per texel", default=1, min=1, max=16,
+                            description="1: look straight at each texel along its normal; more: average "
+                                        "over a 30-degree cone (softens view-dependent highlights)")
+
+    def _start(self, context):
+        obj = context.active_object
+        try:
+            path = field_path_of(obj)
+            nm = core.get()
+            field, _ = render.object_field(obj, context.evaluated_depsgraph_get())
+            field = edit_copy(field)      # posed as it renders now; the thread works on its own copy
+        except (EditError, core.CoreUnavailable, ValueError) as exc:
+            self.report({"ERROR"}, f"NeuMesh: {exc}")
+            return None
+        except Exception as exc:  # noqa: BLE001 - topology errors, missing files...
+            self.report({"ERROR"}, f"NeuMesh: bake failed: {exc}")
+            return None
+        import importlib
+
+        bake = importlib.import_module(nm.__name__ + ".bake")
+        res, dirs = int(self.resolution), int(self.directions)
+        self._source = (obj.name_full, path)
+
+        def run(progress):
+            r = bake.bake_texture(field, resolution=res, directions=dirs, progress=progress)
+            r.info["field_path"] = path
+            return r
+        return EditJob("bake", run)
+
+    def _finish(self, context, job):
+        if job.cancelled:
+            self.report({"WARNING"}, "NeuMesh: bake cancelled; nothing was created")
+            return {"CANCELLED"}
+        if job.error is not None:
+            self.report({"ERROR"}, f"NeuMesh: bake: {job.error}")
+            return {"CANCELLED"}
+        name, _ = self._source
+        src = bpy.data.objects.get(name)
+        coll = src.users_collection[0] if src is not None and src.users_collection else None
+        obj = build_object(f"{name}_baked", job.record, self.shading, coll)
+        for o in context.view_layer.objects:
+            o.select_set(False)
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
+        r = job.record
+        self.report({"INFO"}, f"NeuMesh: baked '{name}' into '{obj.name}' ({r.resolution}x{r.resolution} "
+                              f"texture, {r.info.get('charts', 0)} charts, {r.seconds:.1f} s)")
+        return {"FINISHED"}
+
+    def execute(self, context):
+        job = self._start(context)
+        if job is None:
+            return {"CANCELLED"}
+        job.start().join()
+        return self._finish(context, job)
+
+    def invoke(self, context, event):
+        job = self._start(context)
+        if job is None:
+            return {"CANCELLED"}
+        self._job = job.start()
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        _status(context, "NeuMesh: baking... (Esc cancels)")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC" and job.running:
+            job.cancel()
+        if event.type == "TIMER":
+            context.window_manager.progress_update(int(100 * job.fraction))
+            _status(context, f"NeuMesh: baking {100 * job.fraction:.0f}% (Esc cancels)")
+        if job.running:
+            return {"RUNNING_MODAL"} if event.type == "ESC" else {"PASS_THROUGH"}
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        _status(context, None)
+        return self._finish(context, job)
+
+
+class NEUMESH_PT_bake(EditSubPanel, bpy.types.Panel):
+    bl_label = "Bake to material"
+
+    def draw_edit(self, context, col, obj):
+        s = context.window_manager
+        col.prop(s, "neumesh_bake_resolution")
+        col.prop(s, "neumesh_bake_shading", text="")
+        op = col.operator("neumesh.bake_material", icon="RENDER_RESULT")
+        op.resolution = s.neumesh_bake_resolution
+        op.shading = s.neumesh_bake_shading
+
+
+classes = (NEUMESH_OT_bake_material, NEUMESH_PT_bake)
+
+
+def register():
+    bpy.types.WindowManager.neumesh_bake_resolution = IntProperty(
+        name="Texture size", default=1024, min=64, max=8192, description="Baked texture width and height (pixels)")
+    bpy.types.WindowManager.neumesh_bake_shading = EnumProperty(name="Shading", items=SHADING_ITEMS,
+                                                                default="EMISSION")
+    for c in classes:
+        bpy.utils.register_class(c)
+
+
+def unregister():
+    for c in reversed(classes):
+        bpy.utils.unregister_class(c)
+    for p in ("neumesh_bake_resolution", "neumesh_bake_shading"):
+        if hasattr(bpy.types.WindowManager, p):
+            delattr(bpy.types.WindowManager, p)

@@ -1,0 +1,299 @@
+"""Bake a field into a plain UV-textured mesh (a native asset for Blender's Cycles/EEVEE, OBJ, glTF).
+
+The mesh is the scaffold in its *current* pose (``field.vertices``: edited and deformed), unwrapped by
+xatlas.  Each texel inside a chart gets its surface point and interpolated normal; the texel's colour is
+what the field renders on a short ray that starts ``offset`` x radius outside the surface and looks
+along -normal (volume rendering over at most 2 x offset, so the colour is the one a camera looking
+straight at that spot sees, and a surface behind it is not reached).  With ``directions > 1`` the
+colour is the mean over that many rays: -normal plus rays tilted by ``cone_deg`` around it (averages
+view-dependent highlights out; see docs/baking.md for the measured effect).  Chart borders are dilated
+by ``padding`` texels so bilinear sampling and mip-maps do not pull in the empty background.
+
+The field's colour already holds the lighting of the photos: the baked texture is "baked light".
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field as dc_field
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+
+from .errors import NeuMeshError
+from .render.raster import raster_triangles
+
+
+@dataclass
+class BakeResult:
+    """A UV-textured copy of the field's scaffold in its current pose."""
+
+    vertices: np.ndarray        # (M,3) float32 world positions (atlas vertices: seams split vertices)
+    faces: np.ndarray           # (F,3) int32 indices into ``vertices`` (the field's faces, same order)
+    uvs: np.ndarray             # (M,2) float32 in [0,1]; u right, v up (v=1 is the image's first row)
+    vertex_index: np.ndarray    # (M,) int64: the field vertex each atlas vertex is a copy of
+    texture: np.ndarray         # (H,W,3) float32 in [0,1], padded
+    mask: np.ndarray            # (H,W) bool: texels inside a chart triangle
+    vertex_colors: Optional[np.ndarray] = None   # (N,3) per field vertex (same rays at the vertices)
+    seconds: float = 0.0
+    info: dict = dc_field(default_factory=dict)
+
+    @property
+    def resolution(self) -> int:
+        return int(self.texture.shape[0])
+
+
+def _cancel(progress, fraction):
+    if progress is not None and progress(float(fraction)) is False:
+        from .render.renderer import Cancelled
+
+        raise Cancelled("baking cancelled; nothing was written")
+
+
+def unwrap(vertices: np.ndarray, faces: np.ndarray, resolution: int, padding: int = 4):
+    """xatlas UV atlas of a triangle mesh packed into a ``resolution`` square.
+
+    Returns (vertex_index (M,), faces (F,3) into the atlas vertices, uvs (M,2) with v up, info)."""
+    try:
+        import xatlas
+    except ImportError as exc:  # pragma: no cover - depends on the install
+        raise NeuMeshError("baking needs the 'xatlas' package: pip install xatlas (or the add-on's "
+                           "Install dependencies)") from exc
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.uint32))
+    pack = xatlas.PackOptions()
+    pack.resolution = int(resolution)
+    pack.padding = int(padding)
+    pack.bilinear = True
+    pack.blockAlign = True
+    atlas.generate(pack_options=pack)
+    vmap, idx, uv = atlas[0]
+    # xatlas treats the resolution as a target, not a cap (the atlas can come out a little larger and
+    # not square): scale the atlas uniformly into the resolution square (padding shrinks by that factor)
+    scale = max(atlas.width, atlas.height) / float(resolution)
+    uv = np.asarray(uv, np.float64)
+    uv[:, 0] *= atlas.width / (scale * resolution)
+    uv[:, 1] *= atlas.height / (scale * resolution)
+    uv[:, 1] = 1.0 - uv[:, 1]   # xatlas: v down from the image's first row; OBJ/Blender: v up
+    info = {"charts": int(atlas.chart_count), "atlas_width": int(atlas.width),
+            "atlas_height": int(atlas.height), "utilization": float(np.mean(atlas.utilization)),
+            "padding_texels": float(padding) / max(scale, 1.0)}
+    if atlas.atlas_count != 1:
+        raise NeuMeshError(f"xatlas made {atlas.atlas_count} atlases; expected one (report this mesh)")
+    return np.asarray(vmap, np.int64), np.asarray(idx, np.int32), uv.astype(np.float32), info
+
+
+def uv_pixels(uvs: np.ndarray, resolution: int) -> np.ndarray:
+    """UVs (n,2) (v up) -> texel-space coordinates (x right, y down) of a resolution x resolution image."""
+    return np.stack([uvs[:, 0] * resolution, (1.0 - uvs[:, 1]) * resolution], 1)
+
+
+def texel_coverage(uvs: np.ndarray, faces: np.ndarray, resolution: int, eps: float = 1e-7):
+    """Texels whose centre lies in a triangle of the atlas: (texel (n,), face (n,), bary (n,3)), the
+    first triangle winning where two touch (shared edges)."""
+    tri = uv_pixels(uvs, resolution)[faces]
+    ids, px, bary = [], [], []
+    for i, p, b in raster_triangles(tri, resolution, resolution, eps=eps):
+        ids.append(i)
+        px.append(p)
+        bary.append(b)
+    if not ids:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
+    ids, px, bary = np.concatenate(ids), np.concatenate(px), np.concatenate(bary)
+    _, first = np.unique(px, return_index=True)
+    return px[first], ids[first], bary[first]
+
+
+def dilate(image: np.ndarray, mask: np.ndarray, iterations: int) -> tuple:
+    """Grow ``image``'s valid texels (``mask``) outwards by ``iterations`` texels: each new texel is the
+    mean of its valid 8-neighbours.  Returns (image, grown mask)."""
+    img = image.astype(np.float32).copy()
+    m = mask.astype(bool).copy()
+    h, w = m.shape
+    for _ in range(int(iterations)):
+        if m.all():
+            break
+        acc = np.zeros_like(img)
+        cnt = np.zeros((h, w), np.float32)
+        pi = np.pad(img * m[..., None], ((1, 1), (1, 1), (0, 0)))
+        pm = np.pad(m.astype(np.float32), 1)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dy == 0 and dx == 0:
+                    continue
+                acc += pi[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+                cnt += pm[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+        new = (~m) & (cnt > 0)
+        img[new] = acc[new] / cnt[new][:, None]
+        m |= new
+    return img, m
+
+
+def _tangent_dirs(n: torch.Tensor, count: int, cone_deg: float) -> list:
+    """Unit view directions looking *into* the surface: -n, then count-1 tilted by cone_deg around it."""
+    dirs = [-n]
+    if count <= 1:
+        return dirs
+    ref = torch.where((n[:, 2].abs() < 0.9)[:, None], torch.tensor([0.0, 0.0, 1.0]), torch.tensor([1.0, 0.0, 0.0]))
+    t1 = torch.nn.functional.normalize(torch.cross(n, ref, dim=1), dim=1)
+    t2 = torch.cross(n, t1, dim=1)
+    a = math.radians(cone_deg)
+    for k in range(count - 1):
+        phi = 2 * math.pi * k / (count - 1)
+        d = -math.cos(a) * n + math.sin(a) * (math.cos(phi) * t1 + math.sin(phi) * t2)
+        dirs.append(d)
+    return dirs
+
+
+@torch.no_grad()
+def surface_colours(field, points, normals, offset: float = 1.0, directions: int = 1, cone_deg: float = 30.0,
+                    chunk: int = 32768, progress: Optional[Callable[[float], bool]] = None,
+                    span: tuple = (0.0, 1.0)) -> np.ndarray:
+    """(n,3) the field's colour at surface points seen along -normal (mean over ``directions`` rays)."""
+    from .render.renderer import RenderSettings, default_step
+    from .render.volume import composite
+    from .sampling.marcher import march_rays
+
+    settings = RenderSettings()
+    p = torch.as_tensor(np.asarray(points, np.float32))
+    nrm = torch.nn.functional.normalize(torch.as_tensor(np.asarray(normals, np.float32)), dim=1)
+    dev = field.geo_codes.device
+    d0 = float(offset) * field.radius
+    step = default_step(field, settings)
+    out = torch.zeros(len(p), 3)
+    n_total = max(1, len(p))
+    for s in range(0, len(p), chunk):
+        pc, nc = p[s:s + chunk], nrm[s:s + chunk]
+        acc = torch.zeros(len(pc), 3)
+        wsum = torch.zeros(len(pc))
+        for d in _tangent_dirs(nc, directions, cone_deg):
+            # start outside the surface along the normal, looking along d (into the surface)
+            o = (pc - d * (d0 / torch.clamp((-d * nc).sum(1, keepdim=True), min=0.2))).to(dev)
+            dd = d.to(dev)
+            smp = march_rays(o, dd, field.grid, field.sigma_fn, step, near=0.0, far=2.0 * d0 / math.cos(math.radians(cone_deg)) if directions > 1 else 2.0 * d0,
+                             window=settings.window, early_stop_eps=settings.early_stop_eps,
+                             weight_threshold=settings.weight_threshold)
+            if len(smp) == 0:
+                continue
+            _, rgb, _ = field.decode(smp.aux, dd[smp.ray_indices], with_rgb=True, with_sigma=False)
+            c = composite(smp.ray_indices, smp.t_starts, smp.t_ends, smp.sigmas, {"rgb": rgb}, len(o))
+            op = c["opacity"].cpu()
+            acc += c["rgb"].cpu()
+            wsum += op
+        ok = wsum > 1e-3
+        col = torch.zeros(len(pc), 3)
+        col[ok] = acc[ok] / wsum[ok, None]
+        # where no ray met density (a hole in the field), fall back to a point query on the surface
+        if (~ok).any():
+            x = (pc[~ok] + 0.3 * field.radius * nc[~ok]).to(dev)
+            _, rgb, _ = field.query(x, (-nc[~ok]).to(dev))
+            col[~ok] = rgb.cpu()
+        out[s:s + chunk] = col.clamp(0, 1)
+        _cancel(progress, span[0] + (span[1] - span[0]) * min(1.0, (s + chunk) / n_total))
+    return out.numpy()
+
+
+def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: float = 1.0, directions: int = 1,
+                 cone_deg: float = 30.0, vertex_colors: bool = True, chunk: int = 32768,
+                 progress: Optional[Callable[[float], bool]] = None) -> BakeResult:
+    """Bake the field's view-independent appearance into a UV texture of its scaffold (current pose).
+
+    ``resolution``: texture size (square); ``padding``: texels between charts and dilation of their
+    borders; ``offset``: ray start outside the surface, in field radii; ``directions``/``cone_deg``: rays
+    averaged per texel (1 = straight along -normal); ``vertex_colors``: also a colour per field vertex.
+    ``progress(fraction) -> False`` cancels (raises ``nm.Cancelled``).  Nothing in the field changes.
+    """
+    t0 = time.perf_counter()
+    resolution = int(resolution)
+    if resolution < 16:
+        raise ValueError(f"resolution must be at least 16, got {resolution}")
+    _cancel(progress, 0.0)
+    V = np.asarray(field.vertices, np.float32)
+    F = field.faces.cpu().numpy().astype(np.int64)
+    N = field.scaffold.normals.detach().cpu().numpy().astype(np.float32)
+    vmap, faces, uvs, info = unwrap(V, F, resolution, padding)
+    info["unwrap_s"] = time.perf_counter() - t0
+    _cancel(progress, 0.1)
+    texel, face, bary = texel_coverage(uvs, faces, resolution)
+    corner = vmap[faces[face]]                      # (n,3) field vertex of each corner
+    pts = (bary[..., None] * V[corner]).sum(1)
+    nrm = (bary[..., None] * N[corner]).sum(1)
+    bad = np.linalg.norm(nrm, axis=1) < 1e-8      # opposite normals cancelling: use the face normal
+    if bad.any():
+        fv = V[corner[bad]]
+        nrm[bad] = np.cross(fv[:, 1] - fv[:, 0], fv[:, 2] - fv[:, 0])
+    info["texels"] = int(len(texel))
+    _cancel(progress, 0.15)
+    vspan = 0.1 if vertex_colors else 0.0
+    cols = surface_colours(field, pts, nrm, offset, directions, cone_deg, chunk, progress,
+                           span=(0.15, 0.95 - vspan))
+    image = np.zeros((resolution * resolution, 3), np.float32)
+    mask = np.zeros(resolution * resolution, bool)
+    image[texel] = cols
+    mask[texel] = True
+    image = image.reshape(resolution, resolution, 3)
+    mask = mask.reshape(resolution, resolution)
+    padded, grown = dilate(image, mask, max(1, padding))
+    if (~grown).any():   # the rest of the image: the mean colour (keeps mip-maps from greying to black)
+        padded[~grown] = cols.mean(0) if len(cols) else 0.0
+    vc = None
+    if vertex_colors:
+        vc = surface_colours(field, V, N, offset, directions, cone_deg, chunk, progress, span=(0.85, 0.95))
+    res = BakeResult(vertices=V[vmap], faces=faces.astype(np.int32), uvs=uvs, vertex_index=vmap,
+                     texture=padded, mask=mask, vertex_colors=vc, info=info)
+    res.seconds = time.perf_counter() - t0
+    res.info.update({"resolution": resolution, "padding": int(padding), "offset": float(offset),
+                     "directions": int(directions), "cone_deg": float(cone_deg), "seconds": res.seconds})
+    if progress is not None:
+        progress(1.0)
+    return res
+
+
+def _replace(tmp: str, path: str) -> None:
+    os.replace(tmp, path)
+
+
+def save_bake(result: BakeResult, out_dir: str, name: str, glb: bool = True, protect=()) -> dict:
+    """Write ``<name>.obj`` + ``<name>.mtl`` + ``<name>.png`` (+ ``<name>.glb`` with trimesh) in
+    ``out_dir``.  Every file is written to a temporary name beside it and renamed, so a reader never
+    sees half a file; paths in ``protect`` (e.g. the field file) are never written.  Returns the paths."""
+    from .imageio import save_image
+
+    os.makedirs(out_dir, exist_ok=True)
+    paths = {ext: os.path.join(out_dir, f"{name}.{ext}") for ext in ("obj", "mtl", "png")}
+    if glb:
+        paths["glb"] = os.path.join(out_dir, f"{name}.glb")
+    guarded = {os.path.realpath(p) for p in protect}
+    for p in paths.values():
+        if os.path.realpath(p) in guarded:
+            raise NeuMeshError(f"refusing to overwrite {p}: choose another --out folder or name")
+    save_image(paths["png"], result.texture)   # atomic itself
+    tmp = paths["mtl"] + ".tmp"
+    with open(tmp, "w") as fh:
+        fh.write(f"# NeuMesh bake\nnewmtl {name}\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nillum 1\n"
+                 f"map_Kd {name}.png\n")
+    _replace(tmp, paths["mtl"])
+    tmp = paths["obj"] + ".tmp"
+    v, uv, f = result.vertices, result.uvs, result.faces.astype(np.int64) + 1
+    with open(tmp, "w") as fh:
+        fh.write(f"# NeuMesh bake: {len(v)} vertices, {len(f)} faces\nmtllib {name}.mtl\no {name}\n")
+        np.savetxt(fh, v, fmt="v %.6f %.6f %.6f")
+        np.savetxt(fh, uv, fmt="vt %.6f %.6f")
+        fh.write(f"usemtl {name}\n")
+        np.savetxt(fh, np.repeat(f, 2, axis=1), fmt="f %d/%d %d/%d %d/%d")
+    _replace(tmp, paths["obj"])
+    if glb:
+        import trimesh
+        from PIL import Image
+
+        img = Image.fromarray((np.clip(result.texture, 0, 1) * 255 + 0.5).astype(np.uint8))
+        mat = trimesh.visual.material.PBRMaterial(baseColorTexture=img, metallicFactor=0.0, roughnessFactor=1.0)
+        mesh = trimesh.Trimesh(vertices=result.vertices, faces=result.faces, process=False,
+                               visual=trimesh.visual.TextureVisuals(uv=result.uvs, material=mat))
+        tmp = paths["glb"] + ".tmp"
+        with open(tmp, "wb") as fh:
+            fh.write(mesh.export(file_type="glb"))
+        _replace(tmp, paths["glb"])
+    return paths
