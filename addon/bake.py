@@ -26,7 +26,7 @@ from bpy.props import EnumProperty, IntProperty
 
 from ._np import np
 from . import core, render
-from .edits import EditError, EditJob, EditSubPanel, _status, edit_copy, field_path_of
+from .edits import EditError, EditJob, EditSubPanel, JobModal, edit_copy, field_path_of
 
 SHADING_ITEMS = (
     ("EMISSION", "Emission", "Texture as emission (strength 1), black base colour: looks like the field "
@@ -118,13 +118,14 @@ def build_object(name: str, result, shading: str, collection=None):
     return obj
 
 
-class NEUMESH_OT_bake_material(bpy.types.Operator):
+class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
     """Bake the active object's field, as it renders now (edited and deformed), into a new object with
     a UV map, an image texture and a Principled BSDF material (for Cycles, EEVEE and export)"""
 
     bl_idname = "neumesh.bake_material"
     bl_label = "Bake to material"
     bl_options = {"REGISTER", "UNDO"}
+    edit_label = "baking"
 
     resolution: IntProperty(name="Texture size", default=1024, min=64, max=8192,
                             description="Width and height of the baked texture in pixels")
@@ -177,40 +178,6 @@ class NEUMESH_OT_bake_material(bpy.types.Operator):
         self.report({"INFO"}, f"NeuMesh: baked '{name}' into '{obj.name}' ({r.resolution}x{r.resolution} "
                               f"texture, {r.info.get('charts', 0)} charts, {r.seconds:.1f} s)")
         return {"FINISHED"}
-
-    def execute(self, context):
-        job = self._start(context)
-        if job is None:
-            return {"CANCELLED"}
-        job.start().join()
-        return self._finish(context, job)
-
-    def invoke(self, context, event):
-        job = self._start(context)
-        if job is None:
-            return {"CANCELLED"}
-        self._job = job.start()
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.1, window=context.window)
-        wm.progress_begin(0, 100)
-        wm.modal_handler_add(self)
-        _status(context, "NeuMesh: baking... (Esc cancels)")
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context, event):
-        job = self._job
-        if event.type == "ESC" and job.running:
-            job.cancel()
-        if event.type == "TIMER":
-            context.window_manager.progress_update(int(100 * job.fraction))
-            _status(context, f"NeuMesh: baking {100 * job.fraction:.0f}% (Esc cancels)")
-        if job.running:
-            return {"RUNNING_MODAL"} if event.type == "ESC" else {"PASS_THROUGH"}
-        wm = context.window_manager
-        wm.event_timer_remove(self._timer)
-        wm.progress_end()
-        _status(context, None)
-        return self._finish(context, job)
 
 
 class NEUMESH_PT_bake(EditSubPanel, bpy.types.Panel):

@@ -196,7 +196,50 @@ class EditJob:
                 pass
 
 
-class EditOperator:
+class JobModal:
+    """Mixin: an operator whose work runs in a background job (``_start(context)`` -> a job with
+    ``start()``, ``join()``, ``running``, ``fraction``, ``cancel()``; ``_finish(context, job)``).
+    From a script (EXEC) it blocks; invoked from the UI it is modal with progress in the status bar and
+    Esc to cancel, and the viewport stays usable meanwhile.  ``edit_label`` names the work."""
+
+    edit_label = "working"
+
+    def execute(self, context):
+        job = self._start(context)
+        if job is None:
+            return {"CANCELLED"}
+        job.start().join()
+        return self._finish(context, job)
+
+    def invoke(self, context, event):
+        job = self._start(context)
+        if job is None:
+            return {"CANCELLED"}
+        self._job = job.start()
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        _status(context, f"NeuMesh: {self.edit_label}... (Esc cancels)")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC" and job.running:
+            job.cancel()
+        if event.type == "TIMER":
+            context.window_manager.progress_update(int(100 * job.fraction))
+            _status(context, f"NeuMesh: {self.edit_label} {100 * job.fraction:.0f}% (Esc cancels)")
+        if job.running:   # the viewport stays usable while the edit runs; Esc is ours
+            return {"RUNNING_MODAL"} if event.type == "ESC" else {"PASS_THROUGH"}
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        _status(context, None)
+        return self._finish(context, job)
+
+
+class EditOperator(JobModal):
     """Mixin of the edit operators.  A subclass implements :meth:`prepare` (main thread: read Blender
     state, raise :class:`EditError` for bad input) returning ``(targets, fn)``: ``targets`` a list of
     ``(obj, field, parent_path)`` with ``field`` a copy from :func:`edit_copy`, and ``fn(progress)``
@@ -248,41 +291,6 @@ class EditOperator:
 
     def summary(self, record) -> str:
         return f"{record.info.get('seconds', 0.0):.1f} s"
-
-    def execute(self, context):
-        job = self._start(context)
-        if job is None:
-            return {"CANCELLED"}
-        job.start().join()
-        return self._finish(context, job)
-
-    def invoke(self, context, event):
-        job = self._start(context)
-        if job is None:
-            return {"CANCELLED"}
-        self._job = job.start()
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.1, window=context.window)
-        wm.progress_begin(0, 100)
-        wm.modal_handler_add(self)
-        _status(context, f"NeuMesh: {self.edit_label}... (Esc cancels)")
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context, event):
-        job = self._job
-        if event.type == "ESC" and job.running:
-            job.cancel()
-        if event.type == "TIMER":
-            context.window_manager.progress_update(int(100 * job.fraction))
-            _status(context, f"NeuMesh: {self.edit_label} {100 * job.fraction:.0f}% (Esc cancels)")
-        if job.running:   # the viewport stays usable while the edit runs; Esc is ours
-            return {"RUNNING_MODAL"} if event.type == "ESC" else {"PASS_THROUGH"}
-        wm = context.window_manager
-        wm.event_timer_remove(self._timer)
-        wm.progress_end()
-        _status(context, None)
-        return self._finish(context, job)
-
 
 def _status(context, text):
     try:

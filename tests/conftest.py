@@ -1,4 +1,5 @@
 """Shared fixtures for core tests: tiny meshes and the small built-in scene (made once per session)."""
+import contextlib
 import os
 
 import numpy as np
@@ -6,6 +7,18 @@ import pytest
 import torch
 
 torch.set_num_threads(max(1, os.cpu_count() or 1))
+
+
+@contextlib.contextmanager
+def one_thread():
+    """torch on one thread inside the block: small training batches run faster so, and far faster on a
+    busy 2-core machine, where two threads per process spin against each other."""
+    saved = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(saved)
 
 
 @pytest.fixture(scope="session")

@@ -2,7 +2,6 @@
 
 One field is trained briefly on the small built-in scene (diffuse-dominated, 64 px) and baked once at
 256 texels (module fixtures, ~12 s together on one thread)."""
-import contextlib
 import hashlib
 import os
 
@@ -14,16 +13,7 @@ import neumesh_core as nm
 from neumesh_core.bake import bake_texture, dilate, save_bake, texel_coverage, uv_pixels
 from neumesh_core.metrics import psnr
 from neumesh_core.render.raster import raster_triangles, render_textured_mesh
-
-
-@contextlib.contextmanager
-def one_thread():
-    saved = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(saved)
+from .conftest import one_thread
 
 
 @pytest.fixture(scope="module")

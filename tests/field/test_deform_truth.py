@@ -10,6 +10,7 @@ from neumesh_core.data.deformations import bend
 from neumesh_core.data.mesh_truth import render_mesh_truth
 from neumesh_core.data.synthetic import CAMERA_ANGLE_X, look_at_opencv
 from neumesh_core.metrics import psnr
+from ..conftest import one_thread
 
 VIEWS = [(-60.0, 20.0), (120.0, 35.0), (30.0, -10.0)]
 
@@ -33,9 +34,7 @@ def test_moderate_bend_of_a_trained_field_stays_close_to_its_truth(small_scene_d
     # in the rest pose gives 21.44 dB and fails. Not caught at this budget: dropping the rest-frame
     # rotation of the view direction (the field has hardly learned highlights in 150 steps).
     # One torch thread: the small batches are faster so, and far faster on a busy 2-core machine.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with one_thread():
         torch.manual_seed(0)
         scene = nm.load_scene(small_scene_dir)
         field = nm.create_field(nm.load_mesh(scene.mesh_path), nm.FieldConfig(interpolation="early"))
@@ -44,8 +43,6 @@ def test_moderate_bend_of_a_trained_field_stays_close_to_its_truth(small_scene_d
         undeformed = _psnr_against_truth(field, rest, rest)
         bent = _psnr_against_truth(field, bend(rest, 45.0), rest)
         field.set_vertices(rest.astype(np.float32))
-    finally:
-        torch.set_num_threads(threads)
     print(f"undeformed {undeformed:.2f} dB, bent 45 deg {bent:.2f} dB")
     assert undeformed > 22.5
     assert bent > undeformed - 0.5

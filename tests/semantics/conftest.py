@@ -4,22 +4,12 @@ and a copy with semantics distilled by the weight-free extractor (about 40 s tog
 The fixtures run torch on one thread: on a 2-core machine that other jobs keep busy, two OpenMP
 threads spin against each other (measured: 272 s with two threads against ~40 s with one, load ~6);
 on an idle machine one thread costs little here (small batches)."""
-import contextlib
 import copy
 
 import numpy as np
 import pytest
 import torch
-
-
-@contextlib.contextmanager
-def one_thread():
-    saved = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(saved)
+from ..conftest import one_thread
 
 
 @pytest.fixture(scope="session")
