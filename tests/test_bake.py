@@ -7,7 +7,6 @@ import os
 
 import numpy as np
 import pytest
-import torch
 
 import neumesh_core as nm
 from neumesh_core.bake import bake_texture, dilate, save_bake, texel_coverage, uv_pixels

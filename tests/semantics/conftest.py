@@ -8,7 +8,6 @@ import copy
 
 import numpy as np
 import pytest
-import torch
 from ..conftest import one_thread
 
 
