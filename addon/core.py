@@ -35,6 +35,42 @@ def prepare_torch():
     guard_torch_namespaces()
 
 
+def all_cores() -> int:
+    """The CPUs this process may run on (its affinity mask; os.cpu_count() where that is unknown)."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def wanted_threads() -> int:
+    """torch threads from the add-on preference *CPU threads* (0, or no preferences: all cores)."""
+    n = 0
+    try:
+        from . import prefs
+
+        p = prefs.get_prefs()
+        n = int(p.torch_threads) if p is not None else 0
+    except Exception:  # noqa: BLE001 - no Blender context (tests of the core side)
+        n = 0
+    return n if n > 0 else all_cores()
+
+
+def apply_threads(n: int | None = None) -> int:
+    """Set torch's thread count for the calling thread's torch work (renders, training, edits) to ``n``
+    or :func:`wanted_threads`, and return it. Blender may have started torch with another count (its
+    own render threads, or 1), and an OpenMP thread keeps the count it had when it first ran torch
+    work, so every thread that renders or trains calls this first. Cheap when nothing changes."""
+    import torch
+
+    n = int(n) if n else wanted_threads()
+    if torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+    return n
+
+
 def _import():
     pkg = __package__
     vendored = pkg + ".neumesh_core" if pkg else None

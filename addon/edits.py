@@ -158,6 +158,7 @@ class EditJob:
         self.error = None
         self.cancelled = False
         self.started = time.time()
+        self.threads = core.wanted_threads()   # read here, on the main thread
         self._cancel = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"neumesh-{label}", daemon=True)
 
@@ -181,6 +182,7 @@ class EditJob:
 
     def _run(self):
         try:
+            core.apply_threads(self.threads)
             self.record = self.fn(self._progress)
         except Exception as exc:  # noqa: BLE001 - reported by the operator
             if type(exc).__name__ == "Cancelled":

@@ -69,6 +69,7 @@ class DistilJob:
         self.extractor = extractor
         self.steps = int(steps)
         self.config = dict(config or {})
+        self.threads = core.wanted_threads()   # read here, on the main thread
         self.state = "PENDING"   # RUNNING, DONE, CANCELLED, ERROR
         self.stage = ""
         self.step = 0
@@ -117,6 +118,7 @@ class DistilJob:
     def _run(self):
         try:
             nm = core.get()
+            core.apply_threads(self.threads)
             sem = nm.semantics
             field = nm.load_field(self.field_path)   # a copy: the render cache's field is not touched
             scene = nm.load_scene(self.dataset_path, downscale=self.downscale, background=self.background)

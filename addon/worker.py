@@ -30,6 +30,7 @@ class TrainJob:
         self.background = background
         self.train_kwargs = dict(train_kwargs or {})
         self.object_name = object_name
+        self.threads = core.wanted_threads()   # read here, on the main thread
         # progress, written by the thread, read by the UI
         self.state = "PENDING"  # LOADING, TRAINING, SAVING, DONE, CANCELLED, ERROR
         self.message = ""
@@ -105,6 +106,7 @@ class TrainJob:
     def _run(self):
         try:
             nm = core.get()
+            core.apply_threads(self.threads)
             scene = nm.load_scene(self.dataset_path, downscale=self.downscale, background=self.background)
             if self._cancel.is_set():
                 self.state, self.message = "CANCELLED", "before training started"
