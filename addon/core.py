@@ -24,14 +24,16 @@ _WHAT_TO_DO = ("Open Edit > Preferences > Add-ons > NeuMesh and press 'Install d
 def prepare_torch():
     """Run once torch has been imported, by the add-on or by anyone else (idempotent, cheap after the
     first call): point torch's BLAS calls at torch's own BLAS where Blender links a slow one
-    (:mod:`blas`), and make torch's module-like objects safe for Blender's exit-time add-on scan."""
+    (:mod:`blas`), let Blender's jemalloc keep torch's large freed blocks for reuse (:mod:`malloc`),
+    and make torch's module-like objects safe for Blender's exit-time add-on scan."""
     import sys
 
     if "torch" not in sys.modules:
         return
-    from . import blas
+    from . import blas, malloc
 
     blas.ensure()
+    malloc.tune()
     guard_torch_namespaces()
 
 
