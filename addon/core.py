@@ -6,6 +6,7 @@ pulls in torch, so it only happens when something is trained or rendered, never 
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import importlib.util
 
@@ -24,16 +25,14 @@ _WHAT_TO_DO = ("Open Edit > Preferences > Add-ons > NeuMesh and press 'Install d
 def prepare_torch():
     """Run once torch has been imported, by the add-on or by anyone else (idempotent, cheap after the
     first call): point torch's BLAS calls at torch's own BLAS where Blender links a slow one
-    (:mod:`blas`), let Blender's jemalloc keep torch's large freed blocks for reuse (:mod:`malloc`),
-    and make torch's module-like objects safe for Blender's exit-time add-on scan."""
+    (:mod:`blas`), and make torch's module-like objects safe for Blender's exit-time add-on scan."""
     import sys
 
     if "torch" not in sys.modules:
         return
-    from . import blas, malloc
+    from . import blas
 
     blas.ensure()
-    malloc.tune()
     guard_torch_namespaces()
 
 
@@ -71,6 +70,22 @@ def apply_threads(n: int | None = None) -> int:
     if torch.get_num_threads() != n:
         torch.set_num_threads(n)
     return n
+
+
+@contextlib.contextmanager
+def torch_work(threads: int | None = None):
+    """Around the torch work of a render, a training, a distillation or an edit, in the thread that
+    does it: torch's thread count from the preferences (:func:`apply_threads`), and Blender's jemalloc
+    keeps freed memory mapped meanwhile (:mod:`malloc`; previous decay times back afterwards)."""
+    from . import malloc
+
+    try:
+        get()
+        n = apply_threads(threads)
+    except Exception:  # noqa: BLE001 - no torch: the work itself reports it
+        n = None
+    with malloc.retain():
+        yield n
 
 
 def _import():

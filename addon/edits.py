@@ -160,7 +160,7 @@ class EditJob:
         self.started = time.time()
         self.threads = core.wanted_threads()   # read here, on the main thread
         self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"neumesh-{label}", daemon=True)
+        self._thread = threading.Thread(target=self._run_in_torch_work, name=f"neumesh-{label}", daemon=True)
 
     def start(self):
         self._thread.start()
@@ -180,9 +180,12 @@ class EditJob:
         self.fraction = float(fraction)
         return not self._cancel.is_set()
 
+    def _run_in_torch_work(self):
+        with core.torch_work(self.threads):   # the preference's threads; jemalloc keeps freed memory
+            self._run()
+
     def _run(self):
         try:
-            core.apply_threads(self.threads)
             self.record = self.fn(self._progress)
         except Exception as exc:  # noqa: BLE001 - reported by the operator
             if type(exc).__name__ == "Cancelled":

@@ -1,39 +1,50 @@
-"""Keep freed large blocks for reuse where Blender's allocator is jemalloc (no bpy; Linux only).
+"""Keep freed memory mapped while NeuMesh works, where Blender's allocator is jemalloc (no bpy; Linux).
 
 Blender builds for Linux (Debian's 3.4 among them) link jemalloc, which then serves every malloc of
-the process, torch's included. jemalloc puts allocations of ``opt.oversize_threshold`` (8 MiB) and
-more in a dedicated arena and, when the default decay times are positive, gives that arena a decay
-time of 0: every freed block is handed back to the kernel at once. A NeuMesh render allocates and
-frees tens of such blocks per chunk of rays (per-sample features, neighbour tables), so each of
-them is page-faulted in afresh (zero-filled by the kernel) every time: a render in that Blender
-took 2-6x as long as in a plain Python (benchmarks/bench_addon.py, section f12).
+the process, torch's included. jemalloc hands freed pages back to the kernel on a timer ("decay":
+Blender 3.4 sets 4 s dirty / 0 s muzzy; allocations of 8 MiB and more live in an arena with 0 s,
+i.e. at once). A NeuMesh render allocates and frees hundreds of MB per chunk of rays, so pages are
+returned and page-faulted in again (zero-filled by the kernel) all the time. Measured in blender 3.4
+(benchmarks/bench_addon.py, one torch thread, 200x200, 6 interleaved renders): Blender's settings
+1.78 s, plain Python (glibc malloc) 1.47 s; decay 10 s for every arena 1.66 s, 30 s 1.58 s; never
+returning pages 1.25 s.
 
-:func:`tune` gives that arena the dirty decay time of the ordinary arenas (Blender 3.4: 4 s): freed
-pages stay mapped for reuse and go back to the kernel once unused for that long, as for every other
-allocation. The other arenas are not touched. ``NEUMESH_JEMALLOC_DECAY_MS`` overrides the time (-1:
-never give them back; ``off``: leave jemalloc alone).
+:func:`retain` is a context manager around torch work (renders, training, edits): on entering, every
+arena (the oversize one made first if need be) and the default for new ones get decay -1 (freed pages
+stay mapped and are reused); when the last user leaves, the previous times are put back, so Blender
+returns the memory as before once NeuMesh is idle. ``NEUMESH_JEMALLOC=off`` leaves jemalloc alone.
 Nothing happens where malloc is not jemalloc (bpy from PyPI, plain Python, macOS, Windows).
 """
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
+import threading
 
-ENV = "NEUMESH_JEMALLOC_DECAY_MS"
-DECAY_MS = 10_000     # jemalloc's own default dirty decay
-
+ENV = "NEUMESH_JEMALLOC"
+_KINDS = ("dirty", "muzzy")
+_LOCK = threading.Lock()
+_state = {"depth": 0, "saved": None}
 _report: dict | None = None
+_fn = []
 
 
 def _mallctl():
     """jemalloc's mallctl in this process's global scope, or None."""
+    if _fn:
+        return _fn[0]
+    f = None
     try:
         f = ctypes.CDLL(None).mallctl
+        f.restype = ctypes.c_int
+        f.argtypes = [ctypes.c_char_p, ctypes.c_void_p, ctypes.POINTER(ctypes.c_size_t), ctypes.c_void_p,
+                      ctypes.c_size_t]
+        if _read(f, "version", ctypes.c_char_p) is None:
+            f = None
     except (AttributeError, OSError):
-        return None
-    f.restype = ctypes.c_int
-    f.argtypes = [ctypes.c_char_p, ctypes.c_void_p, ctypes.POINTER(ctypes.c_size_t), ctypes.c_void_p,
-                  ctypes.c_size_t]
+        f = None
+    _fn.append(f)
     return f
 
 
@@ -48,51 +59,32 @@ def _write(mallctl, name: str, value: int) -> int:
     return mallctl(name.encode(), None, None, ctypes.byref(v), ctypes.sizeof(v))
 
 
+def available() -> bool:
+    """malloc is jemalloc here."""
+    return _mallctl() is not None
+
+
 def decay_times() -> dict:
     """{arena index: (dirty ms, muzzy ms)} of the arenas that exist (empty without jemalloc)."""
     m = _mallctl()
     if m is None:
         return {}
     out = {}
-    n = _read(m, "arenas.narenas", ctypes.c_uint) or 0
-    for i in range(n):
+    for i in range(_read(m, "arenas.narenas", ctypes.c_uint) or 0):
         d = _read(m, f"arena.{i}.dirty_decay_ms", ctypes.c_ssize_t)
         if d is not None:
             out[i] = (d, _read(m, f"arena.{i}.muzzy_decay_ms", ctypes.c_ssize_t))
     return out
 
 
-def tune(decay_ms: int | None = None) -> dict:
-    """Give jemalloc's oversize arena the dirty decay time of its ordinary arenas (what this Blender
-    chose for every other allocation; ``DECAY_MS`` if that is not positive), or ``decay_ms`` /
-    $NEUMESH_JEMALLOC_DECAY_MS. The other arenas are left as they are. Idempotent; returns a report:
-    ``jemalloc`` (bool), ``arena`` (the oversize arena's index), ``before`` / ``after`` (its dirty
-    and muzzy decay ms), ``oversize_threshold``, ``error``."""
-    global _report
-    if decay_ms is None and _report is not None:
-        return _report
-    env = os.environ.get(ENV, "").strip()
-    rep = {"jemalloc": False, "arena": None, "before": None, "after": None, "oversize_threshold": None,
-           "error": ""}
-    m = _mallctl()
-    version = None if m is None else _read(m, "version", ctypes.c_char_p)
-    if version is None:
-        _report = rep
-        return rep
-    rep["jemalloc"], rep["version"] = True, version.decode(errors="replace")
-    if env.lower() == "off" and decay_ms is None:
-        rep["error"] = f"{ENV}=off"
-        _report = rep
-        return rep
-    try:
-        thr = _read(m, "opt.oversize_threshold", ctypes.c_size_t)
-        rep["oversize_threshold"] = thr
-        huge = _read(m, "opt.narenas", ctypes.c_uint)   # the oversize arena comes after the automatic ones
-        if not thr or huge is None:
-            rep["error"] = "no oversize arena"
-            _report = rep
-            return rep
-        # the oversize arena is made on the first allocation that size, with decay 0: make it now
+def _defaults(m):
+    return tuple(_read(m, f"arenas.{k}_decay_ms", ctypes.c_ssize_t) for k in _KINDS)
+
+
+def _make_oversize_arena(m):
+    """The oversize arena is made on the first allocation of that size (with decay 0): make it now."""
+    thr = _read(m, "opt.oversize_threshold", ctypes.c_size_t)
+    if thr:
         libc = ctypes.CDLL(None)
         libc.malloc.restype = ctypes.c_void_p
         libc.malloc.argtypes = [ctypes.c_size_t]
@@ -100,24 +92,75 @@ def tune(decay_ms: int | None = None) -> dict:
         p = libc.malloc(int(thr) + 4096)
         if p:
             libc.free(p)
-        rep["arena"] = int(huge)
-        rep["before"] = (_read(m, f"arena.{huge}.dirty_decay_ms", ctypes.c_ssize_t),
-                         _read(m, f"arena.{huge}.muzzy_decay_ms", ctypes.c_ssize_t))
-        if decay_ms is None:
-            ordinary = _read(m, "arena.0.dirty_decay_ms", ctypes.c_ssize_t)
-            decay_ms = int(env) if env.lstrip("-").isdigit() else (ordinary if ordinary and ordinary > 0
-                                                                  else DECAY_MS)
-        err = _write(m, f"arena.{huge}.dirty_decay_ms", int(decay_ms))
-        if err:
-            rep["error"] = f"mallctl arena.{huge}.dirty_decay_ms: error {err}"
-        rep["after"] = (_read(m, f"arena.{huge}.dirty_decay_ms", ctypes.c_ssize_t),
-                        _read(m, f"arena.{huge}.muzzy_decay_ms", ctypes.c_ssize_t))
-    except Exception as exc:  # noqa: BLE001 - never fatal: renders just stay slower
-        rep["error"] = f"{type(exc).__name__}: {exc}"
-    _report = rep
-    return rep
+    return thr
+
+
+def _set_all(m, times: dict, default: tuple) -> list:
+    errors = []
+    for k, v in zip(_KINDS, default):
+        if v is not None and _write(m, f"arenas.{k}_decay_ms", v):
+            errors.append(f"arenas.{k}_decay_ms")
+    for i in decay_times():
+        for k, v in zip(_KINDS, times.get(i, default)):
+            if v is not None and _write(m, f"arena.{i}.{k}_decay_ms", v):
+                errors.append(f"arena.{i}.{k}_decay_ms")
+    return errors
+
+
+def _enter():
+    global _report
+    m = _mallctl()
+    if m is None or os.environ.get(ENV, "").strip().lower() == "off":
+        return
+    with _LOCK:
+        _state["depth"] += 1
+        if _state["depth"] > 1:
+            return
+        try:
+            thr = _make_oversize_arena(m)
+            saved = (decay_times(), _defaults(m))
+            _state["saved"] = saved
+            errors = _set_all(m, {}, (-1, -1))
+            _report = {"jemalloc": True, "oversize_threshold": thr, "before": saved[0], "default_before": saved[1],
+                       "during": decay_times(), "error": ", ".join(errors)}
+        except Exception as exc:  # noqa: BLE001 - never fatal: renders just stay slower
+            _report = {"jemalloc": True, "error": f"{type(exc).__name__}: {exc}"}
+
+
+def _exit():
+    m = _mallctl()
+    if m is None:
+        return
+    with _LOCK:
+        if _state["depth"] == 0:
+            return
+        _state["depth"] -= 1
+        if _state["depth"] or _state["saved"] is None:
+            return
+        times, default = _state["saved"]
+        _state["saved"] = None
+        try:
+            errors = _set_all(m, times, default)
+            if _report is not None:
+                _report["after"] = decay_times()
+                if errors:
+                    _report["error"] = (_report.get("error", "") + " restore: " + ", ".join(errors)).strip()
+        except Exception as exc:  # noqa: BLE001
+            if _report is not None:
+                _report["error"] = f"restore: {type(exc).__name__}: {exc}"
+
+
+@contextlib.contextmanager
+def retain():
+    """Inside: jemalloc keeps freed pages for reuse (see the module docstring); nestable, thread-safe."""
+    _enter()
+    try:
+        yield
+    finally:
+        _exit()
 
 
 def report() -> dict | None:
-    """What :func:`tune` did (None before it ran)."""
+    """The last :func:`retain`: decay times before, during and after (None before one ran, or
+    without jemalloc)."""
     return _report

@@ -261,8 +261,7 @@ def render_items(items: list[Item], K, c2w, width: int, height: int, transparent
 
     import torch
 
-    threads = core.apply_threads()
-    with _LOCK:
+    with core.torch_work() as threads, _LOCK:
         t0 = time.perf_counter()
         fields = []
         for it in items:

@@ -79,7 +79,7 @@ class DistilJob:
         self.out_path = None
         self.handled = False
         self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="neumesh-semantics", daemon=True)
+        self._thread = threading.Thread(target=self._run_in_torch_work, name="neumesh-semantics", daemon=True)
 
     def start(self):
         self.state = "RUNNING"
@@ -115,10 +115,13 @@ class DistilJob:
         self.stage, self.step, self.total, self.loss = p.stage, int(p.step), int(p.total), float(p.loss)
         return not self._cancel.is_set()
 
+    def _run_in_torch_work(self):
+        with core.torch_work(self.threads):   # the preference's threads; jemalloc keeps freed memory
+            self._run()
+
     def _run(self):
         try:
             nm = core.get()
-            core.apply_threads(self.threads)
             sem = nm.semantics
             field = nm.load_field(self.field_path)   # a copy: the render cache's field is not touched
             scene = nm.load_scene(self.dataset_path, downscale=self.downscale, background=self.background)

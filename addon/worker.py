@@ -44,7 +44,7 @@ class TrainJob:
         self.started = time.time()
         self.finished_at = None
         self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="neumesh-train", daemon=True)
+        self._thread = threading.Thread(target=self._run_in_torch_work, name="neumesh-train", daemon=True)
 
     # ---------------------------------------------------------------- control
     def start(self):
@@ -103,10 +103,13 @@ class TrainJob:
         self.eta_s = float(eta) if eta is not None else float("nan")
         return not self._cancel.is_set()
 
+    def _run_in_torch_work(self):
+        with core.torch_work(self.threads):   # the preference's threads; jemalloc keeps freed memory
+            self._run()
+
     def _run(self):
         try:
             nm = core.get()
-            core.apply_threads(self.threads)
             scene = nm.load_scene(self.dataset_path, downscale=self.downscale, background=self.background)
             if self._cancel.is_set():
                 self.state, self.message = "CANCELLED", "before training started"

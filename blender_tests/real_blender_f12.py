@@ -5,7 +5,7 @@
 F12 with the add-on preference *CPU threads* at 1, written as a 32-bit EXR, beside the core's own
 render of the same frame (the vertices, K and c2w the engine used) in the same process. Prints what
 the test checks: the largest difference, how the pixels were handed to Blender, torch's threads
-during the render, what the add-on did to Blender's allocator.
+during the render, what the add-on did to Blender's allocator during the render and after it.
 """
 import os
 import sys
@@ -48,4 +48,4 @@ field.set_vertices(items[0].vertices)
 ref = nm.render_camera(field, K, c2w, W, H, background=(1.0, 1.0, 1.0))
 facts(version=list(bpy.app.version), handoff=phases.get("handoff"), torch_threads=phases.get("torch_threads"),
       max_diff=float(np.abs(got - ref.rgb).max()), ref_std=float(ref.rgb.std()),
-      malloc=addon.malloc.report(), error=addon.engine.LAST_ERROR["message"])
+      jemalloc=addon.malloc.available(), malloc=addon.malloc.report(), decay_now=addon.malloc.decay_times(), error=addon.engine.LAST_ERROR["message"])
