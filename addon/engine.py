@@ -236,7 +236,11 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
         serial, _div, rgba = latest
         if self._texture_serial != (serial, _div):
             h, w = rgba.shape[:2]
-            buf = gpu.types.Buffer("FLOAT", w * h * 4, np.ascontiguousarray(rgba[::-1]).ravel().tolist())
+            flat = np.ascontiguousarray(rgba[::-1], dtype=np.float32).reshape(-1)
+            try:   # a buffer is copied in one go (a list of the floats: 0.8 s at 960x540 in blender 3.4)
+                buf = gpu.types.Buffer("FLOAT", flat.size, flat)
+            except TypeError:
+                buf = gpu.types.Buffer("FLOAT", flat.size, flat.tolist())
             self._texture = gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
             self._texture_serial = (serial, _div)
         from gpu_extras.presets import draw_texture_2d
