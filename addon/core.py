@@ -6,6 +6,7 @@ pulls in torch, so it only happens when something is trained or rendered, never 
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import importlib.util
 
@@ -33,6 +34,58 @@ def prepare_torch():
 
     blas.ensure()
     guard_torch_namespaces()
+
+
+def all_cores() -> int:
+    """The CPUs this process may run on (its affinity mask; os.cpu_count() where that is unknown)."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def wanted_threads() -> int:
+    """torch threads from the add-on preference *CPU threads* (0, or no preferences: all cores)."""
+    n = 0
+    try:
+        from . import prefs
+
+        p = prefs.get_prefs()
+        n = int(p.torch_threads) if p is not None else 0
+    except Exception:  # noqa: BLE001 - no Blender context (tests of the core side)
+        n = 0
+    return n if n > 0 else all_cores()
+
+
+def apply_threads(n: int | None = None) -> int:
+    """Set torch's thread count for the calling thread's torch work (renders, training, edits) to ``n``
+    or :func:`wanted_threads`, and return it. Blender may have started torch with another count (its
+    own render threads, or 1), and an OpenMP thread keeps the count it had when it first ran torch
+    work, so every thread that renders or trains calls this first. Cheap when nothing changes."""
+    import torch
+
+    n = int(n) if n else wanted_threads()
+    if torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+    return n
+
+
+@contextlib.contextmanager
+def torch_work(threads: int | None = None):
+    """Around the torch work of a render, a training, a distillation or an edit, in the thread that
+    does it: torch's thread count from the preferences (:func:`apply_threads`), and Blender's jemalloc
+    keeps freed memory mapped meanwhile (:mod:`malloc`; previous decay times back afterwards)."""
+    from . import malloc
+
+    try:
+        get()
+        n = apply_threads(threads)
+    except Exception:  # noqa: BLE001 - no torch: the work itself reports it
+        n = None
+    with malloc.retain():
+        yield n
 
 
 def _import():

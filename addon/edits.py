@@ -158,8 +158,9 @@ class EditJob:
         self.error = None
         self.cancelled = False
         self.started = time.time()
+        self.threads = core.wanted_threads()   # read here, on the main thread
         self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"neumesh-{label}", daemon=True)
+        self._thread = threading.Thread(target=self._run_in_torch_work, name=f"neumesh-{label}", daemon=True)
 
     def start(self):
         self._thread.start()
@@ -178,6 +179,10 @@ class EditJob:
     def _progress(self, fraction):
         self.fraction = float(fraction)
         return not self._cancel.is_set()
+
+    def _run_in_torch_work(self):
+        with core.torch_work(self.threads):   # the preference's threads; jemalloc keeps freed memory
+            self._run()
 
     def _run(self):
         try:

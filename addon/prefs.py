@@ -63,8 +63,10 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
         default="",
     )
     torch_threads: IntProperty(
-        name="CPU threads", description="torch threads for rendering and training (0 = torch default)",
-        default=0, min=0, max=256,
+        name="CPU threads",
+        description="torch threads for rendering, training and edits (0: all cores). On a machine busy with "
+                    "other work, fewer threads can be faster",
+        default=0, min=0, max=1024,
     )
     preview_start: EnumProperty(
         name="Preview starts at", description="Resolution of the first viewport preview pass",
@@ -117,7 +119,11 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
                 for line in job.log_lines[-15:]:
                     col.label(text=line[:160])
         self._draw_speed(layout, context)
-        layout.prop(self, "torch_threads")
+        row = layout.row()
+        row.prop(self, "torch_threads")
+        from . import core
+
+        row.label(text=f"{core.wanted_threads()} in use" + (" (all cores)" if self.torch_threads == 0 else ""))
         row = layout.row()
         row.prop(self, "preview_start")
         row.prop(self, "preview_final")

@@ -30,6 +30,8 @@ class _Entry:
 
 _CACHE: dict[str, _Entry] = {}
 STATS = {"loads": 0, "set_vertices": 0}
+# the last render_items call: seconds in nm.render_camera, in posing the fields, torch's threads
+LAST_TIMINGS: dict = {}
 
 
 def _stamp(path):
@@ -287,21 +289,31 @@ def render_items(items: list[Item], K, c2w, width: int, height: int, transparent
     Otherwise: composited on white, alpha = 1.
     """
     nm = core.get()
+    LAST_TIMINGS.clear()
     bg = (0.0, 0.0, 0.0) if transparent else (1.0, 1.0, 1.0)
     if not items:
         img = np.zeros((height, width, 4), np.float32)
         if not transparent:
             img[:] = 1.0
         return img
-    with _LOCK:
+    import time
+
+    import torch
+
+    with core.torch_work() as threads, _LOCK:
+        t0 = time.perf_counter()
         fields = []
         for it in items:
             if it.field is None:
                 get_field(it.key, it.path)
             fields.append(_apply_vertices(it))
+        t1 = time.perf_counter()
         out = nm.render_camera(fields if len(fields) > 1 else fields[0], np.asarray(K, np.float32),
                                np.asarray(c2w, np.float32), int(width), int(height), background=bg,
                                settings=nm.RenderSettings(supersample=int(supersample)), progress=progress)
+        t2 = time.perf_counter()
+    LAST_TIMINGS.update(pose_s=t1 - t0, core_s=t2 - t1, torch_threads=torch.get_num_threads(),
+                        threads_wanted=threads)
     core.guard_torch_namespaces()  # torch may have imported more modules lazily
     rgb = np.asarray(out.rgb, dtype=np.float32).reshape(height, width, 3)
     alpha = np.asarray(out.opacity, dtype=np.float32).reshape(height, width, 1) if transparent else \

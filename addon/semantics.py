@@ -70,6 +70,7 @@ class DistilJob:
         self.extractor = extractor
         self.steps = int(steps)
         self.config = dict(config or {})
+        self.threads = core.wanted_threads()   # read here, on the main thread
         self.state = "PENDING"   # RUNNING, DONE, CANCELLED, ERROR
         self.stage = ""
         self.step = 0
@@ -79,7 +80,7 @@ class DistilJob:
         self.out_path = None
         self.handled = False
         self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="neumesh-semantics", daemon=True)
+        self._thread = threading.Thread(target=self._run_in_torch_work, name="neumesh-semantics", daemon=True)
 
     def start(self):
         self.state = "RUNNING"
@@ -114,6 +115,10 @@ class DistilJob:
     def _callback(self, p):
         self.stage, self.step, self.total, self.loss = p.stage, int(p.step), int(p.total), float(p.loss)
         return not self._cancel.is_set()
+
+    def _run_in_torch_work(self):
+        with core.torch_work(self.threads):   # the preference's threads; jemalloc keeps freed memory
+            self._run()
 
     def _run(self):
         try:

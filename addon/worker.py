@@ -30,6 +30,7 @@ class TrainJob:
         self.background = background
         self.train_kwargs = dict(train_kwargs or {})
         self.object_name = object_name
+        self.threads = core.wanted_threads()   # read here, on the main thread
         # progress, written by the thread, read by the UI
         self.state = "PENDING"  # LOADING, TRAINING, SAVING, DONE, CANCELLED, ERROR
         self.message = ""
@@ -43,7 +44,7 @@ class TrainJob:
         self.started = time.time()
         self.finished_at = None
         self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="neumesh-train", daemon=True)
+        self._thread = threading.Thread(target=self._run_in_torch_work, name="neumesh-train", daemon=True)
 
     # ---------------------------------------------------------------- control
     def start(self):
@@ -101,6 +102,10 @@ class TrainJob:
         eta = getattr(p, "eta_s", None)
         self.eta_s = float(eta) if eta is not None else float("nan")
         return not self._cancel.is_set()
+
+    def _run_in_torch_work(self):
+        with core.torch_work(self.threads):   # the preference's threads; jemalloc keeps freed memory
+            self._run()
 
     def _run(self):
         try:

@@ -79,3 +79,51 @@ def test_disable_and_enable_again(addon):
     addon_utils.enable(ADDON_MODULE, default_set=True)
     assert hasattr(bpy.types.Object, "neumesh")
     assert sys.modules[ADDON_MODULE] is not None
+
+
+_NEXT_PROCESS = r'''
+import sys, bpy, addon_utils
+mode = sys.argv[1]
+if mode == "install":
+    r = bpy.ops.extensions.package_install_files(filepath=sys.argv[2], repo="user_default", enable_on_install=True)
+    assert r == {"FINISHED"}, r
+    if sys.argv[3] == "save":
+        assert bpy.ops.wm.save_userpref() == {"FINISHED"}
+elif mode == "read_userpref":
+    bpy.ops.wm.read_userpref()
+elif mode == "enable":
+    addon_utils.enable("bl_ext.user_default.neumesh", default_set=True)
+print("NEUMESH_ENABLED", "bl_ext.user_default.neumesh" in bpy.context.preferences.addons
+      and hasattr(bpy.types.Object, "neumesh"))
+'''
+
+
+def test_bpy_module_next_process_has_the_extension_after_save_and_read_userpref(addon_zip, tmp_path):
+    """bpy as a Python module does not load the saved preferences on import: an extension installed
+    with enable_on_install=True is on disk but not enabled in the next Python process. What works (as
+    docs/addon.md says): save_userpref() after installing, then read_userpref() in each new process;
+    or addon_utils.enable(...) in each new process."""
+    import subprocess
+
+    script = tmp_path / "next.py"
+    script.write_text(_NEXT_PROCESS)
+
+    def run(home, *args):
+        env = dict(os.environ)
+        for var, sub in (("BLENDER_USER_RESOURCES", "res"), ("XDG_CACHE_HOME", "cache"), ("TMPDIR", "tmp"),
+                         ("HOME", "home"), ("XDG_CONFIG_HOME", "config")):
+            env[var] = str(home / sub)
+            os.makedirs(env[var], exist_ok=True)
+        r = subprocess.run([sys.executable, str(script), *args], env=env, capture_output=True, text=True,
+                           timeout=240)
+        assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
+        return next(l.split()[1] for l in r.stdout.splitlines() if l.startswith("NEUMESH_ENABLED")) == "True"
+
+    home = tmp_path / "a"
+    assert run(home, "install", addon_zip, "save")
+    assert not run(home, "none")              # the plain import: not enabled
+    assert run(home, "read_userpref")         # the saved preferences enable it
+    assert run(home, "enable")                # or enabling it by name
+    other = tmp_path / "b"                    # installed without saving the preferences
+    assert run(other, "install", addon_zip, "nosave")
+    assert not run(other, "read_userpref") and run(other, "enable")

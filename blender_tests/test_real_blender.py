@@ -175,3 +175,36 @@ def test_save_as_to_another_folder_keeps_the_field(addon_zip, trained_field, tmp
 
     img = np.asarray(Image.open(out / "frame_0001.png").convert("RGB"), np.float32) / 255
     assert img.shape == (40, 48, 3) and img.std() > 0.02  # the field is in the picture
+
+
+def test_f12_equals_the_core_render_with_one_copy_hand_off_threads_and_allocator(addon_zip, trained_field,
+                                                                                 tmp_path):
+    """F12 in the real binary: the pixels equal the core's render of the same frame (EXR, 1e-4) and reach
+    Blender in one copy (3.x: foreach_set of the (W*H, 4) rows; no Python list of pixels, which cost
+    0.35-0.45 s at 400x400), torch runs with the *CPU threads* preference, and where Blender's malloc is
+    jemalloc every arena keeps its freed pages during the render (decay -1; the oversize arena had 0)
+    and has its own decay times back afterwards."""
+    _need_torch()
+    env = _env(tmp_path)
+    f = _facts(_run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_f12.py"),
+                     "--", addon_zip, trained_field, str(tmp_path / "out")], env))
+    assert f["error"] == ""
+    assert f["ref_std"] > 0.02 and f["max_diff"] <= 1e-4, f
+    assert f["handoff"] in ("flat", "rows"), f
+    if tuple(f["version"]) < (4, 0, 0):
+        assert f["handoff"] == "rows"
+    assert f["torch_threads"] == 1
+    if f["jemalloc"]:   # Debian's 3.4 (and Blender's own Linux builds) link jemalloc
+        m = f["malloc"]
+        assert m["error"] == "", m
+
+        def times(d):   # {arena: (dirty ms, muzzy ms)} back from JSON
+            return {int(k): tuple(v) for k, v in d.items()}
+
+        before, during, after = times(m["before"]), times(m["during"]), times(m["after"])
+        assert set(during.values()) == {(-1, -1)} and len(during) >= 2, m   # arena 0 + the oversize one
+        assert (0, 0) in before.values(), m                                  # the oversize arena's
+        default = tuple(m["default_before"])
+        assert after == {k: before.get(k, default) for k in after} and set(before) <= set(after), m
+        now = times(f["decay_now"])   # at the end of the script: arenas made since have the default
+        assert now == {k: after.get(k, default) for k in now}
