@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Blender add-on timings (bpy==5.0.1 in the venv, CPU).
+"""Blender add-on timings (bpy==5.0.1 in the venv and the real `blender` binary, CPU).
 
 1. Viewport preview latency: a bone of an armature deforming a 100k-vertex scaffold is rotated;
    time until the first progressive-preview image (1/8 of an 800x600 viewport) exists. Broken down
@@ -9,10 +9,23 @@
    An untrained field is semi-transparent everywhere (no early ray termination): a worst case for
    the marcher; a trained field renders faster.
 
-The field is created untrained (timings do not depend on training). Prints figures and writes
-benchmarks/results/addon.json.
+3. F12 beside the core (section ``f12``): F12 (``bpy.ops.render.render()``, the engine's default
+   settings: one ray per pixel unless the scene's *Anti-aliasing* says more) at 400x400 in the real
+   `blender` binary (Debian's 3.4, ``blender -b``) and in bpy 5.0.1, interleaved (F12, core, F12,
+   core, ...) with the core's own render of the same frame (``nm.render_camera``: the same field
+   posed with the vertices the engine used, the same K, c2w, size, supersampling and background) in a
+   plain Python process, and in the Blender process itself. Each Blender and the core are persistent
+   worker processes (benchmarks/f12_worker.py) driven in turn, so machine load hits both alike.
+   Target: median F12 / median core <= 1.3. ``--threads N`` sets the add-on preference *CPU threads*
+   and the core's torch threads alike (0: all cores); on a busy 2-core machine use 1 (two OpenMP
+   threads there alternate between ~1x and ~8x the time). ``--label`` keeps a run as a variant;
+   ``--blender-env NEUMESH_JEMALLOC=off`` measures Blender's allocator as it was.
 
-    .venv/bin/python benchmarks/bench_addon.py [--vertices 100000] [--repeat 3]
+The field is created untrained (timings do not depend on training). Prints figures and writes
+benchmarks/results/addon.json (a run of some sections keeps the file's other sections).
+
+    .venv/bin/python benchmarks/bench_addon.py [--vertices 100000] [--repeat 3] [--sections preview,f12]
+    .venv/bin/python benchmarks/bench_addon.py --sections f12 --threads 1 --in-blender-core   # the docs' figures
 """
 from __future__ import annotations
 
@@ -21,7 +34,10 @@ import json
 import math
 import os
 import platform
+import shutil
+import subprocess
 import sys
+import threading
 import tempfile
 import time
 
@@ -35,7 +51,6 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "blender_tests"))
 
-import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
 import build_addon  # noqa: E402
@@ -71,8 +86,51 @@ def main(argv=None):
     ap.add_argument("--vertices", type=int, default=100_000)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--viewport", default="800x600")
+    ap.add_argument("--sections", default="preview,f12", help="comma-separated: preview (1. and 2.), f12 (3.)")
+    ap.add_argument("--f12-size", type=int, default=400)
+    ap.add_argument("--f12-pairs", type=int, default=5, help="F12 / core pairs per Blender")
+    ap.add_argument("--blenders", default="blender,bpy",
+                    help="f12: 'blender' (the binary, --blender-bin) and/or 'bpy' (the module in this Python)")
+    ap.add_argument("--blender-bin", default=shutil.which("blender") or "/usr/bin/blender")
+    ap.add_argument("--blender-torch", default=os.environ.get("NEUMESH_BLENDER_TORCH",
+                                                              os.path.join(ROOT, ".blender_torch")))
+    ap.add_argument("--blender-env", action="append", default=[], metavar="KEY=VALUE",
+                    help="f12: extra environment of the Blender workers (e.g. LD_PRELOAD=..., MALLOC_CONF=...)")
+    ap.add_argument("--in-blender-core", action="store_true",
+                    help="f12: also time the core render inside the Blender process (a diagnostic column)")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="f12: the add-on preference CPU threads in each Blender, and torch's threads in the "
+                         "core process (0: all cores, the add-on's default)")
+    ap.add_argument("--label", default="",
+                    help="f12: store the run under f12_vs_core.variants[LABEL] instead of as the main figures")
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "addon.json"))
     a = ap.parse_args(argv)
+    sections = {x.strip() for x in a.sections.split(",") if x.strip()}
+    res = {}
+    if os.path.isfile(a.out):
+        with open(a.out) as fh:
+            res = json.load(fh)
+    if "preview" in sections:
+        res.update(bench_preview(a))
+    if "f12" in sections:
+        f12 = bench_f12_vs_core(a)
+        old = res.get("f12_vs_core", {})
+        if a.label:
+            old.setdefault("variants", {})[a.label] = f12
+            res["f12_vs_core"] = old
+        else:
+            f12["variants"] = old.get("variants", {})
+            res["f12_vs_core"] = f12
+    os.makedirs(os.path.dirname(a.out), exist_ok=True)
+    with open(a.out, "w") as fh:
+        json.dump(res, fh, indent=1)
+    print("wrote", a.out)
+    return 0
+
+
+def bench_preview(a) -> dict:
+    import bpy
+
     vw, vh = (int(x) for x in a.viewport.split("x"))
 
     zip_path = build_addon.build(os.path.join(_BASE, "neumesh.zip"))
@@ -184,11 +242,157 @@ def main(argv=None):
     print(f"preview refresh median {res['preview']['median_total_s']:.3f}s (target <= 1 s: "
           f"{'met' if res['preview']['meets_target'] else 'NOT met'})")
     print(f"F12 400x400: " + ", ".join(f"{s:.2f}s" for s in f12))
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    with open(a.out, "w") as fh:
-        json.dump(res, fh, indent=1)
-    print("wrote", a.out)
-    return 0
+    return res
+
+
+class _Worker:
+    """A benchmarks/f12_worker.py process: one command a line in, 'NEUMESH_BENCH {json}' lines out."""
+
+    def __init__(self, name, cmd, env, timeout=600):
+        self.name, self.log = name, []
+        self.proc = subprocess.Popen(cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.STDOUT, text=True, bufsize=1)
+        self.ready = self._answer(timeout)
+
+    def _answer(self, timeout):
+        box = {}
+
+        def read():
+            for line in self.proc.stdout:
+                self.log.append(line)
+                if line.startswith("NEUMESH_BENCH "):
+                    box["v"] = json.loads(line[len("NEUMESH_BENCH "):])
+                    return
+        th = threading.Thread(target=read, daemon=True)
+        th.start()
+        th.join(timeout)
+        if "v" not in box:
+            self.close()
+            raise RuntimeError(f"{self.name}: no answer; its output ends with:\n" + "".join(self.log[-40:]))
+        if "error" in box["v"]:
+            raise RuntimeError(f"{self.name}: {box['v']['error']}\n" + "".join(self.log[-40:]))
+        return box["v"]
+
+    def ask(self, cmd, timeout=600):
+        self.proc.stdin.write(cmd + "\n")
+        self.proc.stdin.flush()
+        return self._answer(timeout)
+
+    def close(self):
+        try:
+            self.proc.stdin.write("quit\n")
+            self.proc.stdin.flush()
+            self.proc.wait(60)
+        except Exception:  # noqa: BLE001
+            self.proc.kill()
+            self.proc.wait()
+
+
+def _blender_env(tmp, extra=()):
+    env = dict(os.environ)
+    env.update({
+        "BLENDER_USER_CONFIG": os.path.join(tmp, "config"), "BLENDER_USER_SCRIPTS": os.path.join(tmp, "scripts"),
+        "BLENDER_USER_DATAFILES": os.path.join(tmp, "datafiles"),
+        "BLENDER_USER_RESOURCES": os.path.join(tmp, "resources"), "HOME": os.path.join(tmp, "home"),
+        "TMPDIR": tmp, "XDG_CACHE_HOME": os.path.join(tmp, "cache"), "PYTHONNOUSERSITE": "1",
+    })
+    os.makedirs(env["HOME"], exist_ok=True)
+    for kv in extra:
+        k, _, v = kv.partition("=")
+        env[k] = v
+    return env
+
+
+def _median(x):
+    return float(np.median(np.asarray(x, np.float64)))
+
+
+def bench_f12_vs_core(a) -> dict:
+    """F12 in each Blender beside the core's own render of the same frame (see the module docstring)."""
+    sys.path.insert(0, ROOT)
+    import neumesh_core as nm
+
+    worker = os.path.join(ROOT, "benchmarks", "f12_worker.py")
+    V, F = sphere_grid(a.vertices)
+    fpath = os.path.join(_BASE, "f12_field.neumesh")
+    nm.save_field(nm.create_field(nm.Mesh(V, F), nm.FieldConfig()), fpath)
+    zip_path = build_addon.build(os.path.join(_BASE, "neumesh_f12.zip"))
+    out = {"size": [a.f12_size, a.f12_size], "vertices": int(len(V)), "pairs": a.f12_pairs,
+           "threads_setting": a.threads, "blender_env": list(a.blender_env), "label": a.label,
+           "started": time.strftime("%Y-%m-%d %H:%M:%S"), "loadavg_at_start": list(os.getloadavg()),
+           "cpu_count": os.cpu_count(), "field": "untrained sphere (semi-transparent: no early ray termination)",
+           "what": "seconds of bpy.ops.render.render() (F12) in the Blender process and of nm.render_camera "
+                   "with the same inputs in a plain Python process ('core'; with --in-blender-core also in "
+                   "the Blender process, 'core_in_blender'), interleaved F12, core, F12, core, ...; the first "
+                   "F12 (field load + posing) is a warm-up, not counted",
+           "target_ratio": 1.3, "runs": {}}
+    for kind in [k.strip() for k in a.blenders.split(",") if k.strip()]:
+        tmp = tempfile.mkdtemp(prefix=f"f12_{kind}_", dir=_BASE)
+        inputs = os.path.join(tmp, "inputs.npz")
+        env = _blender_env(tmp, a.blender_env)
+        if kind == "blender":
+            if not os.path.exists(a.blender_bin):
+                print(f"f12: no blender binary at {a.blender_bin}; skipped")
+                continue
+            env["NEUMESH_PYTHONPATH"] = a.blender_torch
+            cmd = [a.blender_bin, "-b", "--factory-startup", "--python", worker, "--", "blender", zip_path, fpath,
+                   inputs, str(a.f12_size), str(a.threads)]
+        elif kind == "bpy":
+            cmd = [sys.executable, worker, "blender", zip_path, fpath, inputs, str(a.f12_size), str(a.threads)]
+        else:
+            raise SystemExit(f"unknown Blender kind {kind!r}")
+        print(f"f12 [{kind}]: starting {' '.join(cmd[:3])} ...", flush=True)
+        bw = _Worker(kind, cmd, env)
+        cw = None
+        try:
+            cenv = {k: v for k, v in os.environ.items() if k not in ("LD_PRELOAD", "MALLOC_CONF")}
+            cw = _Worker("core", [sys.executable, worker, "core", fpath, inputs, str(a.threads)], cenv)
+            rows = []
+            for i in range(a.f12_pairs):
+                row = {"loadavg": list(os.getloadavg())}
+                f = bw.ask("f12")
+                row["f12_s"], row["f12_phases"] = f["seconds"], f["phases"]
+                c = cw.ask("core")
+                row["core_s"], row["core_threads"] = c["seconds"], c["threads"]
+                if a.in_blender_core:
+                    ci = bw.ask("core")
+                    row["core_in_blender_s"], row["core_in_blender_threads"] = ci["seconds"], ci["threads"]
+                    row["mean_rgb_same"] = abs(ci["mean_rgb"] - c["mean_rgb"]) < 1e-5
+                rows.append(row)
+                print(f"  {kind} pair {i}: F12 {row['f12_s']:.2f} s (engine's core call "
+                      f"{f['phases'].get('core_s', float('nan')):.2f} s), core {row['core_s']:.2f} s"
+                      + ("" if not a.in_blender_core else f", core in Blender {row['core_in_blender_s']:.2f} s")
+                      + f"; load {row['loadavg'][0]:.2f}", flush=True)
+        finally:
+            bw.close()
+            if cw is not None:
+                cw.close()
+        f12 = [r["f12_s"] for r in rows]
+        core = [r["core_s"] for r in rows]
+        entry = {
+            "blender": bw.ready["blender"], "python": bw.ready["python"], "torch": bw.ready["torch"],
+            "torch_threads_in_blender": rows[-1]["f12_phases"].get("torch_threads"),
+            "torch_threads_core": cw.ready["threads"], "supersample": bw.ready["supersample"],
+            "transparent": bw.ready["transparent"], "env": bw.ready["env"], "first_f12": bw.ready["first_f12"],
+            "malloc": bw.ready.get("malloc"),
+            "pairs": rows, "median_f12_s": _median(f12), "median_core_s": _median(core),
+            "ratio_of_medians": _median(f12) / _median(core),
+            "median_pair_ratio": _median([x / y for x, y in zip(f12, core)]),
+            "median_phases_s": {k: _median([r["f12_phases"][k] for r in rows])
+                                for k in rows[0]["f12_phases"] if k.endswith("_s")},
+            "handoff": rows[-1]["f12_phases"].get("handoff"),
+            "loadavg_median_1min": _median([r["loadavg"][0] for r in rows]),
+        }
+        if a.in_blender_core:
+            entry["median_core_in_blender_s"] = _median([r["core_in_blender_s"] for r in rows])
+            entry["ratio_core_in_blender_to_core"] = entry["median_core_in_blender_s"] / entry["median_core_s"]
+        entry["meets_target"] = entry["ratio_of_medians"] <= out["target_ratio"]
+        out["runs"][kind] = entry
+        print(f"f12 [{kind}] {entry['blender']}: median F12 {entry['median_f12_s']:.2f} s, core "
+              f"{entry['median_core_s']:.2f} s, ratio {entry['ratio_of_medians']:.2f} (pairs: "
+              f"{entry['median_pair_ratio']:.2f}); torch threads in Blender {entry['torch_threads_in_blender']}; "
+              f"load {entry['loadavg_median_1min']:.2f}", flush=True)
+    return out
 
 
 if __name__ == "__main__":
