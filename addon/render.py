@@ -96,8 +96,9 @@ class _Derived:
 
 _DERIVED: dict[str, _Derived] = {}
 _SOURCES: dict[str, _Entry] = {}   # fields loaded for a joined-in key (read-only; shared)
-# object name -> (its field, vid, rest, key as read) of the last mesh whose ids were exactly that field's
-# vertices in order: while they do not change (the mesh only deforms), the check is one comparison
+# object name -> ((its field, vid, rest, key as read, mesh counts), plan) of the last frame: plan None
+# when the ids were exactly the field's vertices in order, else one entry per remapped field; while
+# the ids do not change (the mesh only deforms) the next frame reuses it after one comparison
 _IDENTITY_MEMO: dict[str, tuple] = {}
 
 
@@ -157,8 +158,7 @@ def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
     items = _memo_items(orig.name_full, own, path, ident, signature, verts, depsgraph.scene)
     if items is not None:   # the same ids as the last frame (the mesh only moved)
         return items
-    raw = ident
-    vid, rest, key = raw[0].astype(np.int64), raw[1].astype(np.float64), raw[2].astype(np.int64)
+    vid, rest, key = ident[0].astype(np.int64), ident[1].astype(np.float64), ident[2].astype(np.int64)
     own_key = identity.key_of(own)
     # keys this scene knows; any other value (interpolated by a modifier between vertices, lost, or the
     # key of this object's field before it was trained further) counts as the object's own field
@@ -169,7 +169,7 @@ def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
             if spath is not None and os.path.isfile(spath):
                 known[int(k)] = (_source(spath), spath)
     key = np.where(np.isin(key, list(known)), key, own_key)
-    memo_key = (own,) + tuple(a.copy() for a in raw) + (signature,)
+    memo_key = (own,) + tuple(ident) + (signature,)   # identity.read returns fresh arrays: no copies
     if len(vid) == own.num_vertices and (key == own_key).all() and np.array_equal(vid, np.arange(len(vid))):
         ok = identity._remap().resolve_ids(own, vid, rest)
         if (ok >= 0).all():   # exactly the field's vertices, in order: the field itself
