@@ -32,10 +32,18 @@ class PreviewRenderer:
 
     ``request()`` supersedes (cancels) the render in progress. ``latest`` holds (serial, level, rgba)
     where rgba is scene-linear premultiplied (h,w,4) float32. ``on_image`` is called from the thread.
+
+    The first image must come quickly (``first_budget_s``): the renderer remembers the seconds per
+    pixel of its last image, and when the first configured level would take longer than the budget it
+    starts one or more coarser levels first (halving the resolution, at most 1/``max_divisor``), so a
+    camera move or a deformation shows something within the budget on heavy fields and big viewports.
     """
 
-    def __init__(self, divisors=(8, 4, 2), on_image=None):
+    def __init__(self, divisors=(8, 4, 2), on_image=None, first_budget_s: float = 0.1, max_divisor: int = 32):
         self.divisors = tuple(divisors)
+        self.first_budget_s = float(first_budget_s)
+        self.max_divisor = int(max_divisor)
+        self.seconds_per_pixel = None   # measured on the last image rendered
         self.on_image = on_image
         self._cv = threading.Condition()
         self._pending = None
@@ -75,6 +83,17 @@ class PreviewRenderer:
             time.sleep(0.002)
         return False
 
+    def levels(self, width: int, height: int) -> tuple:
+        """The divisors a request of ``width`` x ``height`` renders, coarsest first."""
+        first = self.divisors[0]
+        rate = self.seconds_per_pixel
+        if rate is None:
+            return self.divisors
+        d = first
+        while d < self.max_divisor and rate * max(1, width // d) * max(1, height // d) > self.first_budget_s:
+            d *= 2
+        return (d,) + self.divisors if d > first else self.divisors
+
     def _loop(self):
         while True:
             with self._cv:
@@ -87,9 +106,10 @@ class PreviewRenderer:
             self.busy = True
             self.timings = []
             try:
-                for div in self.divisors:
+                for div in self.levels(W, H):
                     w, h = max(1, W // div), max(1, H // div)
                     Ks = render.scale_K(K, W, H, w, h)
+                    t_level = time.perf_counter()
 
                     def prog(_f, serial=serial):
                         return self._serial == serial and not self._stop
@@ -97,6 +117,7 @@ class PreviewRenderer:
                     rgba = render.render_items(items, Ks, c2w, w, h, transparent, progress=prog)
                     if self._serial != serial:
                         break
+                    self.seconds_per_pixel = (time.perf_counter() - t_level) / (w * h)
                     self.latest = (serial, div, render.to_scene_linear(rgba, transparent))
                     self.timings.append((div, time.perf_counter() - t0))
                     self.error = ""

@@ -8,7 +8,9 @@ same field rendered by the code from before decoder binding existed.
 ``--old-tree`` is a checkout of the project before decoder binding (commit 15b1ad3, which reads field
 files of format 1 only): the field is written as format 1 and timed there in a subprocess, on the
 same views, so "a field whose vertices all use decoder 0 costs what it costs today" is measured, not
-assumed.  Each figure is the median over ``--views`` val views of the best of ``--repeats`` renders.
+assumed.  The variants are timed in ``--rounds`` interleaved rounds (one subprocess per variant and
+round), so a burst of other work on the machine hits every variant alike; a view's figure is its best
+over rounds and ``--repeats``, and each figure is the median of those over ``--views`` val views.
 Writes benchmarks/results/decoders_<name>.json.
 """
 from __future__ import annotations
@@ -92,6 +94,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", required=True, help="dataset whose val cameras are rendered")
     ap.add_argument("--views", type=int, default=5, help="val views (evenly spread; default 5)")
     ap.add_argument("--repeats", type=int, default=2, help="renders per view, the best counts (default 2)")
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds over the variants (default 3)")
     ap.add_argument("--old-tree", help="checkout of the pre-binding code (commit 15b1ad3) to time too")
     ap.add_argument("--name", default=None)
     ap.add_argument("--results-dir", default=None)
@@ -118,20 +121,23 @@ def main(argv=None) -> int:
         v = half.rest_vertices
         half.decoder_id[v[:, 0] > v[:, 0].median()] = 1
     variants["two_decoders_half_each"] = half
-    times = {}
+    runs = []      # (key, tree, file)
     try:
         for key, f in variants.items():
             path = os.path.join(tmp, f"{key}.neumesh")
             nm.save_field(f, path)
-            times[key] = time_in(root, path, args.data, views, args.repeats)
-            print(f"{key}: median {np.median(times[key]):.3f} s per {views} view")
+            runs.append((key, root, path))
         if args.old_tree:
             path = os.path.join(tmp, "v1.neumesh")
             write_v1(field, path)
-            times["before_binding"] = time_in(os.path.abspath(args.old_tree), path, args.data, views, args.repeats)
-            times["one_decoder_again"] = time_in(root, path, args.data, views, args.repeats)   # v1 file, new code
-            print(f"before decoder binding (old code): median {np.median(times['before_binding']):.3f} s; this "
-                  f"code on the same file: {np.median(times['one_decoder_again']):.3f} s")
+            runs.append(("before_binding", os.path.abspath(args.old_tree), path))
+            runs.append(("one_decoder_again", root, path))      # the same format-1 file, this code
+        per_round = {key: [] for key, _, _ in runs}
+        for r in range(args.rounds):
+            for key, tree, path in runs:
+                per_round[key].append(time_in(tree, path, args.data, views, args.repeats))
+                print(f"round {r + 1} {key}: median {np.median(per_round[key][-1]):.3f} s", flush=True)
+        times = {key: [float(x) for x in np.min(np.array(v), axis=0)] for key, v in per_round.items()}
     finally:
         for fn in os.listdir(tmp):
             os.unlink(os.path.join(tmp, fn))
@@ -139,8 +145,11 @@ def main(argv=None) -> int:
     med = {k: float(np.median(v)) for k, v in times.items()}
     base = med["one_decoder"]
     result = {"field": args.field, "vertices": field.num_vertices, "interpolation": field.config.interpolation,
-              "views": views, "seconds_per_view": times, "median_s": med,
+              "views": views, "rounds": args.rounds, "repeats": args.repeats,
+              "seconds_per_view": times, "seconds_per_round_and_view": per_round, "median_s": med,
               "ratio_to_one_decoder": {k: v / base for k, v in med.items()}}
+    if "before_binding" in med:
+        result["ratio_this_code_to_before_binding"] = med["one_decoder_again"] / med["before_binding"]
     print("ratios to one decoder: " + ", ".join(f"{k} {v:.2f}" for k, v in result["ratio_to_one_decoder"].items()))
     write_results(result, f"decoders_{name}.json", args.results_dir)
     return 0

@@ -280,6 +280,31 @@ def test_progressive_preview_renders_low_resolution_first(addon, trained_field):
         pv.stop()
 
 
+def test_progressive_preview_starts_coarser_when_the_first_level_would_be_slow(addon, trained_field):
+    obj, cam, _r, _t = _deformed_scene(addon, trained_field)
+    items = addon.render.collect(bpy.context.evaluated_depsgraph_get(), for_render=False)
+    K, c2w = manual_K_c2w(cam, 192, 160)
+    pv = addon.engine.PreviewRenderer(divisors=(4, 2), first_budget_s=0.1, max_divisor=16)
+    try:
+        assert pv.levels(192, 160) == (4, 2)            # nothing measured yet: the configured levels
+        pv.seconds_per_pixel = 0.1 / (48 * 40) * 5.0     # level 4 (48x40) would take 0.5 s
+        assert pv.levels(192, 160) == (16, 4, 2)         # 12x10 fits the budget (0.03 s), 24x20 not (0.125)
+        pv.seconds_per_pixel = 1.0                       # hopeless: capped at max_divisor
+        assert pv.levels(192, 160) == (16, 4, 2)
+        pv.seconds_per_pixel = 1e-9
+        assert pv.levels(192, 160) == (4, 2)
+        pv.seconds_per_pixel = 0.1 / (48 * 40) * 5.0
+        serial = pv.request(items, K, c2w, 192, 160)
+        assert pv.wait(serial, divisor=2, timeout=60), pv.error
+        assert [d for d, _ in pv.timings] == [16, 4, 2]
+        assert pv.latest[2].shape == (80, 96, 4)
+        # the rate it measured on this small field is tiny: the next request starts at the first level
+        assert pv.seconds_per_pixel < 1e-3
+        assert pv.levels(192, 160) == (4, 2)
+    finally:
+        pv.stop()
+
+
 def test_render_images_operator_writes_dataset_cameras(addon, trained_field, tiny_dataset, tmp_path):
     assert bpy.ops.neumesh.import_dataset(directory=tiny_dataset, max_cameras=3) == {"FINISHED"}
     _field_object(trained_field)

@@ -45,16 +45,45 @@ class OccupancyGrid:
         return torch.stack([lo, hi]), res
 
     @staticmethod
-    def mask_from_vertices(vertices: torch.Tensor, aabb: torch.Tensor, res: torch.Tensor,
-                           radius: float) -> torch.Tensor:
-        """Cells that can contain a point within ``radius`` of some vertex (box dilation, conservative)."""
+    def _splat(vertices: torch.Tensor, aabb: torch.Tensor, res: torch.Tensor):
+        """(X,Y,Z) bool grid of the cells holding a vertex, and the per-axis cell size."""
         cell = (aabb[1] - aabb[0]) / res.float()
         ijk = torch.floor((vertices - aabb[0]) / cell).long()
         ijk = torch.minimum(torch.maximum(ijk, torch.zeros_like(ijk)), res - 1)
         rx, ry, rz = (int(v) for v in res.tolist())
-        grid = torch.zeros(rx * ry * rz, device=vertices.device)
-        grid[(ijk[:, 0] * ry + ijk[:, 1]) * rz + ijk[:, 2]] = 1.0
-        grid = grid.view(1, 1, rx, ry, rz)
+        grid = torch.zeros(rx * ry * rz, dtype=torch.bool, device=vertices.device)
+        grid[(ijk[:, 0] * ry + ijk[:, 1]) * rz + ijk[:, 2]] = True
+        return grid.view(rx, ry, rz), cell
+
+    @staticmethod
+    def mask_from_vertices(vertices: torch.Tensor, aabb: torch.Tensor, res: torch.Tensor,
+                           radius: float) -> torch.Tensor:
+        """Cells that can contain a point within ``radius`` of some vertex (box dilation, conservative).
+
+        The dilation is separable: along each axis a cell is set when any cell within r cells of it is,
+        computed as an OR of the 2r+1 shifted copies of the boolean grid (r is a few cells, so this
+        reads the grid a few times; :func:`mask_from_vertices_reference` is the max-pool form)."""
+        grid, cell = OccupancyGrid._splat(vertices, aabb, res)
+        r_cells = [int(math.ceil(radius / float(c))) for c in cell.tolist()]
+        for axis, r in enumerate(r_cells):
+            n = grid.shape[axis]
+            r = min(r, n - 1)
+            if r <= 0:
+                continue
+            out = grid.clone()
+            for s in range(1, r + 1):   # cell i takes cells i - s and i + s
+                out.narrow(axis, s, n - s).logical_or_(grid.narrow(axis, 0, n - s))
+                out.narrow(axis, 0, n - s).logical_or_(grid.narrow(axis, s, n - s))
+            grid = out
+        return grid
+
+    @staticmethod
+    def mask_from_vertices_reference(vertices: torch.Tensor, aabb: torch.Tensor, res: torch.Tensor,
+                                     radius: float) -> torch.Tensor:
+        """Plain reference of :meth:`mask_from_vertices`: 3D max pooling of the vertex splat."""
+        grid, cell = OccupancyGrid._splat(vertices, aabb, res)
+        rx, ry, rz = grid.shape
+        grid = grid.float().view(1, 1, rx, ry, rz)
         r_cells = [int(math.ceil(radius / float(c))) for c in cell.tolist()]
         for axis, r in enumerate(r_cells):
             if r <= 0:
