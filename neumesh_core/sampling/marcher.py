@@ -67,15 +67,15 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
     log_eps = float(torch.log(torch.tensor(early_stop_eps)))
     offs = (torch.arange(window, device=device, dtype=torch.float32) + 0.5) * step_size
     out_r, out_t, out_s, out_aux = [], [], [], []
+    # rays in the grid's cell coordinates: a step's cell is floor(g_o + g_d t), no (R,W,3) world points
+    g_o, g_d = grid.cell_coordinates(origins, dirs)
     while alive.numel():
-        o, d = origins[alive], dirs[alive]
         t0 = t_cur[alive]
         ts = t0[:, None] + offs[None]
         if jitter is not None:
             ts = ts + (jitter[alive, None] - 0.5) * step_size
         in_range = (ts < t_far[alive, None]) & (ts >= t_near[alive, None])
-        pts = o[:, None, :] + d[:, None, :] * ts[..., None]
-        occ = grid.lookup(pts) & in_range
+        occ = grid.lookup_steps(g_o[alive], g_d[alive], ts) & in_range
         n_occ = torch.cumsum(occ, 1)
         within = n_occ <= max_eval
         occ = occ & within
@@ -84,22 +84,26 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
         sel = occ.nonzero()
         if sel.numel():
             rl, si = sel[:, 0], sel[:, 1]
-            sigma, aux = sigma_fn(pts[rl, si])
+            t_s = ts[rl, si]
+            ray = alive[rl]
+            sigma, aux = sigma_fn(origins[ray] + dirs[ray] * t_s[:, None])
             sigma = sigma.float()
-            dense = torch.zeros(occ.shape, device=device)
-            dense[rl, si] = sigma * step_size
+            # transmittance along the window, only for the rays that have samples in it (rl is sorted)
+            rows, row_of = torch.unique_consecutive(rl, return_inverse=True)
+            dense = torch.zeros(len(rows), occ.shape[1], device=device)
+            tau = sigma * step_size
+            dense[row_of, si] = tau
             excl = torch.cumsum(dense, 1) - dense
-            log_t_sample = log_T[alive, None] - excl
-            weights = torch.exp(log_t_sample) * (1.0 - torch.exp(-dense))
-            keep = (weights[rl, si] > weight_threshold) & (log_t_sample[rl, si] > log_eps)
+            log_t_sample = log_T[alive[rows]][row_of] - excl[row_of, si]
+            weights = torch.exp(log_t_sample) * (1.0 - torch.exp(-tau))
+            keep = (weights > weight_threshold) & (log_t_sample > log_eps)
             if keep.any():
                 k_idx = keep.nonzero().squeeze(1)
-                tk = ts[rl[k_idx], si[k_idx]]
-                out_r.append(alive[rl[k_idx]])
-                out_t.append(tk)
+                out_r.append(ray[k_idx])
+                out_t.append(t_s[k_idx])
                 out_s.append(sigma[k_idx])
                 out_aux.append(aux.select(k_idx) if aux is not None else None)
-            log_T[alive] = log_T[alive] - dense.sum(1)
+            log_T[alive[rows]] = log_T[alive[rows]] - dense.sum(1)
         t_cur[alive] = t0 + last.float() * step_size
         still = (t_cur[alive] < t_far[alive]) & (log_T[alive] > log_eps)
         alive = alive[still]

@@ -153,6 +153,24 @@ class OccupancyGrid:
         flat = (ijk[..., 0] * ry + ijk[..., 1]) * rz + ijk[..., 2]
         return self.occ.reshape(-1)[flat] & inside
 
+    def cell_coordinates(self, origins: torch.Tensor, dirs: torch.Tensor):
+        """Rays in the grid's cell coordinates: (g_o, g_d) with the point at distance t in the cell
+        ``floor(g_o + g_d t)`` (:meth:`lookup_steps`)."""
+        inv = 1.0 / self.cell
+        return (origins - self.aabb[0]) * inv, dirs * inv
+
+    def lookup_steps(self, g_o: torch.Tensor, g_d: torch.Tensor, ts: torch.Tensor) -> torch.Tensor:
+        """Occupancy of the points at distances ``ts`` (R,W) along rays given in cell coordinates
+        (:meth:`cell_coordinates`, (R,3) each) -> (R,W) bool.  Points outside the box read the nearest
+        boundary cell (the marcher masks them by the ray's box interval).  The marcher's fast form of
+        :meth:`lookup` (which is the reference): no world points, int32 cell indices."""
+        res = self.resolution.to(torch.int32)
+        ijk = torch.floor(g_o[:, None, :] + g_d[:, None, :] * ts[..., None]).to(torch.int32)
+        ijk = torch.minimum(ijk.clamp_min_(0), res - 1)
+        ry, rz = int(res[1]), int(res[2])
+        flat = (ijk[..., 0] * ry + ijk[..., 1]) * rz + ijk[..., 2]
+        return self.occ.reshape(-1)[flat]
+
     def ray_aabb(self, origins: torch.Tensor, dirs: torch.Tensor):
         """Entry/exit distances of rays with the grid box; t_far < t_near where a ray misses."""
         inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
