@@ -454,6 +454,11 @@ class NeuMeshField(nn.Module):
 
     def _decode_early(self, nb: Neighbourhood, dirs, with_rgb: bool, with_sigma: bool):
         w = nb.w[..., None]
+        wb = nb.w[:, None, :]     # (M,1,K): w-weighted sums over the neighbours as batched products
+
+        def wsum(rows):           # (M,K,C) -> (M,C)
+            return torch.bmm(wb, rows).squeeze(1)
+
         p = (nb.p * nb.w).sum(1)
         wi = (nb.w * nb.w).sum(1)
         pe = self._p_encoding(p)
@@ -461,13 +466,13 @@ class NeuMeshField(nn.Module):
         codes = dict(zip(names, self.codes(names, nb.idx)))
         sigma = None
         if with_sigma:
-            geo = (codes["geo"] * w).sum(1)
+            geo = wsum(codes["geo"])
             sigma = trunc_exp(self.geo_decoder(torch.cat([geo, pe, wi[:, None]], -1)).squeeze(-1))
             sigma = torch.where(nb.valid.any(1), sigma, torch.zeros_like(sigma))
         if not with_rgb:
             return sigma, None, None
         if self.tex_frame is None:
-            n = (self.rest_normals[nb.idx] * w).sum(1)
+            n = wsum(self.rest_normals[nb.idx])
             if self.to_rest is None:
                 d = dirs
             else:
@@ -479,11 +484,11 @@ class NeuMeshField(nn.Module):
             d = (dk * w).sum(1)
             d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-        mod = (self.rows(self.mod_colors, nb.idx) * w).sum(1)
+        mod = wsum(self.rows(self.mod_colors, nb.idx))
         shared = torch.cat([pe, wi[:, None], sh_encoding(d, self.config.sh_degree), n], -1)
         single = 0 if len(self.rad_decoders) == 1 else self._single_decoder(nb)
         if single is not None:   # one decoder for every neighbour: decode the interpolated code once
-            tex = (codes["tex"] * w).sum(1)
+            tex = wsum(codes["tex"])
             rgb = torch.sigmoid(self.rad_decoders[single](torch.cat([tex, shared], -1))) + mod
         else:
             rgb = self._early_rgb_by_decoder(nb, codes["tex"], shared) + mod

@@ -192,10 +192,20 @@ class Scaffold(nn.Module):
         idx = idx.clamp_min(0)
         inv = torch.where(valid, 1.0 / dist.clamp_min(1e-8), torch.zeros_like(dist))
         w = inv / inv.sum(-1, keepdim=True).clamp_min(1e-12)
-        vk = self.vertices_[idx]
-        nk = self.normals[idx]
-        p = ((vk - x[:, None, :]) * nk).sum(-1)
+        vn = self._vertex_table()[idx]          # one gather of (position, normal) rows
+        p = ((vn[..., :3] - x[:, None, :]) * vn[..., 3:]).sum(-1)
         return Neighbourhood(idx, w, p, valid)
+
+    def _vertex_table(self) -> torch.Tensor:
+        """(N,6) current positions and normals side by side (one gather per neighbourhood instead of
+        two); rebuilt whenever either buffer was written (their version counters) or moved."""
+        v, n = self.vertices_, self.normals
+        key = (v.data_ptr(), v._version, n.data_ptr(), n._version)
+        cached = self.__dict__.get("_vertex_table_cache")
+        if cached is None or cached[0] != key:
+            cached = (key, torch.cat([v, n], 1))
+            self.__dict__["_vertex_table_cache"] = cached
+        return cached[1]
 
     def rest_dirs(self, idx: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         """View directions d (...,3) in the rest frame of vertices idx (...,)."""
