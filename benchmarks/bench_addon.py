@@ -2,9 +2,10 @@
 """Blender add-on timings (bpy==5.0.1 in the venv and the real `blender` binary, CPU).
 
 1. Viewport preview latency: a bone of an armature deforming a 100k-vertex scaffold is rotated;
-   time until the first progressive-preview image (1/8 of an 800x600 viewport) exists. Broken down
-   into depsgraph evaluation + sync (evaluated world vertices), set_vertices, and the low-res render.
-   Target: <= 1 s.
+   time until the first progressive-preview image exists (1/8 of an 800x600 viewport, or coarser when
+   the preview's measured rate says 1/8 would miss 0.1 s: PreviewRenderer.levels), and until the 1/8
+   image. Broken down into depsgraph evaluation + sync (evaluated world vertices), set_vertices, and
+   the low-res render. Target (issue 36): <= 0.5 s at 300k vertices (``--vertices 300000``).
 2. F12: `bpy.ops.render.render()` through the NEUMESH engine at 400x400 for the same scaffold.
    An untrained field is semi-transparent everywhere (no early ray termination): a worst case for
    the marcher; a trained field renders faster.
@@ -186,11 +187,17 @@ def bench_preview(a) -> dict:
         t2 = time.perf_counter()
         sv0 = addon.render.STATS["set_vertices"]
         serial = pv.request(items, K, c2w, vw, vh)                  # view_draw -> preview thread
-        ok = pv.wait(serial, divisor=8, timeout=120)
+        ok = pv.wait(serial, divisor=pv.max_divisor, timeout=120)   # its first image, at any level
         t3 = time.perf_counter()
         assert ok, pv.error
         assert addon.render.STATS["set_vertices"] == sv0 + 1
-        runs.append({"depsgraph_s": t1 - t0, "sync_s": t2 - t1, "preview_1_8_s": t3 - t2, "total_s": t3 - t0})
+        first = pv.latest[1]
+        ok8 = pv.wait(serial, divisor=8, timeout=120)
+        t4 = time.perf_counter()
+        assert ok8, pv.error
+        runs.append({"depsgraph_s": t1 - t0, "sync_s": t2 - t1, "first_preview_s": t3 - t2,
+                     "first_preview_divisor": first, "total_s": t3 - t0, "preview_1_8_s": t4 - t2,
+                     "total_to_1_8_s": t4 - t0})
         pv.wait(serial, divisor=4, timeout=600)
     pv.stop()
 
@@ -228,18 +235,21 @@ def bench_preview(a) -> dict:
                      "blender_mesh_foreach_set_s": t_mesh, "first_load_and_sync_s": t_load},
         "preview": {"viewport": [vw, vh], "first_level": [vw // 8, vh // 8], "runs": runs,
                     "median_total_s": float(np.median([r["total_s"] for r in runs])),
+                    "median_total_to_1_8_s": float(np.median([r["total_to_1_8_s"] for r in runs])),
+                    "first_preview_divisors": [r["first_preview_divisor"] for r in runs],
                     "best_total_s": best["total_s"], "set_vertices_s": t_setv, "render_1_8_only_s": t_low,
-                    "target_s": 1.0, "meets_target": float(np.median([r["total_s"] for r in runs])) <= 1.0},
+                    "target_s": 0.5, "meets_target": float(np.median([r["total_s"] for r in runs])) <= 0.5},
         "f12_400x400": {"seconds": f12, "median_s": float(np.median(f12))},
     }
     print(f"scaffold: {len(V)} vertices, {len(F)} faces; create_field {t_create:.2f}s, "
           f"mesh via foreach_set {t_mesh:.3f}s, first load+sync {t_load:.2f}s")
     for i, r in enumerate(runs):
         print(f"preview run {i}: depsgraph {r['depsgraph_s']*1e3:.0f} ms, sync {r['sync_s']*1e3:.0f} ms, "
-              f"set_vertices+1/8 render {r['preview_1_8_s']*1e3:.0f} ms, total {r['total_s']*1e3:.0f} ms")
+              f"set_vertices + first image (1/{r['first_preview_divisor']}) {r['first_preview_s']*1e3:.0f} ms, "
+              f"total {r['total_s']*1e3:.0f} ms (to 1/8: {r['total_to_1_8_s']*1e3:.0f} ms)")
     print(f"  set_vertices alone {t_setv*1e3:.0f} ms, 1/8 render ({vw//8}x{vh//8}) alone, best of 3: "
           f"{t_low*1e3:.0f} ms; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    print(f"preview refresh median {res['preview']['median_total_s']:.3f}s (target <= 1 s: "
+    print(f"preview refresh median {res['preview']['median_total_s']:.3f}s (target <= 0.5 s: "
           f"{'met' if res['preview']['meets_target'] else 'NOT met'})")
     print(f"F12 400x400: " + ", ".join(f"{s:.2f}s" for s in f12))
     return res
