@@ -106,6 +106,21 @@ def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
     )
 
 
+# rows per decoder call when no gradient is needed: the hidden activations of ~16k rows stay in the
+# CPU's cache, where one call on 600k rows streams them through memory (2-3x slower on this machine;
+# benchmarks/bench_render.py)
+_INFERENCE_ROWS = 16384
+
+
+def run_decoder(module: nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """``module(x)``, in row blocks of ``_INFERENCE_ROWS`` when autograd is off (rows are independent,
+    so the result is the same up to the float rounding of the matrix products)."""
+    n = x.shape[0]
+    if n <= _INFERENCE_ROWS or torch.is_grad_enabled() or x.device.type != "cpu":
+        return module(x)
+    return torch.cat([module(x[s:s + _INFERENCE_ROWS]) for s in range(0, n, _INFERENCE_ROWS)])
+
+
 def decoder_key(module: nn.Module) -> str:
     """Content hash of a decoder's weights: equal keys mean bit-identical decoders (copies of one)."""
     h = hashlib.sha1()
@@ -308,17 +323,17 @@ class NeuMeshField(nn.Module):
         """Radiance decoder output (pre-sigmoid) for rows whose texture codes belong to vertices ``vid``
         (post-interpolation: each row with its own vertex's decoder)."""
         if len(self.rad_decoders) == 1:
-            return self.rad_decoders[0](rad_in)
+            return run_decoder(self.rad_decoders[0], rad_in)
         dec = self.decoder_id[vid].long()
         if len(dec) == 0:
             return rad_in.new_zeros(0, 3)
         lo, hi = int(dec.min()), int(dec.max())
         if lo == hi:   # every row on one decoder (most chunks of an edited field): no grouping
-            return self.rad_decoders[lo](rad_in)
+            return run_decoder(self.rad_decoders[lo], rad_in)
         out = None
         for d in torch.unique(dec).tolist():
             rows = (dec == d).nonzero().squeeze(1)
-            y = self.rad_decoders[d](rad_in[rows])
+            y = run_decoder(self.rad_decoders[d], rad_in[rows])
             if out is None:
                 out = y.new_zeros(rad_in.shape[0], y.shape[1])
             out = out.index_copy(0, rows, y)
@@ -440,7 +455,7 @@ class NeuMeshField(nn.Module):
         sigma = None
         if with_sigma:
             geo_in = torch.cat([self.codes(("geo",), vid)[0], pe, wk[:, None]], -1)
-            sigma = reduce(trunc_exp(self.geo_decoder(geo_in))).squeeze(-1)
+            sigma = reduce(trunc_exp(run_decoder(self.geo_decoder, geo_in))).squeeze(-1)
         if not with_rgb:
             return sigma, None, None
         d = dirs[:, None, :].expand(m, k, 3).reshape(-1, 3) if sample is None else dirs[sample]
@@ -467,7 +482,7 @@ class NeuMeshField(nn.Module):
         sigma = None
         if with_sigma:
             geo = wsum(codes["geo"])
-            sigma = trunc_exp(self.geo_decoder(torch.cat([geo, pe, wi[:, None]], -1)).squeeze(-1))
+            sigma = trunc_exp(run_decoder(self.geo_decoder, torch.cat([geo, pe, wi[:, None]], -1)).squeeze(-1))
             sigma = torch.where(nb.valid.any(1), sigma, torch.zeros_like(sigma))
         if not with_rgb:
             return sigma, None, None
@@ -489,7 +504,7 @@ class NeuMeshField(nn.Module):
         single = 0 if len(self.rad_decoders) == 1 else self._single_decoder(nb)
         if single is not None:   # one decoder for every neighbour: decode the interpolated code once
             tex = wsum(codes["tex"])
-            rgb = torch.sigmoid(self.rad_decoders[single](torch.cat([tex, shared], -1))) + mod
+            rgb = torch.sigmoid(run_decoder(self.rad_decoders[single], torch.cat([tex, shared], -1))) + mod
         else:
             rgb = self._early_rgb_by_decoder(nb, codes["tex"], shared) + mod
         return sigma, rgb, mod
@@ -513,7 +528,7 @@ class NeuMeshField(nn.Module):
             rows = (W > 0).nonzero().squeeze(1)
             wn = wd[rows] / W[rows, None]
             tex = (tex_k[rows] * wn[..., None]).sum(1)
-            c = torch.sigmoid(self.rad_decoders[d](torch.cat([tex, shared[rows]], -1)))
+            c = torch.sigmoid(run_decoder(self.rad_decoders[d], torch.cat([tex, shared[rows]], -1)))
             rgb = rgb.index_add(0, rows, W[rows, None] * c)
         return rgb
 

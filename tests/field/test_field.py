@@ -193,3 +193,20 @@ def test_a_deep_copy_is_independent_and_renders_the_same(blob_mesh):
     with torch.no_grad():
         g.tex_codes.zero_()
     assert f.to_rest is not None and f.tex_codes.abs().sum() > 0   # the original is untouched
+
+
+def test_run_decoder_in_row_blocks_matches_one_call():
+    from neumesh_core.field import field as fm
+
+    torch.manual_seed(0)
+    mlp = fm._mlp(16, 64, 3)
+    x = torch.randn(fm._INFERENCE_ROWS * 2 + 123, 16)
+    with torch.no_grad():
+        blocks = fm.run_decoder(mlp, x)
+        whole = mlp(x)
+    assert blocks.shape == whole.shape
+    assert torch.allclose(blocks, whole, atol=1e-6, rtol=1e-5)
+    # with autograd on it is one call, and gradients flow
+    y = fm.run_decoder(mlp, x[:50].requires_grad_())
+    y.sum().backward()
+    assert mlp[0].weight.grad is not None
