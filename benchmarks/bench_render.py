@@ -19,16 +19,22 @@ Floors: decoding = MLP FLOPs / measured matmul rate; memory-bound parts = the by
 least (stated per part in the JSON) / measured copy bandwidth.  The floors ignore the latency of random
 access, so they are lower bounds, not predictions.  ``--interpolation`` other than the field's own
 renders a different image (the codes were trained for one mode): it is a cost profile, not a picture.
-Writes benchmarks/results/render_<name>.json.
+``--baseline-tree DIR`` (a checkout of earlier code) also renders the same 400² views with that code
+in a subprocess, in ``--rounds`` interleaved rounds with this code's renders: frame times of both
+(each view's best) and the PSNR of this code's image against the earlier one (the "same images"
+check).  Writes benchmarks/results/render_<name>.json.
 """
 from __future__ import annotations
 
 import argparse
 import collections
 import contextlib
+import json
 import os
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -37,6 +43,65 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _results import write_results  # noqa: E402
+
+
+_BASELINE = r"""
+import json, sys, time
+import numpy as np, torch
+sys.path.insert(0, sys.argv[1])
+import neumesh_core as nm
+f = nm.load_field(sys.argv[2]); f.eval()
+cams = json.load(open(sys.argv[3]))
+times, imgs = [], {}
+with torch.no_grad():
+    c = cams[0]
+    nm.render_camera(f, np.array(c["K"], np.float32), np.array(c["c2w"]), c["size"], c["size"])   # warm up
+    for i, c in enumerate(cams):
+        t = time.perf_counter()
+        o = nm.render_camera(f, np.array(c["K"], np.float32), np.array(c["c2w"]), c["size"], c["size"])
+        times.append(time.perf_counter() - t)
+        imgs[str(i)] = o.rgb
+np.savez(sys.argv[4], **imgs)
+print("BASELINE " + json.dumps(times))
+"""
+
+
+def baseline_comparison(field, field_path: str, tree: str, cams, size: int, rounds: int) -> dict:
+    """Frame times of this code and of the code in ``tree`` on the same views, interleaved, and the
+    PSNR of this code's images against that code's."""
+    import neumesh_core as nm
+
+    spec = [{"K": scaled(K, size / (2 * K[0, 2])).tolist(), "c2w": np.asarray(c2w).tolist(), "size": size}
+            for K, c2w in cams]
+    old_t, new_t = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        cam_file, img_file = os.path.join(tmp, "cams.json"), os.path.join(tmp, "old.npz")
+        with open(cam_file, "w") as fh:
+            json.dump(spec, fh)
+        new_imgs = {}
+        for _ in range(rounds):
+            r = subprocess.run([sys.executable, "-c", _BASELINE, os.path.abspath(tree), os.path.abspath(field_path),
+                                cam_file, img_file], capture_output=True, text=True, check=True)
+            old_t.append(json.loads(r.stdout.split("BASELINE", 1)[1]))
+            times = []
+            for i, c in enumerate(spec):
+                t = time.perf_counter()
+                o = nm.render_camera(field, np.array(c["K"], np.float32), np.array(c["c2w"]), size, size)
+                times.append(time.perf_counter() - t)
+                new_imgs[i] = o.rgb
+            new_t.append(times)
+        old_imgs = np.load(img_file)
+        psnr = []
+        for i in range(len(spec)):
+            mse = float(np.mean((new_imgs[i] - old_imgs[str(i)]) ** 2))
+            psnr.append(float("inf") if mse == 0 else float(10 * np.log10(1.0 / mse)))
+    old_best = np.min(np.array(old_t), 0)
+    new_best = np.min(np.array(new_t), 0)
+    return {"tree": tree, "size": size, "rounds": rounds, "baseline_s": old_best.tolist(),
+            "this_code_s": new_best.tolist(), "baseline_median_s": float(np.median(old_best)),
+            "this_code_median_s": float(np.median(new_best)),
+            "speed_up": float(np.median(old_best) / np.median(new_best)),
+            "psnr_vs_baseline_db": psnr, "min_psnr_vs_baseline_db": float(min(psnr))}
 
 
 def machine_floors(threads: int) -> dict:
@@ -95,6 +160,8 @@ class Profiler:
         self._wrap(knn.HashGridIndex, "query", "neighbour_search", lambda a, k: len(a[1]))
         self._wrap(scaffold.Scaffold, "neighbourhood", "_neighbourhood")
         self._wrap(occupancy.OccupancyGrid, "lookup", "occupancy_lookup", lambda a, k: a[1].numel() // 3)
+        if hasattr(occupancy.OccupancyGrid, "lookup_steps"):     # the marcher's form (older code: lookup)
+            self._wrap(occupancy.OccupancyGrid, "lookup_steps", "occupancy_lookup", lambda a, k: a[3].numel())
         self._wrap(renderer, "composite", "compositing")
         self._wrap(renderer, "march_rays", "_march")
         sigma_fn = fmod.NeuMeshField.sigma_fn
@@ -293,6 +360,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=2, help="renders per view for frame times (best counts)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's own)")
     ap.add_argument("--modes", nargs="+", default=["early", "post"], choices=["early", "post"])
+    ap.add_argument("--baseline-tree", help="checkout of earlier code to compare frame times and images with")
+    ap.add_argument("--rounds", type=int, default=2, help="interleaved rounds of the baseline comparison")
     ap.add_argument("--name", default=None)
     ap.add_argument("--results-dir", default=None)
     args = ap.parse_args(argv)
@@ -325,6 +394,12 @@ def main(argv=None) -> int:
             result["modes"][mode] = r
         field.config.interpolation = own
         result["viewport"] = viewport_figures(field, cams)
+        if args.baseline_tree:
+            b = baseline_comparison(field, args.field, args.baseline_tree, cams, 400, args.rounds)
+            result["baseline"] = b
+            print(f"baseline {args.baseline_tree}: {b['baseline_median_s']:.3f} s, this code {b['this_code_median_s']:.3f} s "
+                  f"(x{b['speed_up']:.2f}); PSNR of this code's images against the baseline's >= "
+                  f"{b['min_psnr_vs_baseline_db']:.1f} dB")
     for d, v in result["viewport"]["levels"].items():
         print(f"viewport first preview 1/{d} ({v['size'][0]}x{v['size'][1]}): camera move {v['camera_move_s']:.3f} s, "
               f"deformation {v['deformation_s']:.3f} s (set_vertices {v['set_vertices_s']:.3f} s)")
