@@ -145,7 +145,9 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
     def render(self, depsgraph):
         t0 = time.perf_counter()
         scene = depsgraph.scene
-        W, H = camera.render_size(scene)
+        # the size Blender allocated (a scene rendered for another scene's compositor gets that scene's)
+        W, H = (int(self.resolution_x), int(self.resolution_y)) if self.resolution_x > 0 else \
+            camera.render_size(scene)
         transparent = bool(scene.render.film_transparent)
         LAST_ERROR["message"] = ""
         LAST_RENDER.clear()

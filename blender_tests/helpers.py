@@ -139,3 +139,48 @@ def f12_srgb(path):
     scene.render.filepath = str(path)
     bpy.ops.render.render(write_still=True)
     return linear_to_srgb(read_exr(str(path))[..., :3])
+
+
+def render_pass(composite, scene, socket, path, view_layer=None):
+    """(H,W,4) float32 pixels of one output (``socket``: "Image", "Alpha", "Depth", "NeuMesh Mod") of
+    ``scene``'s Render Layers, top row first: a probe scene's compositor (``composite``: the add-on's
+    composite module) routes it to its result, written as a 32-bit EXR at ``path`` (the probe's own
+    layers are not rendered: no Render Layers node names it)."""
+    import bpy
+
+    probe = bpy.data.scenes.new("probe")
+    try:
+        for name in ("resolution_x", "resolution_y", "resolution_percentage", "use_border", "use_crop_to_border",
+                     "border_min_x", "border_max_x", "border_min_y", "border_max_y"):
+            setattr(probe.render, name, getattr(scene.render, name))
+        probe.camera = scene.camera
+        probe.frame_current = scene.frame_current
+        probe.render.engine = scene.render.engine
+        tree = composite.compositor_tree(probe)
+        rl = composite.render_layer_node(tree, "probe layer", scene, view_layer or scene.view_layers[0].name, (0, 0))
+        tree.links.new(rl.outputs[socket], composite.output_input(tree))
+        probe.render.image_settings.file_format = "OPEN_EXR"
+        probe.render.image_settings.color_depth = "32"
+        probe.render.filepath = str(path)
+        bpy.ops.render.render(write_still=True, scene=probe.name)
+        return read_exr(str(path))
+    finally:
+        tree = composite.compositor_tree(probe, create=False)
+        bpy.data.scenes.remove(probe)
+        if tree is not None and getattr(tree, "users", 1) == 0 and hasattr(bpy.data, "node_groups") \
+                and tree.name in bpy.data.node_groups:
+            bpy.data.node_groups.remove(tree)
+
+
+def cycles_fast(scene, samples=4):
+    """Tiny, quick, deterministic Cycles settings for tests (CPU, no denoising, narrow pixel filter)."""
+    scene.render.engine = "CYCLES"
+    c = scene.cycles
+    c.device = "CPU"
+    c.samples = samples
+    c.use_denoising = False
+    if hasattr(c, "use_adaptive_sampling"):
+        c.use_adaptive_sampling = False
+    c.filter_width = 0.01
+    c.seed = 0
+    c.max_bounces = 2

@@ -1,0 +1,168 @@
+"""Render passes, render settings and "Composite with scene" (bpy 5.0.1 in-process; the real
+`blender -b -a` run is in test_real_blender.py).
+
+Tolerances (stated):
+* Depth pass against the core's ray depth turned into camera-axis Z: 1e-4 relative (float32).
+* Depth pass against Cycles' Z of the scaffold mesh itself (opaque proxy), where the field is opaque
+  (opacity > 0.95) and Cycles hits the mesh: median |dz| <= 0.75 and 90th percentile <= 1.25 field
+  radii (measured 0.47 / 0.88; radius 0.40, camera 4 away). The Z of a field is its opacity-weighted
+  expected depth and its surface is learned, not the scaffold's: the 40-step test blob is a soft shell
+  whose weight lies ~0.2 behind the scaffold.
+* Border / resolution percentage: the image size Cycles gives, and the same pixels as the
+  corresponding part of the full frame (EXR, 1e-5).
+* Composite: every pixel equals the Z-combination of the separate Cycles and NeuMesh renders (1e-3),
+  the cube where it is in front of the field, the field where it is in front of the cube.
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import bpy
+import numpy as np
+import pytest
+
+from helpers import add_camera, cycles_fast, exact_colour_settings, read_exr, render_pass
+
+W, H = 64, 48
+
+
+def _field_object(field_path):
+    assert bpy.ops.neumesh.load_field(filepath=field_path, new_object=True) == {"FINISHED"}
+    return bpy.context.active_object
+
+
+def _scene(addon, field_path, cam_at=(0.0, -4.0, 0.6)):
+    obj = _field_object(field_path)
+    cam = add_camera(cam_at, lens=35.0)
+    scene = bpy.context.scene
+    scene.render.engine = "NEUMESH"
+    exact_colour_settings(scene, W, H)
+    bpy.context.view_layer.use_pass_z = True
+    return obj, cam, scene
+
+
+def _core(addon, field_path, scene, cam, transparent=True):
+    """The core's render of the frame (vertices, K, c2w as the engine takes them)."""
+    import neumesh_core as nm
+
+    dg = bpy.context.evaluated_depsgraph_get()
+    items = addon.render.collect(dg)
+    K, c2w, w, h = addon.camera.camera_K_c2w(cam, scene, dg)
+    field = nm.load_field(field_path)
+    field.set_vertices(items[0].vertices)
+    return nm.render_camera(field, K, c2w, w, h, background=None if transparent else (1, 1, 1)), K, c2w, field
+
+
+def test_depth_pass_is_camera_axis_distance_and_matches_cycles_of_the_scaffold(addon, trained_field, tmp_path):
+    obj, cam, scene = _scene(addon, trained_field)
+    scene.render.film_transparent = True
+    z = render_pass(addon.composite, scene, "Depth", tmp_path / "z.exr")[..., 0]
+    alpha = render_pass(addon.composite, scene, "Alpha", tmp_path / "a.exr")[..., 0]
+    ref, K, c2w, field = _core(addon, trained_field, scene, cam)
+    hit = np.isfinite(ref.depth)
+    assert hit.mean() > 0.2 and (~hit).mean() > 0.2
+    # alpha is the field's opacity (Film > Transparent)
+    np.testing.assert_allclose(alpha, ref.opacity, atol=1e-4)
+    # the Z of each hit point, worked out here: the point along the pixel's ray, projected on the axis
+    import neumesh_core as nm
+
+    o, d = nm.pixel_rays(K, c2w, W, H)
+    pts = o.numpy() + d.numpy() * np.where(hit, ref.depth, 0.0).reshape(-1, 1)
+    forward = c2w[:3, 2] / np.linalg.norm(c2w[:3, 2])
+    z_axis = ((pts - c2w[:3, 3]) @ forward).reshape(H, W)
+    np.testing.assert_allclose(z[hit], z_axis[hit], rtol=1e-4)
+    assert np.all(z[~hit] > 1e9)   # empty: infinitely far
+    # Cycles' Z of the scaffold mesh itself (an opaque proxy at the field's surface)
+    cycles_fast(scene, samples=1)
+    zc = render_pass(addon.composite, scene, "Depth", tmp_path / "zc.exr")[..., 0]
+    both = (ref.opacity > 0.95) & (zc < 1e9)
+    dz = np.abs(z - zc)[both] / float(field.config.radius)
+    print(f"Z vs Cycles of the scaffold: median {np.median(dz):.3f}, p90 {np.percentile(dz, 90):.3f} radii "
+          f"(radius {float(field.config.radius):.3f}, {both.sum()} px); Cycles' empty Z {zc[~hit].min():.3g}")
+    assert both.sum() > 100
+    assert np.median(dz) <= 0.75 and np.percentile(dz, 90) <= 1.25
+    assert np.all(zc[~hit] >= 1e10)   # Cycles' "nothing there" (the field's is inf: both beyond anything)
+
+
+def _render_exr(scene, path):
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True, scene=scene.name)
+    return read_exr(str(path))
+
+
+def _set_border(scene, on=True, crop=True):
+    r = scene.render
+    r.use_border, r.use_crop_to_border = on, crop
+    r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y = 0.21, 0.77, 0.13, 0.62
+
+
+def test_border_and_resolution_percentage_give_cycles_sizes_and_the_same_pixels(addon, trained_field, tmp_path):
+    obj, cam, scene = _scene(addon, trained_field)
+    scene.render.film_transparent = True
+    scene.render.resolution_percentage = 50
+    full = _render_exr(scene, tmp_path / "full.exr")
+    assert full.shape[:2] == (H // 2, W // 2) and full[..., 3].max() > 0.5
+    sizes = {}
+    for crop in (True, False):
+        _set_border(scene, crop=crop)
+        scene.render.engine = "NEUMESH"
+        got = _render_exr(scene, tmp_path / f"nm_{crop}.exr")
+        cycles_fast(scene, samples=1)
+        sizes[crop] = (got.shape[:2], _render_exr(scene, tmp_path / f"cy_{crop}.exr").shape[:2])
+        w, h = W // 2, H // 2
+        x0, x1 = int(0.21 * w), int(0.77 * w)
+        r0, r1 = h - int(0.62 * h), h - int(0.13 * h)
+        part = full[r0:r1, x0:x1]
+        if crop:
+            assert got.shape[:2] == part.shape[:2]
+            np.testing.assert_allclose(got, part, atol=1e-5)
+        else:   # the frame's size, the region in place, nothing outside it
+            assert got.shape[:2] == full.shape[:2]
+            np.testing.assert_allclose(got[r0:r1, x0:x1], part, atol=1e-5)
+            outside = np.ones(got.shape[:2], bool)
+            outside[r0:r1, x0:x1] = False
+            assert got[outside].max() == 0.0
+        _set_border(scene, on=False)
+    for crop, (nm_size, cy_size) in sizes.items():
+        assert nm_size == cy_size, (crop, nm_size, cy_size)
+    assert sizes[True][0] != sizes[False][0]
+
+
+def test_holdout_object_cuts_the_field_and_leaves_a_hole(addon, trained_field, tmp_path):
+    obj, cam, scene = _scene(addon, trained_field)
+    bpy.ops.mesh.primitive_plane_add(size=1.0, location=(-0.5, -1.5, 0.3), rotation=(math.radians(90), 0, 0))
+    plane = bpy.context.active_object   # in front of the left part of the field, facing the camera
+    scene.render.film_transparent = False
+    free = {s: render_pass(addon.composite, scene, s, tmp_path / f"free_{s}.exr") for s in ("Image", "Depth")}
+    plane.is_holdout = True
+    held = {s: render_pass(addon.composite, scene, s, tmp_path / f"held_{s}.exr") for s in ("Image", "Depth")}
+    # where the plane is: its own Z (Cycles' Z of the same plane, made opaque), alpha 0, no field
+    plane.is_holdout = False
+    obj.hide_render = True
+    cycles_fast(scene, samples=1)
+    zp = render_pass(addon.composite, scene, "Depth", tmp_path / "plane_z.exr")[..., 0]
+    on_plane = zp < 1e9
+    assert on_plane.mean() > 0.05 and (free["Image"][..., 3] == 1).all()
+    np.testing.assert_allclose(held["Depth"][..., 0][on_plane], zp[on_plane], rtol=1e-4)
+    assert held["Image"][..., 3][on_plane].max() == 0.0 and np.abs(held["Image"][on_plane]).max() == 0.0
+    # elsewhere the frame is unchanged
+    np.testing.assert_allclose(held["Image"][~on_plane], free["Image"][~on_plane], atol=1e-6)
+    field_there = on_plane & (free["Depth"][..., 0] < 1e9)
+    assert field_there.sum() > 20
+    # a holdout behind the field hides nothing of it: only the background around the field is cut
+    obj.hide_render = False
+    scene.render.engine = "NEUMESH"
+    plane.location, plane.scale = (-0.5, 2.5, 0.3), (4.0, 4.0, 4.0)
+    plane.is_holdout = True
+    behind = render_pass(addon.composite, scene, "Image", tmp_path / "behind.exr")
+    ref, *_ = _core(addon, trained_field, scene, cam)
+    a = behind[..., 3]
+    kept = a == 1.0   # no holdout there: the frame as before
+    np.testing.assert_allclose(behind[kept], free["Image"][kept], atol=1e-6)
+    # over the holdout: alpha is the field's opacity, the field in front of it is whole
+    np.testing.assert_allclose(a[~kept], ref.opacity[~kept], atol=1e-4)
+    assert ((~kept) & (ref.opacity > 0.9)).sum() > 20
+    assert (a < 1e-4).sum() > 20   # the plane's hole where no field is in front of it
