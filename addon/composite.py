@@ -78,11 +78,31 @@ def render_layer_node(tree, name: str, scene, view_layer: str, location):
     return node
 
 
+def to_straight(tree, name: str, image, location):
+    """An Alpha Convert node (premultiplied -> straight) on ``image``; its output."""
+    node = _node(tree, name, "CompositorNodePremulKey")
+    node.location = location
+    if hasattr(node, "mapping"):   # before Blender 5: a property
+        node.mapping = "PREMUL_TO_STRAIGHT"
+    else:                          # Blender 5: a menu input
+        node.inputs["Type"].default_value = "To Straight"
+    tree.links.new(image, node.inputs[0])
+    return node.outputs[0]
+
+
 def z_combine(tree, front, front_z, back, back_z, location, use_alpha: bool = True):
-    """A Z Combine node (named NODE_ZCOMBINE) fed with two images and their depths; its image output."""
+    """A Z Combine node (named NODE_ZCOMBINE) fed with two images and their depths; its image output.
+
+    With alpha, Z Combine mixes the nearer image over the other by its alpha (``a*near + (1-a)*far``),
+    which is "over" for straight colours: the render layers' premultiplied images are converted first
+    (else a field's soft edges would darken by a second factor of alpha)."""
     node = _node(tree, NODE_ZCOMBINE, "CompositorNodeZcombine")
     node.location = location
     ins = node.inputs
+    x, y = location
+    if use_alpha:
+        front = to_straight(tree, NODE_ZCOMBINE + " straight A", front, (x - 200, y + 150))
+        back = to_straight(tree, NODE_ZCOMBINE + " straight B", back, (x - 200, y - 150))
     for i, src in enumerate((front, front_z, back, back_z)):
         tree.links.new(src, ins[i])
     if hasattr(node, "use_alpha"):   # before Blender 5: properties

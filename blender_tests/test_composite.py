@@ -11,7 +11,8 @@ Tolerances (stated):
 * Border / resolution percentage: the image size Cycles gives, and the same pixels as the
   corresponding part of the full frame (EXR, 1e-5).
 * Composite: every pixel equals the Z-combination of the separate Cycles and NeuMesh renders (1e-3),
-  the cube where it is in front of the field, the field where it is in front of the cube.
+  the cube where it is in front of the field, the field (alpha > 0.9, mixed over the cube by its
+  alpha) where it is in front of the cube.
 """
 from __future__ import annotations
 
@@ -166,3 +167,81 @@ def test_holdout_object_cuts_the_field_and_leaves_a_hole(addon, trained_field, t
     np.testing.assert_allclose(a[~kept], ref.opacity[~kept], atol=1e-4)
     assert ((~kept) & (ref.opacity > 0.9)).sum() > 20
     assert (a < 1e-4).sum() > 20   # the plane's hole where no field is in front of it
+
+
+def bar_through_field(length=2.6, angle_deg=35.0):
+    """A long Cycles box through the field, its left end nearer the camera than the field and its
+    right end farther (camera on -y looking at the origin), lit by a sun."""
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(0.0, 0.0, 0.15), rotation=(0, 0, math.radians(angle_deg)))
+    bar = bpy.context.active_object
+    bar.name = "bar"
+    bar.scale = (length, 0.25, 0.25)
+    mat = bpy.data.materials.new("bar red")
+    mat.diffuse_color = (0.8, 0.1, 0.05, 1.0)
+    if mat.node_tree is None:   # Blender < 5 makes materials without nodes
+        mat.use_nodes = True
+    if mat.node_tree is not None:
+        bsdf = mat.node_tree.nodes.get("Principled BSDF")
+        if bsdf is not None:
+            bsdf.inputs["Base Color"].default_value = (0.8, 0.1, 0.05, 1.0)
+    bar.data.materials.append(mat)
+    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
+    sun.data.energy = 3.0
+    sun.rotation_euler = (math.radians(40), 0, math.radians(20))
+    bpy.context.scene.collection.objects.link(sun)
+    return bar
+
+
+def straight(img):
+    a = img[..., 3:4]
+    return np.concatenate([np.where(a > 0, img[..., :3] / np.maximum(a, 1e-12), img[..., :3]), a], -1)
+
+
+def combine_expected(cyc, zc, fld, zf):
+    """What the set-up's Z Combine makes of two premultiplied layers: the nearer one over the other
+    (colours made straight, then mixed by the nearer one's alpha), alpha the larger of the two."""
+    front_is_field = (zf < zc)[..., None]
+    fg, bg = np.where(front_is_field, fld, cyc), np.where(front_is_field, cyc, fld)
+    a = fg[..., 3:4]
+    out = straight(fg) * a + straight(bg) * (1 - a)
+    out[..., 3] = np.maximum(fg[..., 3], bg[..., 3])
+    return out
+
+
+def test_composite_with_scene_occludes_both_ways_and_survives_reload(addon, trained_field, tmp_path):
+    obj, cam, scene = _scene(addon, trained_field)
+    bar_through_field()
+    cycles_fast(scene, samples=4)
+    assert bpy.ops.neumesh.composite_with_scene() == {"FINISHED"}
+    comp = scene.neumesh.composite_scene
+    assert comp is not None and comp.render.engine == "NEUMESH" and comp.camera is cam
+    assert obj.name in comp.objects and scene.render.engine == "CYCLES"
+    assert bpy.ops.neumesh.composite_with_scene() == {"FINISHED"}   # again: updates, nothing doubled
+    assert len([s for s in bpy.data.scenes if s.name.startswith(scene.name + " NeuMesh")]) == 1
+    tree = addon.composite.compositor_tree(scene, create=False)
+    assert len([n for n in tree.nodes if n.bl_idname == "CompositorNodeZcombine"]) == 1
+    got = _render_exr(scene, tmp_path / "comp.exr")
+    # the separate renders: the Cycles layer (without the field's scaffold) and the field layer
+    cyc = render_pass(addon.composite, scene, "Image", tmp_path / "cyc.exr")
+    zc = render_pass(addon.composite, scene, "Depth", tmp_path / "zc.exr")[..., 0]
+    fld = render_pass(addon.composite, comp, "Image", tmp_path / "fld.exr")
+    zf = render_pass(addon.composite, comp, "Depth", tmp_path / "zf.exr")[..., 0]
+    bar = zc < 1e9
+    field = fld[..., 3] > 0.9
+    bar_front = bar & field & (zc < zf)
+    field_front = bar & field & (zf < zc)
+    assert bar_front.sum() >= 15 and field_front.sum() >= 15, (bar_front.sum(), field_front.sum())
+    np.testing.assert_allclose(got[bar_front], cyc[bar_front], atol=1e-3)
+    a = fld[..., 3:4]   # the field (premultiplied, alpha > 0.9) over the bar
+    np.testing.assert_allclose(got[field_front][:, :3], (fld + cyc * (1 - a))[field_front][:, :3], atol=1e-3)
+    assert np.abs(got - cyc)[field_front].max() > 0.1
+    diff = np.abs(got - combine_expected(cyc, zc, fld, zf)).max()
+    assert diff <= 1e-3, diff
+    # saved and opened again: the companion scene, the tree and the same picture
+    path = str(tmp_path / "comp.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    scene = bpy.context.scene
+    assert scene.neumesh.composite_scene is not None
+    again = _render_exr(scene, tmp_path / "again.exr")
+    np.testing.assert_allclose(again, got, atol=1e-5)
