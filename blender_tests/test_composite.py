@@ -23,7 +23,8 @@ import bpy
 import numpy as np
 import pytest
 
-from helpers import add_camera, cycles_fast, exact_colour_settings, read_exr, render_pass
+from helpers import (add_camera, bar_through_field, combine_expected, cycles_fast, exact_colour_settings,
+                     read_exr, render_pass)
 
 W, H = 64, 48
 
@@ -167,45 +168,6 @@ def test_holdout_object_cuts_the_field_and_leaves_a_hole(addon, trained_field, t
     np.testing.assert_allclose(a[~kept], ref.opacity[~kept], atol=1e-4)
     assert ((~kept) & (ref.opacity > 0.9)).sum() > 20
     assert (a < 1e-4).sum() > 20   # the plane's hole where no field is in front of it
-
-
-def bar_through_field(length=2.6, angle_deg=35.0):
-    """A long Cycles box through the field, its left end nearer the camera than the field and its
-    right end farther (camera on -y looking at the origin), lit by a sun."""
-    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(0.0, 0.0, 0.15), rotation=(0, 0, math.radians(angle_deg)))
-    bar = bpy.context.active_object
-    bar.name = "bar"
-    bar.scale = (length, 0.25, 0.25)
-    mat = bpy.data.materials.new("bar red")
-    mat.diffuse_color = (0.8, 0.1, 0.05, 1.0)
-    if mat.node_tree is None:   # Blender < 5 makes materials without nodes
-        mat.use_nodes = True
-    if mat.node_tree is not None:
-        bsdf = mat.node_tree.nodes.get("Principled BSDF")
-        if bsdf is not None:
-            bsdf.inputs["Base Color"].default_value = (0.8, 0.1, 0.05, 1.0)
-    bar.data.materials.append(mat)
-    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
-    sun.data.energy = 3.0
-    sun.rotation_euler = (math.radians(40), 0, math.radians(20))
-    bpy.context.scene.collection.objects.link(sun)
-    return bar
-
-
-def straight(img):
-    a = img[..., 3:4]
-    return np.concatenate([np.where(a > 0, img[..., :3] / np.maximum(a, 1e-12), img[..., :3]), a], -1)
-
-
-def combine_expected(cyc, zc, fld, zf):
-    """What the set-up's Z Combine makes of two premultiplied layers: the nearer one over the other
-    (colours made straight, then mixed by the nearer one's alpha), alpha the larger of the two."""
-    front_is_field = (zf < zc)[..., None]
-    fg, bg = np.where(front_is_field, fld, cyc), np.where(front_is_field, cyc, fld)
-    a = fg[..., 3:4]
-    out = straight(fg) * a + straight(bg) * (1 - a)
-    out[..., 3] = np.maximum(fg[..., 3], bg[..., 3])
-    return out
 
 
 def test_composite_with_scene_occludes_both_ways_and_survives_reload(addon, trained_field, tmp_path):
