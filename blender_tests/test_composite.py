@@ -4,7 +4,7 @@
 Tolerances (stated):
 * Depth pass against the core's ray depth turned into camera-axis Z: 1e-4 relative (float32).
 * Depth pass against Cycles' Z of the scaffold mesh itself (opaque proxy), where the field is opaque
-  (opacity > 0.95) and Cycles hits the mesh: median |dz| <= 0.75 and 90th percentile <= 1.25 field
+  (opacity > 0.9) and Cycles hits the mesh: median |dz| <= 0.75 and 90th percentile <= 1.25 field
   radii (measured 0.47 / 0.88; radius 0.40, camera 4 away). The Z of a field is its opacity-weighted
   expected depth and its surface is learned, not the scaffold's: the 40-step test blob is a soft shell
   whose weight lies ~0.2 behind the scaffold.
@@ -58,10 +58,14 @@ def _core(addon, field_path, scene, cam, transparent=True):
 
 def test_depth_pass_is_camera_axis_distance_and_matches_cycles_of_the_scaffold(addon, trained_field, tmp_path):
     obj, cam, scene = _scene(addon, trained_field)
+    cam.data.shift_x, cam.data.shift_y, cam.data.sensor_fit = 0.08, -0.05, "VERTICAL"   # as Cycles projects
+    cam.data.sensor_height = 30.0
     scene.render.film_transparent = True
     z = render_pass(addon.composite, scene, "Depth", tmp_path / "z.exr")[..., 0]
     alpha = render_pass(addon.composite, scene, "Alpha", tmp_path / "a.exr")[..., 0]
+    mod = render_pass(addon.composite, scene, addon.engine.MOD_PASS, tmp_path / "m.exr")[..., :3]
     ref, K, c2w, field = _core(addon, trained_field, scene, cam)
+    np.testing.assert_allclose(mod, ref.mod_rgb, atol=1e-5)   # the modification-colour layer
     hit = np.isfinite(ref.depth)
     assert hit.mean() > 0.2 and (~hit).mean() > 0.2
     # alpha is the field's opacity (Film > Transparent)
@@ -78,7 +82,7 @@ def test_depth_pass_is_camera_axis_distance_and_matches_cycles_of_the_scaffold(a
     # Cycles' Z of the scaffold mesh itself (an opaque proxy at the field's surface)
     cycles_fast(scene, samples=1)
     zc = render_pass(addon.composite, scene, "Depth", tmp_path / "zc.exr")[..., 0]
-    both = (ref.opacity > 0.95) & (zc < 1e9)
+    both = (ref.opacity > 0.9) & (zc < 1e9)
     dz = np.abs(z - zc)[both] / float(field.config.radius)
     print(f"Z vs Cycles of the scaffold: median {np.median(dz):.3f}, p90 {np.percentile(dz, 90):.3f} radii "
           f"(radius {float(field.config.radius):.3f}, {both.sum()} px); Cycles' empty Z {zc[~hit].min():.3g}")
@@ -207,3 +211,19 @@ def test_composite_with_scene_occludes_both_ways_and_survives_reload(addon, trai
     assert scene.neumesh.composite_scene is not None
     again = _render_exr(scene, tmp_path / "again.exr")
     np.testing.assert_allclose(again, got, atol=1e-5)
+
+
+def test_each_view_layer_renders_its_own_visible_fields(addon, trained_field, tmp_path):
+    """Per-view-layer visibility: a second view layer that excludes the field's collection renders
+    nothing of it; the first still shows it (each layer's passes go to its own render layer)."""
+    obj, cam, scene = _scene(addon, trained_field)
+    scene.render.film_transparent = True
+    coll = bpy.data.collections.new("fields")
+    scene.collection.children.link(coll)
+    coll.objects.link(obj)
+    scene.collection.objects.unlink(obj)
+    other = scene.view_layers.new("without field")
+    other.layer_collection.children["fields"].exclude = True
+    first = render_pass(addon.composite, scene, "Alpha", tmp_path / "first.exr", scene.view_layers[0].name)
+    second = render_pass(addon.composite, scene, "Alpha", tmp_path / "second.exr", "without field")
+    assert first[..., 0].max() > 0.5 and second[..., 0].max() == 0.0
