@@ -5,7 +5,7 @@ Tolerances (stated):
 * Depth pass against the core's ray depth turned into camera-axis Z: 1e-4 relative (float32).
 * Depth pass against Cycles' Z of the scaffold mesh itself (opaque proxy), where the field is opaque
   (opacity > 0.9) and Cycles hits the mesh: median |dz| <= 0.75 and 90th percentile <= 1.25 field
-  radii (measured 0.47 / 0.88; radius 0.40, camera 4 away). The Z of a field is its opacity-weighted
+  radii (measured 0.47 / 0.99; radius 0.40, camera 4 away). The Z of a field is its opacity-weighted
   expected depth and its surface is learned, not the scaffold's: the 40-step test blob is a soft shell
   whose weight lies ~0.2 behind the scaffold.
 * Border / resolution percentage: the image size Cycles gives, and the same pixels as the
