@@ -227,3 +227,24 @@ def test_each_view_layer_renders_its_own_visible_fields(addon, trained_field, tm
     first = render_pass(addon.composite, scene, "Alpha", tmp_path / "first.exr", scene.view_layers[0].name)
     second = render_pass(addon.composite, scene, "Alpha", tmp_path / "second.exr", "without field")
     assert first[..., 0].max() > 0.5 and second[..., 0].max() == 0.0
+
+
+def test_composite_with_scene_keeps_eevee_and_says_what_is_missing(addon, trained_field):
+    scene = bpy.context.scene
+    with pytest.raises(RuntimeError, match="no object with a NeuMesh field"):
+        add_camera((0.0, -4.0, 0.6))
+        bpy.ops.neumesh.composite_with_scene()
+    scene.camera = None
+    _field_object(trained_field)
+    with pytest.raises(RuntimeError, match="no camera"):
+        bpy.ops.neumesh.composite_with_scene()
+    scene.camera = bpy.data.objects["cam"]
+    eevee = next(e for e in ("BLENDER_EEVEE_NEXT", "BLENDER_EEVEE")
+                 if e in {i.identifier for i in scene.render.bl_rna.properties["engine"].enum_items})
+    scene.render.engine = eevee
+    assert bpy.ops.neumesh.composite_with_scene() == {"FINISHED"}
+    assert scene.render.engine == eevee and scene.neumesh.composite_scene.render.engine == "NEUMESH"
+    tree = addon.composite.compositor_tree(scene, create=False)
+    names = {n.name for n in tree.nodes}
+    assert {addon.composite.NODE_SCENE, addon.composite.NODE_FIELDS, addon.composite.NODE_ZCOMBINE} <= names
+    assert all(vl.use_pass_z for vl in scene.view_layers)
