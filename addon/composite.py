@@ -14,7 +14,6 @@ running Blender has, not by its version number.
 from __future__ import annotations
 
 import bpy
-from bpy.props import BoolProperty
 
 from . import props
 
@@ -225,16 +224,9 @@ class NEUMESH_OT_composite_with_scene(bpy.types.Operator):
     bl_label = "Composite with Scene"
     bl_options = {"REGISTER", "UNDO"}
 
-    sync_only: BoolProperty(name="Update only", default=False, options={"SKIP_SAVE"},
-                            description="Only copy camera, resolution and frame range to the companion scene")
-
     def execute(self, context):
-        scene = context.scene
         try:
-            if self.sync_only and scene.neumesh.composite_scene is not None:
-                sync_companion(scene, scene.neumesh.composite_scene)
-                return {"FINISHED"}
-            done = set_up(scene)
+            done = set_up(context.scene)
         except CompositeError as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}

@@ -338,13 +338,11 @@ def _render_out(items: list[Item], K, c2w, width: int, height: int, transparent:
 class Passes:
     """One frame's render passes for Blender: ``combined`` (H,W,4) scene-linear premultiplied RGBA,
     ``z`` (H,W) distance along the camera axis (the Depth pass of Cycles/EEVEE; inf where empty),
-    ``mod`` (H,W,3) the rendered modification colour (premultiplied by opacity; a data pass) and
-    ``alpha`` (H,W) the field's opacity (1 outside holdouts when the film is not transparent)."""
+    and ``mod`` (H,W,3) the rendered modification colour (premultiplied by opacity; a data pass)."""
 
     combined: np.ndarray
     z: np.ndarray
     mod: np.ndarray
-    alpha: np.ndarray
 
 
 def _core_module(name: str):
@@ -421,7 +419,7 @@ def render_passes(items: list[Item], K, c2w, width: int, height: int, transparen
             cut = to_scene_linear(np.concatenate([premult, a[..., None]], -1), True)
             combined[hold] = cut[hold]
         z = np.minimum(z, occluder_z.astype(np.float32))
-    return Passes(combined.astype(np.float32), z.astype(np.float32), mod, combined[..., 3].copy())
+    return Passes(combined.astype(np.float32), z.astype(np.float32), mod)
 
 
 def _empty(width: int, height: int, transparent: bool) -> np.ndarray:

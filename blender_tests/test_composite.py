@@ -17,7 +17,6 @@ Tolerances (stated):
 from __future__ import annotations
 
 import math
-import os
 
 import bpy
 import numpy as np
