@@ -26,9 +26,9 @@ try:
 except Exception as _exc:  # noqa: BLE001
     print(f"NeuMesh: dependency folder unavailable: {_exc}")
 
-from . import bake, colour, edits, engine, identity, operators, paint, prefs, props, semantics, texture_edit, ui  # noqa: E402,E501
+from . import bake, colour, composite, edits, engine, identity, operators, paint, prefs, props, semantics, texture_edit, ui  # noqa: E402,E501
 
-_modules = (prefs, props, identity, operators, engine, colour, ui, edits, texture_edit, paint, semantics, bake)   # edits first: the others' panels are its children
+_modules = (prefs, props, identity, operators, composite, engine, colour, ui, edits, texture_edit, paint, semantics, bake)   # edits first: the others' panels are its children
 
 
 def register():

@@ -30,6 +30,29 @@ def render_size(scene) -> tuple[int, int]:
             max(1, int(r.resolution_y * r.resolution_percentage / 100)))
 
 
+def border_rect(scene, width: int, height: int) -> tuple[int, int, int, int]:
+    """The part of the ``width`` x ``height`` frame that a render fills: (column, row, w, h) with rows
+    counted from the top; the whole frame unless Output > Format > Render Region (border) is on.
+    Blender truncates ``border * size`` to whole pixels (``disprect`` in render_init_from_main)."""
+    r = scene.render
+    if not r.use_border:
+        return 0, 0, int(width), int(height)
+    x0, x1 = int(r.border_min_x * width), int(r.border_max_x * width)
+    y0, y1 = int(r.border_min_y * height), int(r.border_max_y * height)   # from the bottom
+    if x1 - x0 < 1 or y1 - y0 < 1:
+        raise CameraError("the render region (border) is smaller than one pixel: widen it "
+                          "(Ctrl+B in the camera view) or switch Output > Format > Render Region off")
+    return x0, int(height) - y1, x1 - x0, y1 - y0
+
+
+def crop_K(K, column: int, row: int) -> np.ndarray:
+    """The intrinsics of the sub-image that starts at (column, row) of the image of ``K``."""
+    Kc = np.array(K, dtype=np.float32)
+    Kc[0, 2] -= column
+    Kc[1, 2] -= row
+    return Kc
+
+
 def k_from_projection(P, width: int, height: int) -> np.ndarray:
     P = np.asarray(P, dtype=np.float64).reshape(4, 4)
     if abs(P[3, 3]) > 1e-9 or abs(P[3, 2] + 1.0) > 1e-6:

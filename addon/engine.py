@@ -11,6 +11,7 @@ from ._np import np
 from . import camera, core, render, sync
 
 LAST_ERROR = {"message": ""}
+MOD_PASS = "NeuMesh Mod"   # the render pass of the rendered modification colour
 # seconds spent in each phase of the last final render (F12 / -a), for benchmarks and tests
 LAST_RENDER: dict = {}
 # the last message drawn in a viewport: its wrapped lines, the widest one's right end, the region's width
@@ -165,26 +166,31 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
     def render(self, depsgraph):
         t0 = time.perf_counter()
         scene = depsgraph.scene
-        W, H = camera.render_size(scene)
+        # the size Blender allocated (a scene rendered for another scene's compositor gets that scene's)
+        W, H = (int(self.resolution_x), int(self.resolution_y)) if self.resolution_x > 0 else \
+            camera.render_size(scene)
         transparent = bool(scene.render.film_transparent)
         LAST_ERROR["message"] = ""
         LAST_RENDER.clear()
         try:
             cam = scene.camera
             K, c2w, W, H = camera.camera_K_c2w(cam, scene, depsgraph, W, H)
+            col, row, w, h = camera.border_rect(scene, W, H)   # Render Region: only that part
+            K = camera.crop_K(K, col, row)
             items = render.collect(depsgraph, for_render=True)
+            occluder_z = render.holdout_z(depsgraph, K, c2w, w, h)
             t1 = time.perf_counter()
             if not items:
                 self.report({"WARNING"}, "NeuMesh: no object with a field in the scene (Object properties > "
                                          "NeuMesh field)")
-            self.update_stats("NeuMesh", f"rendering {len(items)} field(s) at {W}x{H}")
+            self.update_stats("NeuMesh", f"rendering {len(items)} field(s) at {w}x{h}")
 
             def prog(f):
                 self.update_progress(float(f))
                 return not self.test_break()
 
-            rgba = render.render_items(items, K, c2w, W, H, transparent, progress=prog,
-                                       supersample=scene.neumesh.render_samples)
+            passes = render.render_passes(items, K, c2w, w, h, transparent, progress=prog,
+                                          supersample=scene.neumesh.render_samples, occluder_z=occluder_z)
             t2 = time.perf_counter()
         except Exception as exc:  # noqa: BLE001 - reported to the user, no (wrong) image written
             if type(exc).__name__ == "Cancelled":
@@ -196,16 +202,32 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
                 self.error_set(msg)
             self.report({"ERROR"}, msg)
             return
-        lin = render.to_scene_linear(rgba, transparent)
-        pixels = np.ascontiguousarray(lin[::-1].reshape(-1, 4))  # Blender rows go bottom-up
+        pixels = {"Combined": passes.combined, "Depth": passes.z[..., None], MOD_PASS: passes.mod}
         t3 = time.perf_counter()
-        result = self.begin_result(0, 0, W, H)
-        how = set_pass_pixels(result.layers[0].passes["Combined"], pixels)
+        result = self.begin_result(0, 0, w, h, layer=depsgraph.view_layer.name)
+        how, names = "", []
+        for rp in result.layers[0].passes:
+            names.append(rp.name)
+            img = pixels.get(rp.name)
+            if img is not None:   # Blender rows go bottom-up
+                flat = np.ascontiguousarray(img[::-1].reshape(-1, img.shape[-1]), dtype=np.float32)
+                got = set_pass_pixels(rp, flat)
+                how = got if rp.name == "Combined" else how
         t4 = time.perf_counter()
         self.end_result(result)
         t5 = time.perf_counter()
         LAST_RENDER.update(collect_s=t1 - t0, render_s=t2 - t1, colour_s=t3 - t2, handoff_s=t4 - t3,
-                           end_result_s=t5 - t4, total_s=t5 - t0, handoff=how, **render.LAST_TIMINGS)
+                           end_result_s=t5 - t4, total_s=t5 - t0, handoff=how, size=(w, h),
+                           passes=names, **render.LAST_TIMINGS)
+
+    def update_render_passes(self, scene=None, renderlayer=None):
+        """The passes this engine writes, for the compositor's Render Layers node: Combined (its
+        alpha is the node's Alpha output), Depth when View Layer > Passes > Z is on, and the
+        modification colour ("NeuMesh Mod")."""
+        self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")
+        if renderlayer.use_pass_z:
+            self.register_pass(scene, renderlayer, "Depth", 1, "Z", "VALUE")
+        self.register_pass(scene, renderlayer, MOD_PASS, 3, "RGB", "COLOR")
 
     # ------------------------------------------------------------------ viewport
     def view_update(self, context, depsgraph):

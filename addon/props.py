@@ -128,6 +128,10 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
                                   poll=lambda self, o: o.type == "MESH",
                                   description="The scaffold: the mesh whose field is trained (every vertex "
                                               "keeps the learned codes of the surface around it)")
+    composite_scene: PointerProperty(
+        name="Field scene", type=bpy.types.Scene,
+        description="The companion scene that renders this scene's NeuMesh fields with the NeuMesh engine, "
+                    "Z-combined with this scene's render in the compositor (Composite with Scene)")
     output_dir: StringProperty(name="Output folder", subtype="DIR_PATH", default="//neumesh_renders/", **_REL)
     render_cameras: EnumProperty(
         name="Cameras", items=[("ACTIVE", "Scene camera", "Render the scene camera"),

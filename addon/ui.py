@@ -96,6 +96,11 @@ class NEUMESH_PT_field(_Sidebar, bpy.types.Panel):
         col.prop(s, "render_samples")
         _labelled(col, s, "output_dir", "Output folder")
         col.operator("neumesh.render_images", text="Render to Images", icon="RENDER_STILL")
+        col.separator()
+        col.operator("neumesh.composite_with_scene", icon="NODE_COMPOSITING")
+        if s.composite_scene is not None:
+            wrapped_label(col, f"Fields render in scene '{s.composite_scene.name}'", text_width(context),
+                          icon="SCENE_DATA", context=context)
 
 
 class NEUMESH_PT_object(bpy.types.Panel):

@@ -139,3 +139,89 @@ def f12_srgb(path):
     scene.render.filepath = str(path)
     bpy.ops.render.render(write_still=True)
     return linear_to_srgb(read_exr(str(path))[..., :3])
+
+
+def render_pass(composite, scene, socket, path, view_layer=None):
+    """(H,W,4) float32 pixels of one output (``socket``: "Image", "Alpha", "Depth", "NeuMesh Mod") of
+    ``scene``'s Render Layers, top row first: a probe scene's compositor (``composite``: the add-on's
+    composite module) routes it to its result, written as a 32-bit EXR at ``path`` (the probe's own
+    layers are not rendered: no Render Layers node names it)."""
+    import bpy
+
+    probe = bpy.data.scenes.new("probe")
+    try:
+        for name in ("resolution_x", "resolution_y", "resolution_percentage", "use_border", "use_crop_to_border",
+                     "border_min_x", "border_max_x", "border_min_y", "border_max_y"):
+            setattr(probe.render, name, getattr(scene.render, name))
+        probe.camera = scene.camera
+        probe.frame_current = scene.frame_current
+        probe.render.engine = scene.render.engine
+        tree = composite.compositor_tree(probe)
+        rl = composite.render_layer_node(tree, "probe layer", scene, view_layer or scene.view_layers[0].name, (0, 0))
+        tree.links.new(rl.outputs[socket], composite.output_input(tree))
+        probe.render.image_settings.file_format = "OPEN_EXR"
+        probe.render.image_settings.color_depth = "32"
+        probe.render.filepath = str(path)
+        bpy.ops.render.render(write_still=True, scene=probe.name)
+        return read_exr(str(path))
+    finally:
+        tree = composite.compositor_tree(probe, create=False)
+        group = tree.name if tree is not None and bpy.data.node_groups.get(tree.name) == tree else None
+        bpy.data.scenes.remove(probe)   # a node group (Blender 5) outlives its scene: removed too
+        if group is not None:
+            bpy.data.node_groups.remove(bpy.data.node_groups[group])
+
+
+def cycles_fast(scene, samples=4):
+    """Tiny, quick, deterministic Cycles settings for tests (CPU, no denoising, narrow pixel filter)."""
+    scene.render.engine = "CYCLES"
+    c = scene.cycles
+    c.device = "CPU"
+    c.samples = samples
+    c.use_denoising = False
+    if hasattr(c, "use_adaptive_sampling"):
+        c.use_adaptive_sampling = False
+    c.filter_width = 0.01
+    c.seed = 0
+    c.max_bounces = 2
+
+
+def bar_through_field(length=2.6, angle_deg=35.0):
+    """A long Cycles box through the field, its left end nearer the camera than the field and its
+    right end farther (camera on -y looking at the origin), lit by a sun."""
+    import bpy
+
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(0.0, 0.0, 0.15), rotation=(0, 0, math.radians(angle_deg)))
+    bar = bpy.context.active_object
+    bar.name = "bar"
+    bar.scale = (length, 0.25, 0.25)
+    mat = bpy.data.materials.new("bar red")
+    mat.diffuse_color = (0.8, 0.1, 0.05, 1.0)
+    if mat.node_tree is None:   # Blender < 5 makes materials without nodes
+        mat.use_nodes = True
+    if mat.node_tree is not None:
+        bsdf = mat.node_tree.nodes.get("Principled BSDF")
+        if bsdf is not None:
+            bsdf.inputs["Base Color"].default_value = (0.8, 0.1, 0.05, 1.0)
+    bar.data.materials.append(mat)
+    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
+    sun.data.energy = 3.0
+    sun.rotation_euler = (math.radians(40), 0, math.radians(20))
+    bpy.context.scene.collection.objects.link(sun)
+    return bar
+
+
+def straight(img):
+    a = img[..., 3:4]
+    return np.concatenate([np.where(a > 0, img[..., :3] / np.maximum(a, 1e-12), img[..., :3]), a], -1)
+
+
+def combine_expected(cyc, zc, fld, zf):
+    """What the set-up's Z Combine makes of two premultiplied layers: the nearer one over the other
+    (colours made straight, then mixed by the nearer one's alpha), alpha the larger of the two."""
+    front_is_field = (zf < zc)[..., None]
+    fg, bg = np.where(front_is_field, fld, cyc), np.where(front_is_field, cyc, fld)
+    a = fg[..., 3:4]
+    out = straight(fg) * a + straight(bg) * (1 - a)
+    out[..., 3] = np.maximum(fg[..., 3], bg[..., 3])
+    return out

@@ -208,3 +208,34 @@ def test_f12_equals_the_core_render_with_one_copy_hand_off_threads_and_allocator
         assert after == {k: before.get(k, default) for k in after} and set(before) <= set(after), m
         now = times(f["decay_now"])   # at the end of the script: arenas made since have the default
         assert now == {k: after.get(k, default) for k in now}
+
+
+def test_composite_with_scene_renders_with_blender_b_a(addon_zip, trained_field, tmp_path):
+    """"Composite with Scene" in the real binary, then `blender -b scene.blend -a` in a new process:
+    frames 1 and 3 (step 2), each the Z-combination of the Cycles layer and the NeuMesh layer rendered
+    separately (1e-3): the bar where it is in front of the field, the field where it is in front."""
+    _need_torch()
+    from helpers import combine_expected, read_exr
+
+    env = _env(tmp_path)
+    out = tmp_path / "out"
+    f = _facts(_run([BLENDER, "-b", "--factory-startup", "--python",
+                     os.path.join(HERE, "real_blender_composite.py"), "--", addon_zip, trained_field, str(out)], env))
+    assert f["result"] == ["FINISHED"] and f["companion"].endswith(" NeuMesh"), f
+    if tuple(f["version"]) < (5, 0, 0):
+        assert f["tree"] == "node_tree"
+    log = _run([BLENDER, "-b", str(out / "scene.blend"), "-o", str(out / "frame_####"), "-a"], env)
+    assert "NeuMesh:" not in log or "error" not in log.lower(), log[-3000:]
+    frames = sorted(p.name for p in out.glob("frame_*"))
+    assert frames == ["frame_0001.exr", "frame_0003.exr"], frames
+    cyc, zc, fld, zf = (np.load(out / f"{k}.npy") for k in ("cyc", "zc", "fld", "zf"))
+    expected = combine_expected(cyc, zc, fld, zf)
+    bar, field = zc < 1e9, fld[..., 3] > 0.9
+    bar_front, field_front = bar & field & (zc < zf), bar & field & (zf < zc)
+    assert bar_front.sum() >= 15 and field_front.sum() >= 15, (bar_front.sum(), field_front.sum())
+    for name in frames:
+        got = read_exr(str(out / name))
+        assert got.shape == (48, 64, 4)
+        assert np.abs(got - expected).max() <= 1e-3
+        np.testing.assert_allclose(got[bar_front], cyc[bar_front], atol=1e-3)
+        assert np.abs(got - cyc)[field_front].max() > 0.1

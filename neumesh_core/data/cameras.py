@@ -101,6 +101,32 @@ def pixel_rays(K, c2w, width: int, height: int, device="cpu", pixels: torch.Tens
     return o, d
 
 
+def ray_to_axis_factor(K, width: int, height: int) -> np.ndarray:
+    """(H,W) float32: for the ray through each pixel centre, the camera-axis (z) component of its unit
+    direction, so that ``z = t * factor`` turns a distance ``t`` along the ray into the distance along
+    the camera's viewing axis (Blender's / OpenGL's Z pass convention)."""
+    K = np.asarray(K, np.float64)
+    ys, xs = np.mgrid[0:height, 0:width].astype(np.float64) + 0.5
+    y = (ys - K[1, 2]) / K[1, 1]
+    x = (xs - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    return (1.0 / np.sqrt(x * x + y * y + 1.0)).astype(np.float32)
+
+
+def ray_to_axis_depth(depth, K) -> np.ndarray:
+    """Distance along each pixel's ray (H,W) (``RenderOutput.depth``; inf where empty) -> distance
+    along the camera axis (H,W) (the Z of Blender's Cycles/EEVEE Depth pass; inf stays inf)."""
+    depth = np.asarray(depth, np.float32)
+    h, w = depth.shape
+    return depth * ray_to_axis_factor(K, w, h)
+
+
+def axis_to_ray_depth(z, K) -> np.ndarray:
+    """Inverse of :func:`ray_to_axis_depth`: camera-axis distance (H,W) -> distance along each ray."""
+    z = np.asarray(z, np.float32)
+    h, w = z.shape
+    return z / ray_to_axis_factor(K, w, h)
+
+
 def batch_pixel_rays(K: torch.Tensor, c2w: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor):
     """Rays for a batch of pixels, each from its own camera: K (B,3,3), c2w (B,4,4), xs/ys (B,)
     pixel indices (centres at +0.5).  Returns unit-direction rays (origins (B,3), dirs (B,3))."""

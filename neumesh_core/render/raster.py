@@ -80,6 +80,26 @@ def bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return ((t[yi, xi] * (1 - fx) + t[yi, x1] * fx) * (1 - fy) + (t[y1, xi] * (1 - fx) + t[y1, x1] * fx) * fy)
 
 
+def depth_buffer(vertices, faces, K, c2w, width: int, height: int, near: float = 1e-6) -> np.ndarray:
+    """Z-buffer of a triangle mesh seen by an OpenCV camera (``K`` 3x3, ``c2w`` 4x4): (H,W) float32
+    distance along the camera axis of the nearest surface at each pixel centre (perspective-correct),
+    inf where no triangle covers it.  Triangles with a vertex closer than ``near`` are skipped (no
+    clipping: an occluder must lie wholly in front of the camera)."""
+    v = np.asarray(vertices, np.float64).reshape(-1, 3)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    w2c = np.linalg.inv(np.asarray(c2w, np.float64))
+    cam = v @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    zc = np.where(z > near, z, 1.0)
+    pix = (cam @ np.asarray(K, np.float64).T)[:, :2] / zc[:, None]
+    fi = np.nonzero((z[f] > near).all(1))[0] if len(f) else np.zeros(0, np.int64)
+    best = np.full(width * height, np.inf)
+    for ids, px, bary in raster_triangles(pix[f[fi]], width, height, eps=1e-9):
+        depth = 1.0 / (bary / z[f[fi[ids]]]).sum(1)
+        np.minimum.at(best, px, depth)
+    return best.reshape(height, width).astype(np.float32)
+
+
 def render_textured_mesh(vertices, faces, uvs, texture, K, c2w, width: int, height: int,
                          background=(1.0, 1.0, 1.0), supersample: int = 1) -> Tuple[np.ndarray, np.ndarray]:
     """Render a UV-textured mesh seen by an OpenCV camera (``K`` 3x3, ``c2w`` 4x4): z-buffer,

@@ -49,7 +49,7 @@ def _as_list(fields):
 def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=None,
                 settings: Optional[RenderSettings] = None, train: bool = False,
                 jitter: Optional[torch.Tensor] = None, vertex_ids: bool = False,
-                semantics: bool = False) -> dict:
+                semantics: bool = False, far: Optional[torch.Tensor] = None) -> dict:
     """Render rays (R,3) through one field or a list of fields (composited jointly, sorted by depth).
 
     Returns tensors: rgb (R,3), opacity (R,), depth (R,) (expected distance, normalised by opacity;
@@ -61,16 +61,19 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
     with the colour's weights (every field must have a semantic branch of the same width); colour,
     opacity and depth are computed exactly as without it.
     ``background``: None (black / premultiplied), an (3,) colour, or (R,3) per-ray colours.
+    ``far``: None, or (R,) distances along the rays past which nothing is sampled (an opaque surface
+    in front of the field, e.g. a holdout object: the field behind it is cut).
     """
     settings = settings or RenderSettings()
     fl = _as_list(fields)
     n = origins.shape[0]
+    t_far = float("inf") if far is None else far.to(origins.device, torch.float32)
     sem_width = _semantic_width(fl) if semantics else 0
     parts = []
     touched = []
     for f in fl:
         s = march_rays(origins, dirs, f.grid, f.sigma_fn, default_step(f, settings), near=settings.near,
-                       window=settings.window, early_stop_eps=settings.early_stop_eps,
+                       far=t_far, window=settings.window, early_stop_eps=settings.early_stop_eps,
                        weight_threshold=settings.weight_threshold, jitter=jitter)
         if vertex_ids:
             touched.append(torch.unique(s.aux.idx[s.aux.valid]) if len(s) else
@@ -211,7 +214,7 @@ class RenderOutput:
 def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0, 1.0),
                   settings: Optional[RenderSettings] = None,
                   progress: Optional[Callable[[float], Optional[bool]]] = None,
-                  semantics: bool = False) -> RenderOutput:
+                  semantics: bool = False, far=None) -> RenderOutput:
     """Render one pinhole camera (K (3,3) pixels, c2w (4,4) OpenCV) from a field or list of fields.
 
     ``settings.supersample`` S > 1 averages S x S rays per pixel (S^2 times the work): anti-aliasing
@@ -219,6 +222,8 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     ``background`` None leaves rgb premultiplied (black).  ``progress(fraction)`` returning False
     cancels with :class:`Cancelled`.  ``semantics``: also composite the fields' semantic features
     (``RenderOutput.sem``, premultiplied by opacity like ``mod_rgb``).
+    ``far``: None, or (H,W) distances along each pixel's centre ray (inf: no limit) past which nothing
+    is sampled -- an opaque occluder in front of the field (supersampled rays use their pixel's value).
     """
     import time
 
@@ -240,13 +245,16 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     sem = torch.zeros(n, _semantic_width(fl)) if semantics else None
     n_samples = 0
     total = len(offsets) * n
+    far_t = None if far is None else torch.as_tensor(np.asarray(far, np.float32).reshape(-1)).to(device)
+    if far_t is not None and far_t.numel() != n:
+        raise ValueError(f"far must be (height, width) = ({height}, {width}), got {np.shape(far)}")
     with torch.no_grad():
         for k, off in enumerate(offsets):
             origins, dirs = pixel_rays(K, c2w, width, height, device=device, offset=off)
             for s in range(0, n, settings.chunk_rays):
                 e = min(n, s + settings.chunk_rays)
                 out = render_rays(fl, origins[s:e], dirs[s:e], background, settings, train=False,
-                                  semantics=semantics)
+                                  semantics=semantics, far=None if far_t is None else far_t[s:e])
                 op = out["opacity"].cpu()
                 rgb[s:e] += out["rgb"].cpu()
                 opac[s:e] += op

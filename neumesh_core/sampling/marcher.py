@@ -52,7 +52,8 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
 
     Each round looks ``window`` steps ahead but evaluates at most ``max_eval`` occupied steps per ray,
     so a ray that turns opaque stops within a few samples.  ``jitter`` (R,) in [0,1) offsets each
-    ray's sample positions (training); None = step centres.
+    ray's sample positions (training); None = step centres.  ``far``: one distance, or an (R,) tensor of
+    per-ray distances (an occluder in front of the field) past which nothing is sampled.
     """
     device = origins.device
     n_rays = origins.shape[0]
