@@ -270,8 +270,8 @@ def test_progressive_preview_renders_low_resolution_first(addon, trained_field):
         assert pv.wait(serial, divisor=2, timeout=60), pv.error
         assert [d for d, _ in pv.timings] == [8, 4, 2]
         assert pv.latest[2].shape == (40, 48, 4)
-        t8 = pv.timings[0][1]
-        assert t8 < 1.0  # first refreshed preview within a second
+        # coarse first: each level's image arrives after the one before (how fast is bench_addon.py's)
+        assert [t for _, t in pv.timings] == sorted(t for _, t in pv.timings)
         # a newer request supersedes the old one
         s2 = pv.request(items, K, c2w, 96, 80, transparent=True)
         assert pv.wait(s2, divisor=8, timeout=60)
