@@ -1,13 +1,16 @@
 """Baking a field into a UV-textured mesh: how close the baked asset's render is to the field's own.
 
     python benchmarks/bench_bake.py --field runs/blob.neumesh                      # the built-in scene
-    python benchmarks/bench_bake.py --field runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
+    python benchmarks/bench_bake.py --field runs/lego_field.neumesh --data ../shared/data/nerf_synthetic/lego \
+        --split val --views 4 --downscale 2 --resolutions 1024 --directions 1 --decimate 0.05
 
 For each texture size (``--resolutions``) and rays per texel (``--directions``: 1 = along -normal; 5 =
 -normal and four rays tilted 30 degrees) the field is baked, and the baked mesh is rendered with the
 core's numpy rasteriser (z-buffer, bilinear texture, 2x2 supersampled) on the held-out ``test`` views
-and compared with the field's render of the same views (PSNR), and both with the photos.  Writes
-benchmarks/results/bake_<name>.json and, with ``--figure``, field render | baked render pictures.
+and compared with the field's render of the same views (PSNR), and both with the photos.  ``--mesh FILE``
+bakes onto that mesh, ``--decimate R`` onto a quadric-decimated copy (about R x the faces) of the
+scaffold (or of --mesh).  Writes bake_<name>.json to benchmarks/results (or ``--results-dir``) and, with
+``--figure``, field render | baked render pictures (``--figure-views`` views, one row each).
 """
 from __future__ import annotations
 
@@ -38,8 +41,13 @@ def main(argv=None) -> int:
     ap.add_argument("--downscale", type=float, default=1)
     ap.add_argument("--resolutions", default="512,1024")
     ap.add_argument("--directions", default="1,5")
+    ap.add_argument("--mesh", help="bake onto this mesh instead of the scaffold (world space, near the surface)")
+    ap.add_argument("--decimate", type=float, default=1.0,
+                    help="bake onto a decimated copy with about this fraction of the faces (default 1: none)")
     ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--figure", help="write field | baked pictures of two views here (PNG)")
+    ap.add_argument("--results-dir", help="folder for the JSON (default benchmarks/results)")
+    ap.add_argument("--figure", help="write field | baked pictures here (PNG)")
+    ap.add_argument("--figure-views", type=int, default=2, help="views (rows) in the figure (default 2)")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -52,6 +60,17 @@ def main(argv=None) -> int:
     field = nm.load_field(args.field)
     field.eval()
     bg = np.asarray(scene.background, np.float32)
+    mesh, decimate_s = None, 0.0
+    if args.mesh:
+        mesh = nm.load_mesh(args.mesh)
+    if args.decimate < 1.0:
+        from neumesh_core.bake import decimate
+
+        src = mesh if mesh is not None else nm.Mesh(np.asarray(field.vertices), field.faces.cpu().numpy())
+        t0 = time.perf_counter()
+        mesh = nm.Mesh(*decimate(src.vertices, src.faces, args.decimate))
+        decimate_s = time.perf_counter() - t0
+        print(f"decimated {len(src.faces)} -> {len(mesh.faces)} faces in {decimate_s:.1f} s")
     t0 = time.perf_counter()
     refs = [np.clip(nm.render_camera(field, cams.K[i], cams.c2w[i], cams.width, cams.height,
                                      background=tuple(bg)).rgb, 0, 1) for i in views]
@@ -62,7 +81,7 @@ def main(argv=None) -> int:
     best = None
     for res in [int(r) for r in args.resolutions.split(",")]:
         for dirs in [int(d) for d in args.directions.split(",")]:
-            b = bake_texture(field, resolution=res, directions=dirs)
+            b = bake_texture(field, resolution=res, directions=dirs, mesh=mesh)
             imgs = []
             t1 = time.perf_counter()
             for k, i in enumerate(views):
@@ -74,6 +93,8 @@ def main(argv=None) -> int:
             row = {"resolution": res, "directions": dirs, "bake_s": round(b.seconds, 2),
                    "unwrap_s": round(b.info["unwrap_s"], 2), "charts": b.info["charts"],
                    "texels": b.info["texels"], "padding_texels": round(b.info["padding_texels"], 2),
+                   "mesh_vertices": b.info["mesh_vertices"], "mesh_faces": b.info["mesh_faces"],
+                   "missed_texels": b.info["missed_texels"],
                    "psnr_vs_field": float(np.mean(per_view)), "psnr_vs_field_views": per_view,
                    "psnr_vs_photos": float(np.mean([psnr(imgs[k], split.images[i]) for k, i in enumerate(views)])),
                    "raster_s_per_view": round(raster_s, 3)}
@@ -82,7 +103,7 @@ def main(argv=None) -> int:
             if best is None or row["psnr_vs_field"] > best[0]["psnr_vs_field"]:
                 best = (row, imgs)
     if args.figure:
-        pick = views[:2]
+        pick = views[:max(1, args.figure_views)]
         rows = [np.concatenate([refs[k], best[1][k]], 1) for k in range(len(pick))]
         nm.save_image(args.figure, np.concatenate(rows, 0))
         print(f"wrote {args.figure} (left: field render, right: baked mesh, {best[0]['resolution']} px, "
@@ -90,10 +111,12 @@ def main(argv=None) -> int:
     result = {"field": args.field, "data": data, "split": args.split, "views": len(views),
               "image_size": [int(cams.width), int(cams.height)], "vertices": int(field.num_vertices),
               "faces": int(len(field.faces)), "field_vs_photos": field_vs_photo,
+              "mesh": args.mesh, "decimate": args.decimate, "decimate_s": round(decimate_s, 2),
+              "downscale": args.downscale,
               "field_render_s_per_view": round(field_render_s, 3), "runs": runs,
               "best": {k: v for k, v in best[0].items() if k != "psnr_vs_field_views"},
               "machine": {"cpu_threads": torch.get_num_threads(), "platform": platform.platform()}}
-    write_results(result, f"bake_{name}.json")
+    write_results(result, f"bake_{name}.json", args.results_dir)
     return 0
 
 
