@@ -31,6 +31,53 @@ from neumesh_core.render.raster import render_textured_mesh  # noqa: E402
 from _results import write_results  # noqa: E402
 
 
+def cycles_renders(args, best, cams, views, refs, bg) -> dict:
+    """Render ``best``'s bake with Cycles (Blender in a subprocess) on ``views``; PSNR vs the field."""
+    import json
+    import subprocess
+    import tempfile
+
+    from neumesh_core.imageio import read_image
+
+    row, imgs, b = best
+    worker = os.path.join(os.path.dirname(os.path.abspath(__file__)), "bake_cycles_worker.py")
+    with tempfile.TemporaryDirectory(prefix="neumesh_cycles_") as tmp:
+        tex = os.path.join(tmp, "texture.png")
+        nm.save_image(tex, b.texture)
+        job = os.path.join(tmp, "job.npz")
+        np.savez(job, vertices=b.vertices, faces=b.faces, uvs=b.uvs, texture_path=tex,
+                 K=np.stack([cams.K[i] for i in views]), c2w=np.stack([cams.c2w[i] for i in views]),
+                 width=int(cams.width), height=int(cams.height), background=bg,
+                 samples=int(args.cycles_samples), threads=int(args.threads or 1))
+        env = dict(os.environ)
+        home = os.path.join(tmp, "home")
+        os.makedirs(home)
+        env.update(BLENDER_USER_RESOURCES=home, XDG_CACHE_HOME=home, XDG_CONFIG_HOME=home, HOME=home,
+                   NEUMESH_PYTHONPATH=os.path.abspath(args.blender_python_path))
+        t0 = time.perf_counter()
+        proc = subprocess.run([args.blender, "-b", "--factory-startup", "--python-exit-code", "1", "--python",
+                               worker, "--", job, tmp], env=env, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            print(proc.stdout[-3000:], proc.stderr[-3000:])
+            raise SystemExit(f"blender failed ({proc.returncode})")
+        with open(os.path.join(tmp, "cycles.json")) as fh:
+            info = json.load(fh)
+        renders = [read_image(os.path.join(tmp, f"cycles_{k}.png"))[..., :3] for k in range(len(views))]
+        if args.figure:
+            stem, ext = os.path.splitext(args.figure)
+            k = 0
+            nm.save_image(f"{stem}_cycles{ext}", np.concatenate([refs[k], imgs[k], renders[k]], 1))
+    per_view = [psnr(renders[k], refs[k]) for k in range(len(views))]
+    out = {"resolution": row["resolution"], "directions": row["directions"], "samples": int(args.cycles_samples),
+           "psnr_vs_field": float(np.mean(per_view)), "psnr_vs_field_views": per_view,
+           "psnr_vs_raster": float(np.mean([psnr(renders[k], imgs[k]) for k in range(len(views))])),
+           "seconds_per_view": round(float(np.mean(info["seconds_per_view"])), 2),
+           "blender_wall_s": round(wall, 1), "blender": info["blender"]}
+    print("cycles:", {k: v for k, v in out.items() if k != "psnr_vs_field_views"})
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--field", required=True)
@@ -48,6 +95,14 @@ def main(argv=None) -> int:
     ap.add_argument("--results-dir", help="folder for the JSON (default benchmarks/results)")
     ap.add_argument("--figure", help="write field | baked pictures here (PNG)")
     ap.add_argument("--figure-views", type=int, default=2, help="views (rows) in the figure (default 2)")
+    ap.add_argument("--cycles", action="store_true",
+                    help="also render the best bake with Cycles in `blender -b` (benchmarks/bake_cycles_worker.py) "
+                         "on the same views and compare it with the field's render")
+    ap.add_argument("--cycles-samples", type=int, default=16)
+    ap.add_argument("--blender", default="blender", help="Blender binary for --cycles (default: blender)")
+    ap.add_argument("--blender-python-path", default=os.environ.get("NEUMESH_BLENDER_TORCH", os.path.join(
+        os.path.dirname(os.path.abspath(__file__)), "..", ".blender_torch")),
+                    help="folder with numpy for Blender's Python (default: .blender_torch, see setup_blender.sh)")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -101,7 +156,7 @@ def main(argv=None) -> int:
             print({k: v for k, v in row.items() if k != "psnr_vs_field_views"}, flush=True)
             runs.append(row)
             if best is None or row["psnr_vs_field"] > best[0]["psnr_vs_field"]:
-                best = (row, imgs)
+                best = (row, imgs, b)
     if args.figure:
         pick = views[:max(1, args.figure_views)]
         rows = [np.concatenate([refs[k], best[1][k]], 1) for k in range(len(pick))]
@@ -116,6 +171,8 @@ def main(argv=None) -> int:
               "field_render_s_per_view": round(field_render_s, 3), "runs": runs,
               "best": {k: v for k, v in best[0].items() if k != "psnr_vs_field_views"},
               "machine": {"cpu_threads": torch.get_num_threads(), "platform": platform.platform()}}
+    if args.cycles:
+        result["cycles"] = cycles_renders(args, best, cams, views, refs, bg)
     write_results(result, f"bake_{name}.json", args.results_dir)
     return 0
 
