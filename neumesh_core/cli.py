@@ -351,7 +351,7 @@ def cmd_bake(args) -> int:
         mesh = nm.Mesh(*decimate(src.vertices, src.faces, args.decimate))
         print(f"decimated {len(src.faces)} -> {len(mesh.faces)} faces", file=sys.stderr)
     res = bake_texture(field, resolution=args.resolution, padding=args.padding, directions=args.directions,
-                       progress=progress, mesh=mesh)
+                       offset=args.offset, progress=progress, mesh=mesh)
     print(file=sys.stderr)
     paths = save_bake(res, args.out, name, glb=args.glb, protect=(args.field,))
     if res.info.get("missed_texels"):
@@ -439,6 +439,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bake onto a quadric-decimated copy of the scaffold (or of --mesh) with about this "
                         "fraction of its faces, e.g. 0.1 (needs the fast-simplification package; "
                         "default 1 = no decimation)")
+    p.add_argument("--offset", type=float, default=1.0,
+                   help="texel rays start this many field radii out along the mesh's normal and look back "
+                        "through twice that (default 1; raise it for a --mesh farther from the field's surface)")
     p.add_argument("--no-glb", dest="glb", action="store_false", help="skip the .glb (trimesh)")
     _add_device_option(p)
     p.set_defaults(func=cmd_bake)
