@@ -2,12 +2,12 @@
 
     python benchmarks/bench_bake.py --field runs/blob.neumesh                      # the built-in scene
     python benchmarks/bench_bake.py --field runs/lego_field.neumesh --data ../shared/data/nerf_synthetic/lego \
-        --split val --views 4 --downscale 2 --resolutions 1024 --directions 1 --decimate 0.05
+        --split val --views 4 --resolutions 1024,2048 --directions 1 --decimate 0.05 --threads 1 --cycles
 
 For each texture size (``--resolutions``) and rays per texel (``--directions``: 1 = along -normal; 5 =
 -normal and four rays tilted 30 degrees) the field is baked, and the baked mesh is rendered with the
-core's numpy rasteriser (z-buffer, bilinear texture, 2x2 supersampled) on the held-out ``test`` views
-and compared with the field's render of the same views (PSNR), and both with the photos.  ``--mesh FILE``
+core's numpy rasteriser (z-buffer, bilinear texture, 2x2 supersampled) on held-out views (``--split``, default
+``test``) and compared with the field's render of the same views (PSNR), and both with the photos.  ``--mesh FILE``
 bakes onto that mesh, ``--decimate R`` onto a quadric-decimated copy (about R x the faces) of the
 scaffold (or of --mesh).  Writes bake_<name>.json to benchmarks/results (or ``--results-dir``) and, with
 ``--figure``, field render | baked render pictures (``--figure-views`` views, one row each).
