@@ -14,7 +14,9 @@ the lighting of the photos the field was trained on, so the material offers two 
   light already baked into the texture (shadows and highlights of the photos stay).
 
 The new object is built from the field's vertices in world space (identity transform); the field and
-the original object are not changed.  Invoked from the UI the bake runs in a thread (progress in the
+the original object are not changed.  ``decimate`` < 1 bakes onto a lighter copy instead: the posed
+scaffold goes through Blender's own Decimate modifier (collapse, triangulated) on a temporary object,
+and the bake's texel rays start on that mesh's surface along its normal (docs/baking.md).  Invoked from the UI the bake runs in a thread (progress in the
 status bar, Esc cancels); from a script it blocks.
 """
 from __future__ import annotations
@@ -22,7 +24,7 @@ from __future__ import annotations
 import warnings
 
 import bpy
-from bpy.props import EnumProperty, IntProperty
+from bpy.props import EnumProperty, FloatProperty, IntProperty
 
 from ._np import np
 from . import core, render
@@ -35,6 +37,7 @@ SHADING_ITEMS = (
                                   "baked into it"),
 )
 UV_NAME = "NeuMesh bake"
+COLOR_NAME = "NeuMesh bake colour"   # UV maps are attributes too (Blender 3.5+): names must differ
 
 
 def _input(node, *names):
@@ -91,9 +94,40 @@ def make_image(name: str, texture: np.ndarray):
     return img
 
 
+def decimated_mesh(vertices: np.ndarray, faces: np.ndarray, ratio: float):
+    """(vertices (V',3) float32, faces (F',3) int64): the mesh through Blender's Decimate modifier
+    (collapse, ``ratio`` of the faces, triangulated) on a temporary object, which is removed again."""
+    from . import sync
+
+    tmp = sync.new_mesh_object("NeuMesh decimate (temporary)", vertices, faces)
+    data = tmp.data
+    try:
+        mod = tmp.modifiers.new("NeuMesh decimate", "DECIMATE")
+        mod.decimate_type = "COLLAPSE"
+        mod.ratio = float(ratio)
+        mod.use_collapse_triangulate = True
+        bpy.context.view_layer.update()
+        ev = tmp.evaluated_get(bpy.context.evaluated_depsgraph_get())
+        me = ev.to_mesh()
+        try:
+            me.calc_loop_triangles()
+            v = np.empty(len(me.vertices) * 3, np.float32)
+            me.vertices.foreach_get("co", v)
+            t = np.empty(len(me.loop_triangles) * 3, np.int32)
+            me.loop_triangles.foreach_get("vertices", t)
+        finally:
+            ev.to_mesh_clear()
+    finally:
+        bpy.data.objects.remove(tmp)
+        bpy.data.meshes.remove(data)
+        bpy.context.view_layer.update()   # else the view layer keeps a stale entry for the removed object
+    return v.reshape(-1, 3), t.reshape(-1, 3).astype(np.int64)
+
+
 def build_object(name: str, result, shading: str, collection=None):
-    """The baked object: the field's vertices (world space), its faces, UV map ``UV_NAME``, the image and
-    the material; a per-vertex colour attribute when the bake has vertex colours."""
+    """The baked object: the baked mesh's vertices (world space: the field's, or the decimated copy's),
+    its faces, UV map ``UV_NAME``, the image and the material; a per-vertex colour attribute when the
+    bake has vertex colours."""
     from . import sync
 
     n_field = int(result.vertex_index.max()) + 1 if len(result.vertex_index) else 0
@@ -105,7 +139,7 @@ def build_object(name: str, result, shading: str, collection=None):
     uv = me.uv_layers.new(name=UV_NAME)
     uv.data.foreach_set("uv", np.ascontiguousarray(result.uvs[result.faces].reshape(-1), np.float32))
     if result.vertex_colors is not None and hasattr(me, "color_attributes"):
-        attr = me.color_attributes.new("NeuMesh bake", "FLOAT_COLOR", "POINT")
+        attr = me.color_attributes.new(COLOR_NAME, "FLOAT_COLOR", "POINT")
         rgba = np.ones((n_field, 4), np.float32)
         rgba[:, :3] = render.srgb_to_linear(result.vertex_colors[:n_field])
         attr.data.foreach_set("color", rgba.ravel())
@@ -133,6 +167,9 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
     directions: IntProperty(name="Rays per texel", default=1, min=1, max=16,
                             description="1: look straight at each texel along its normal; more: average "
                                         "over a 30-degree cone (softens view-dependent highlights)")
+    decimate: FloatProperty(name="Decimate ratio", default=1.0, min=0.001, max=1.0, precision=3,
+                            description="Bake onto a copy of the scaffold reduced by Blender's Decimate "
+                                        "modifier to this fraction of its faces (1 = the scaffold itself)")
 
     def _start(self, context):
         obj = context.active_object
@@ -152,9 +189,21 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
         bake = importlib.import_module(nm.__name__ + ".bake")
         res, dirs = int(self.resolution), int(self.directions)
         self._source = (obj.name_full, path)
+        mesh = None
+        if self.decimate < 1.0:
+            try:
+                mesh = decimated_mesh(np.asarray(field.vertices, np.float32), field.faces.cpu().numpy(),
+                                      self.decimate)
+            except Exception as exc:  # noqa: BLE001 - modifier failures
+                self.report({"ERROR"}, f"NeuMesh: decimating the scaffold failed: {exc}")
+                return None
+            if len(mesh[1]) == 0:
+                self.report({"ERROR"}, f"NeuMesh: a decimate ratio of {self.decimate:g} leaves no faces; "
+                                       "raise it")
+                return None
 
         def run(progress):
-            r = bake.bake_texture(field, resolution=res, directions=dirs, progress=progress)
+            r = bake.bake_texture(field, resolution=res, directions=dirs, progress=progress, mesh=mesh)
             r.info["field_path"] = path
             return r
         return EditJob("bake", run)
@@ -176,7 +225,11 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
         context.view_layer.objects.active = obj
         r = job.record
         self.report({"INFO"}, f"NeuMesh: baked '{name}' into '{obj.name}' ({r.resolution}x{r.resolution} "
-                              f"texture, {r.info.get('charts', 0)} charts, {r.seconds:.1f} s)")
+                              f"texture, {r.info.get('charts', 0)} charts, {len(r.faces)} faces, "
+                              f"{r.seconds:.1f} s)")
+        if r.info.get("missed_texels"):
+            self.report({"WARNING"}, f"NeuMesh: {r.info['missed_texels']} texels lie farther than the field "
+                                     "radius from the field (filled from their neighbours)")
         return {"FINISHED"}
 
 
@@ -186,9 +239,11 @@ class NEUMESH_PT_bake(EditSubPanel, bpy.types.Panel):
     def draw_edit(self, context, col, obj):
         s = context.window_manager
         col.prop(s, "neumesh_bake_resolution")
+        col.prop(s, "neumesh_bake_decimate")
         col.prop(s, "neumesh_bake_shading", text="")
         op = col.operator("neumesh.bake_material", icon="RENDER_RESULT")
         op.resolution = s.neumesh_bake_resolution
+        op.decimate = s.neumesh_bake_decimate
         op.shading = s.neumesh_bake_shading
 
 
@@ -200,6 +255,10 @@ def register():
         name="Texture size", default=1024, min=64, max=8192, description="Baked texture width and height (pixels)")
     bpy.types.WindowManager.neumesh_bake_shading = EnumProperty(name="Shading", items=SHADING_ITEMS,
                                                                 default="EMISSION")
+    bpy.types.WindowManager.neumesh_bake_decimate = FloatProperty(
+        name="Decimate ratio", default=1.0, min=0.001, max=1.0, precision=3,
+        description="Bake onto a copy of the scaffold reduced by Blender's Decimate modifier to this fraction "
+                    "of its faces (1 = the scaffold itself)")
     for c in classes:
         bpy.utils.register_class(c)
 
@@ -207,6 +266,6 @@ def register():
 def unregister():
     for c in reversed(classes):
         bpy.utils.unregister_class(c)
-    for p in ("neumesh_bake_resolution", "neumesh_bake_shading"):
+    for p in ("neumesh_bake_resolution", "neumesh_bake_shading", "neumesh_bake_decimate"):
         if hasattr(bpy.types.WindowManager, p):
             delattr(bpy.types.WindowManager, p)

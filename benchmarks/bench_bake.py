@@ -1,13 +1,16 @@
 """Baking a field into a UV-textured mesh: how close the baked asset's render is to the field's own.
 
     python benchmarks/bench_bake.py --field runs/blob.neumesh                      # the built-in scene
-    python benchmarks/bench_bake.py --field runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
+    python benchmarks/bench_bake.py --field runs/lego_field.neumesh --data ../shared/data/nerf_synthetic/lego \
+        --split val --views 4 --resolutions 1024,2048 --directions 1 --decimate 0.05 --threads 1 --cycles
 
 For each texture size (``--resolutions``) and rays per texel (``--directions``: 1 = along -normal; 5 =
 -normal and four rays tilted 30 degrees) the field is baked, and the baked mesh is rendered with the
-core's numpy rasteriser (z-buffer, bilinear texture, 2x2 supersampled) on the held-out ``test`` views
-and compared with the field's render of the same views (PSNR), and both with the photos.  Writes
-benchmarks/results/bake_<name>.json and, with ``--figure``, field render | baked render pictures.
+core's numpy rasteriser (z-buffer, bilinear texture, 2x2 supersampled) on held-out views (``--split``, default
+``test``) and compared with the field's render of the same views (PSNR), and both with the photos.  ``--mesh FILE``
+bakes onto that mesh, ``--decimate R`` onto a quadric-decimated copy (about R x the faces) of the
+scaffold (or of --mesh).  Writes bake_<name>.json to benchmarks/results (or ``--results-dir``) and, with
+``--figure``, field render | baked render pictures (``--figure-views`` views, one row each).
 """
 from __future__ import annotations
 
@@ -28,6 +31,53 @@ from neumesh_core.render.raster import render_textured_mesh  # noqa: E402
 from _results import write_results  # noqa: E402
 
 
+def cycles_renders(args, best, cams, views, refs, bg) -> dict:
+    """Render ``best``'s bake with Cycles (Blender in a subprocess) on ``views``; PSNR vs the field."""
+    import json
+    import subprocess
+    import tempfile
+
+    from neumesh_core.imageio import read_image
+
+    row, imgs, b = best
+    worker = os.path.join(os.path.dirname(os.path.abspath(__file__)), "bake_cycles_worker.py")
+    with tempfile.TemporaryDirectory(prefix="neumesh_cycles_") as tmp:
+        tex = os.path.join(tmp, "texture.png")
+        nm.save_image(tex, b.texture)
+        job = os.path.join(tmp, "job.npz")
+        np.savez(job, vertices=b.vertices, faces=b.faces, uvs=b.uvs, texture_path=tex,
+                 K=np.stack([cams.K[i] for i in views]), c2w=np.stack([cams.c2w[i] for i in views]),
+                 width=int(cams.width), height=int(cams.height), background=bg,
+                 samples=int(args.cycles_samples), threads=int(args.threads or 1))
+        env = dict(os.environ)
+        home = os.path.join(tmp, "home")
+        os.makedirs(home)
+        env.update(BLENDER_USER_RESOURCES=home, XDG_CACHE_HOME=home, XDG_CONFIG_HOME=home, HOME=home,
+                   NEUMESH_PYTHONPATH=os.path.abspath(args.blender_python_path))
+        t0 = time.perf_counter()
+        proc = subprocess.run([args.blender, "-b", "--factory-startup", "--python-exit-code", "1", "--python",
+                               worker, "--", job, tmp], env=env, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            print(proc.stdout[-3000:], proc.stderr[-3000:])
+            raise SystemExit(f"blender failed ({proc.returncode})")
+        with open(os.path.join(tmp, "cycles.json")) as fh:
+            info = json.load(fh)
+        renders = [read_image(os.path.join(tmp, f"cycles_{k}.png"))[..., :3] for k in range(len(views))]
+        if args.figure:
+            stem, ext = os.path.splitext(args.figure)
+            k = 0
+            nm.save_image(f"{stem}_cycles{ext}", np.concatenate([refs[k], imgs[k], renders[k]], 1))
+    per_view = [psnr(renders[k], refs[k]) for k in range(len(views))]
+    out = {"resolution": row["resolution"], "directions": row["directions"], "samples": int(args.cycles_samples),
+           "psnr_vs_field": float(np.mean(per_view)), "psnr_vs_field_views": per_view,
+           "psnr_vs_raster": float(np.mean([psnr(renders[k], imgs[k]) for k in range(len(views))])),
+           "seconds_per_view": round(float(np.mean(info["seconds_per_view"])), 2),
+           "blender_wall_s": round(wall, 1), "blender": info["blender"]}
+    print("cycles:", {k: v for k, v in out.items() if k != "psnr_vs_field_views"})
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--field", required=True)
@@ -38,8 +88,21 @@ def main(argv=None) -> int:
     ap.add_argument("--downscale", type=float, default=1)
     ap.add_argument("--resolutions", default="512,1024")
     ap.add_argument("--directions", default="1,5")
+    ap.add_argument("--mesh", help="bake onto this mesh instead of the scaffold (world space, near the surface)")
+    ap.add_argument("--decimate", type=float, default=1.0,
+                    help="bake onto a decimated copy with about this fraction of the faces (default 1: none)")
     ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--figure", help="write field | baked pictures of two views here (PNG)")
+    ap.add_argument("--results-dir", help="folder for the JSON (default benchmarks/results)")
+    ap.add_argument("--figure", help="write field | baked pictures here (PNG)")
+    ap.add_argument("--figure-views", type=int, default=2, help="views (rows) in the figure (default 2)")
+    ap.add_argument("--cycles", action="store_true",
+                    help="also render the best bake with Cycles in `blender -b` (benchmarks/bake_cycles_worker.py) "
+                         "on the same views and compare it with the field's render")
+    ap.add_argument("--cycles-samples", type=int, default=16)
+    ap.add_argument("--blender", default="blender", help="Blender binary for --cycles (default: blender)")
+    ap.add_argument("--blender-python-path", default=os.environ.get("NEUMESH_BLENDER_TORCH", os.path.join(
+        os.path.dirname(os.path.abspath(__file__)), "..", ".blender_torch")),
+                    help="folder with numpy for Blender's Python (default: .blender_torch, see setup_blender.sh)")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -52,6 +115,17 @@ def main(argv=None) -> int:
     field = nm.load_field(args.field)
     field.eval()
     bg = np.asarray(scene.background, np.float32)
+    mesh, decimate_s = None, 0.0
+    if args.mesh:
+        mesh = nm.load_mesh(args.mesh)
+    if args.decimate < 1.0:
+        from neumesh_core.bake import decimate
+
+        src = mesh if mesh is not None else nm.Mesh(np.asarray(field.vertices), field.faces.cpu().numpy())
+        t0 = time.perf_counter()
+        mesh = nm.Mesh(*decimate(src.vertices, src.faces, args.decimate))
+        decimate_s = time.perf_counter() - t0
+        print(f"decimated {len(src.faces)} -> {len(mesh.faces)} faces in {decimate_s:.1f} s")
     t0 = time.perf_counter()
     refs = [np.clip(nm.render_camera(field, cams.K[i], cams.c2w[i], cams.width, cams.height,
                                      background=tuple(bg)).rgb, 0, 1) for i in views]
@@ -62,7 +136,7 @@ def main(argv=None) -> int:
     best = None
     for res in [int(r) for r in args.resolutions.split(",")]:
         for dirs in [int(d) for d in args.directions.split(",")]:
-            b = bake_texture(field, resolution=res, directions=dirs)
+            b = bake_texture(field, resolution=res, directions=dirs, mesh=mesh)
             imgs = []
             t1 = time.perf_counter()
             for k, i in enumerate(views):
@@ -74,15 +148,17 @@ def main(argv=None) -> int:
             row = {"resolution": res, "directions": dirs, "bake_s": round(b.seconds, 2),
                    "unwrap_s": round(b.info["unwrap_s"], 2), "charts": b.info["charts"],
                    "texels": b.info["texels"], "padding_texels": round(b.info["padding_texels"], 2),
+                   "mesh_vertices": b.info["mesh_vertices"], "mesh_faces": b.info["mesh_faces"],
+                   "missed_texels": b.info["missed_texels"],
                    "psnr_vs_field": float(np.mean(per_view)), "psnr_vs_field_views": per_view,
                    "psnr_vs_photos": float(np.mean([psnr(imgs[k], split.images[i]) for k, i in enumerate(views)])),
                    "raster_s_per_view": round(raster_s, 3)}
             print({k: v for k, v in row.items() if k != "psnr_vs_field_views"}, flush=True)
             runs.append(row)
             if best is None or row["psnr_vs_field"] > best[0]["psnr_vs_field"]:
-                best = (row, imgs)
+                best = (row, imgs, b)
     if args.figure:
-        pick = views[:2]
+        pick = views[:max(1, args.figure_views)]
         rows = [np.concatenate([refs[k], best[1][k]], 1) for k in range(len(pick))]
         nm.save_image(args.figure, np.concatenate(rows, 0))
         print(f"wrote {args.figure} (left: field render, right: baked mesh, {best[0]['resolution']} px, "
@@ -90,10 +166,14 @@ def main(argv=None) -> int:
     result = {"field": args.field, "data": data, "split": args.split, "views": len(views),
               "image_size": [int(cams.width), int(cams.height)], "vertices": int(field.num_vertices),
               "faces": int(len(field.faces)), "field_vs_photos": field_vs_photo,
+              "mesh": args.mesh, "decimate": args.decimate, "decimate_s": round(decimate_s, 2),
+              "downscale": args.downscale,
               "field_render_s_per_view": round(field_render_s, 3), "runs": runs,
               "best": {k: v for k, v in best[0].items() if k != "psnr_vs_field_views"},
               "machine": {"cpu_threads": torch.get_num_threads(), "platform": platform.platform()}}
-    write_results(result, f"bake_{name}.json")
+    if args.cycles:
+        result["cycles"] = cycles_renders(args, best, cams, views, refs, bg)
+    write_results(result, f"bake_{name}.json", args.results_dir)
     return 0
 
 

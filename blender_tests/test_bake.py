@@ -48,6 +48,12 @@ def test_bake_material_creates_a_textured_object(addon, trained_field, tmp_path,
     uvs = np.empty(len(me.loops) * 2, np.float32)
     uv.data.foreach_get("uv", uvs)
     assert uvs.min() >= 0 and uvs.max() <= 1 and np.ptp(uvs) > 0.5
+    # the per-vertex colour attribute (the same rays at the vertices)
+    attr = me.color_attributes.get(addon.bake.COLOR_NAME)
+    assert attr is not None and attr.domain == "POINT" and len(attr.data) == len(me.vertices)
+    vc = np.empty(len(me.vertices) * 4, np.float32)
+    attr.data.foreach_get("color", vc)
+    assert vc.reshape(-1, 4)[:, :3].std() > 0.01
     # material: Principled BSDF fed by an image node that holds the bake, through the UV map
     mat = me.materials[0]
     nodes = mat.node_tree.nodes
@@ -73,3 +79,57 @@ def test_bake_material_needs_a_field(addon):
     bpy.ops.mesh.primitive_cube_add()
     with pytest.raises(RuntimeError, match="no NeuMesh field"):
         bpy.ops.neumesh.bake_material(resolution=64)
+
+
+def test_bake_material_decimate_ratio(addon, trained_field, tmp_path):
+    """Decimate ratio < 1: the bake goes onto a copy reduced by Blender's Decimate modifier; the
+    temporary object is gone and the field's object keeps its mesh."""
+    obj, path = _load(trained_field, tmp_path)
+    n_faces, n_objects, n_meshes = len(obj.data.polygons), len(bpy.data.objects), len(bpy.data.meshes)
+    assert bpy.ops.neumesh.bake_material(resolution=64, decimate=0.25) == {"FINISHED"}
+    baked = bpy.context.active_object
+    me = baked.data
+    assert len(bpy.data.objects) == n_objects + 1 and len(bpy.data.meshes) == n_meshes + 1
+    assert 0.15 * n_faces < len(me.polygons) < 0.35 * n_faces
+    assert all(len(p.vertices) == 3 for p in me.polygons)
+    assert len(obj.data.polygons) == n_faces
+    uv = me.uv_layers.get(addon.bake.UV_NAME)
+    uvs = np.empty(len(me.loops) * 2, np.float32)
+    uv.data.foreach_get("uv", uvs)
+    assert uvs.min() >= 0 and uvs.max() <= 1
+    attr = me.color_attributes.get(addon.bake.COLOR_NAME)
+    assert attr is not None and len(attr.data) == len(me.vertices)
+    img = me.materials[0].node_tree.nodes["NeuMesh baked texture"].image
+    px = np.empty(64 * 64 * 4, np.float32)
+    img.pixels.foreach_get(px)
+    assert px.reshape(64, 64, 4)[..., :3].std() > 0.02
+    # the decimated copy lies on the scaffold: every vertex within a small distance of the original's
+    co = np.empty(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", co)
+    src = np.empty(len(obj.data.vertices) * 3, np.float32)
+    obj.data.vertices.foreach_get("co", src)
+    src = src.reshape(-1, 3)
+    d = np.linalg.norm(co.reshape(-1, 3)[:, None] - src[None], axis=2).min(1)
+    assert np.percentile(d, 95) < 0.1 * np.ptp(src, 0).max()
+
+
+def test_baked_files_load_in_blender(trained_field, tmp_path):
+    """The CLI's files (OBJ + MTL + PNG, GLB) import into Blender with their faces, UVs and texture."""
+    import neumesh_core as nm
+    from neumesh_core.bake import bake_texture, save_bake
+
+    field = nm.load_field(trained_field)
+    res = bake_texture(field, resolution=64, vertex_colors=False)
+    paths = save_bake(res, str(tmp_path / "out"), "asset")
+    n_faces = len(res.faces)
+    assert bpy.ops.wm.obj_import(filepath=paths["obj"]) == {"FINISHED"}
+    ob = bpy.context.selected_objects[0]
+    assert len(ob.data.polygons) == n_faces and len(ob.data.uv_layers) == 1
+    img = next(n.image for n in ob.data.materials[0].node_tree.nodes if n.type == "TEX_IMAGE")
+    assert tuple(img.size) == (64, 64)
+    bpy.ops.object.select_all(action="DESELECT")
+    assert bpy.ops.import_scene.gltf(filepath=paths["glb"]) == {"FINISHED"}
+    ob = next(o for o in bpy.context.selected_objects if o.type == "MESH")
+    assert len(ob.data.polygons) == n_faces and len(ob.data.uv_layers) >= 1
+    img = next(n.image for n in ob.data.materials[0].node_tree.nodes if n.type == "TEX_IMAGE")
+    assert tuple(img.size) == (64, 64)

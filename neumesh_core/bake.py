@@ -1,6 +1,7 @@
 """Bake a field into a plain UV-textured mesh (a native asset for Blender's Cycles/EEVEE, OBJ, glTF).
 
-The mesh is the scaffold in its *current* pose (``field.vertices``: edited and deformed), unwrapped by
+The mesh is the scaffold in its *current* pose (``field.vertices``: edited and deformed), or any target
+mesh lying near the field's surface (``mesh=``: e.g. a decimated copy, :func:`decimate`), unwrapped by
 xatlas.  Each texel inside a chart gets its surface point and interpolated normal; the texel's colour is
 what the field renders on a short ray that starts ``offset`` x radius outside the surface and looks
 along -normal (volume rendering over at most 2 x offset, so the colour is the one a camera looking
@@ -31,12 +32,13 @@ class BakeResult:
     """A UV-textured copy of the field's scaffold in its current pose."""
 
     vertices: np.ndarray        # (M,3) float32 world positions (atlas vertices: seams split vertices)
-    faces: np.ndarray           # (F,3) int32 indices into ``vertices`` (the field's faces, same order)
+    faces: np.ndarray           # (F,3) int32 indices into ``vertices`` (the mesh's faces, same order)
     uvs: np.ndarray             # (M,2) float32 in [0,1]; u right, v up (v=1 is the image's first row)
-    vertex_index: np.ndarray    # (M,) int64: the field vertex each atlas vertex is a copy of
+    vertex_index: np.ndarray    # (M,) int64: the mesh vertex each atlas vertex is a copy of (the
+                                # field's vertex, or the target mesh's with ``mesh=``)
     texture: np.ndarray         # (H,W,3) float32 in [0,1], padded
     mask: np.ndarray            # (H,W) bool: texels inside a chart triangle
-    vertex_colors: Optional[np.ndarray] = None   # (N,3) per field vertex (same rays at the vertices)
+    vertex_colors: Optional[np.ndarray] = None   # (N,3) per mesh vertex (same rays at the vertices)
     seconds: float = 0.0
     info: dict = dc_field(default_factory=dict)
 
@@ -150,8 +152,11 @@ def _tangent_dirs(n: torch.Tensor, count: int, cone_deg: float) -> list:
 @torch.no_grad()
 def surface_colours(field, points, normals, offset: float = 1.0, directions: int = 1, cone_deg: float = 30.0,
                     chunk: int = 32768, progress: Optional[Callable[[float], bool]] = None,
-                    span: tuple = (0.0, 1.0)) -> np.ndarray:
-    """(n,3) the field's colour at surface points seen along -normal (mean over ``directions`` rays)."""
+                    span: tuple = (0.0, 1.0), return_found: bool = False):
+    """(n,3) the field's colour at surface points seen along -normal (mean over ``directions`` rays).
+
+    With ``return_found`` also (n,) bool: False where no ray met density and the point itself has no
+    scaffold vertex within the field radius (its colour is then 0: the field is empty there)."""
     from .render.renderer import RenderSettings, default_step
     from .render.volume import composite
     from .sampling.marcher import march_rays
@@ -163,6 +168,7 @@ def surface_colours(field, points, normals, offset: float = 1.0, directions: int
     d0 = float(offset) * field.radius
     step = default_step(field, settings)
     out = torch.zeros(len(p), 3)
+    found = torch.ones(len(p), dtype=torch.bool)
     n_total = max(1, len(p))
     for s in range(0, len(p), chunk):
         pc, nc = p[s:s + chunk], nrm[s:s + chunk]
@@ -188,21 +194,81 @@ def surface_colours(field, points, normals, offset: float = 1.0, directions: int
         # where no ray met density (a hole in the field), fall back to a point query on the surface
         if (~ok).any():
             x = (pc[~ok] + 0.3 * field.radius * nc[~ok]).to(dev)
-            _, rgb, _ = field.query(x, (-nc[~ok]).to(dev))
+            nb = field.neighbourhood(x)
+            _, rgb, _ = field.decode(nb, (-nc[~ok]).to(dev), with_rgb=True, with_sigma=False)
             col[~ok] = rgb.cpu()
+            miss = torch.zeros(len(pc), dtype=torch.bool)
+            miss[~ok] = ~nb.valid.any(1).cpu()
+            found[s:s + chunk] = ~miss
         out[s:s + chunk] = col.clamp(0, 1)
         _cancel(progress, span[0] + (span[1] - span[0]) * min(1.0, (s + chunk) / n_total))
+    if return_found:
+        return out.numpy(), found.numpy()
     return out.numpy()
+
+
+def decimate(vertices: np.ndarray, faces: np.ndarray, ratio: float) -> tuple:
+    """Quadric decimation of a triangle mesh to about ``ratio`` x its faces (0 < ratio <= 1) with the
+    ``fast-simplification`` package (an optional dependency: ``pip install fast-simplification``).
+
+    Returns (vertices (V',3) float32, faces (F',3) int64).  ``ratio`` 1 returns the mesh unchanged."""
+    ratio = float(ratio)
+    if not 0.0 < ratio <= 1.0:
+        raise ValueError(f"decimation ratio must be in (0, 1], got {ratio}")
+    v = np.ascontiguousarray(vertices, np.float32)
+    f = np.ascontiguousarray(faces, np.int64)
+    if ratio >= 1.0:
+        return v, f
+    try:
+        import fast_simplification
+    except ImportError as exc:
+        raise NeuMeshError("decimating needs the 'fast-simplification' package: pip install "
+                           "fast-simplification; or decimate the mesh elsewhere (e.g. Blender's Decimate "
+                           "modifier) and pass it as the target mesh (--mesh)") from exc
+    dv, df = fast_simplification.simplify(v, f.astype(np.int32), target_reduction=1.0 - ratio)
+    return np.asarray(dv, np.float32), np.asarray(df, np.int64)
+
+
+def _target_mesh(field, mesh):
+    """(vertices, faces, normals, label) of the mesh to bake onto: the scaffold in its current pose when
+    ``mesh`` is None, else ``mesh`` (an ``nm.Mesh`` or a (vertices, faces) pair, world space)."""
+    from .mesh import vertex_normals
+
+    if mesh is None:
+        V = np.asarray(field.vertices, np.float32)
+        F = field.faces.cpu().numpy().astype(np.int64)
+        N = field.scaffold.normals.detach().cpu().numpy().astype(np.float32)
+        return V, F, N, "scaffold"
+    if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+        V, F = mesh.vertices, mesh.faces
+    else:
+        V, F = mesh
+    V = np.ascontiguousarray(np.asarray(V, np.float32).reshape(-1, 3))
+    F = np.ascontiguousarray(np.asarray(F, np.int64).reshape(-1, 3))
+    if len(V) < 3 or len(F) < 1:
+        raise ValueError("the target mesh has no triangles")
+    if F.min() < 0 or F.max() >= len(V):
+        raise ValueError("the target mesh's face indices are out of range of its vertices")
+    N = np.asarray(vertex_normals(V, F), np.float32)
+    return V, F, N, "target"
 
 
 def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: float = 1.0, directions: int = 1,
                  cone_deg: float = 30.0, vertex_colors: bool = True, chunk: int = 32768,
-                 progress: Optional[Callable[[float], bool]] = None) -> BakeResult:
-    """Bake the field's view-independent appearance into a UV texture of its scaffold (current pose).
+                 progress: Optional[Callable[[float], bool]] = None, mesh=None) -> BakeResult:
+    """Bake the field's view-independent appearance into a UV texture of a mesh.
 
+    ``mesh``: the mesh to bake onto: None = the field's scaffold in its current pose (edited,
+    deformed); else an ``nm.Mesh`` or (vertices, faces) in world space lying near the field's surface,
+    e.g. a decimated copy of the scaffold (:func:`decimate`).  Each texel's ray starts ``offset`` field
+    radii out along the mesh's normal and looks back along it over 2 x offset radii, so a mesh that
+    lies off the field's surface by less than that still sees it.  Texels whose ray meets no density
+    and that lie farther than a radius from every scaffold vertex (the field is empty there) are
+    counted in ``info["missed_texels"]`` and filled from the nearest baked texels of their chart
+    (dilation), or with the mean colour.
     ``resolution``: texture size (square); ``padding``: texels between charts and dilation of their
     borders; ``offset``: ray start outside the surface, in field radii; ``directions``/``cone_deg``: rays
-    averaged per texel (1 = straight along -normal); ``vertex_colors``: also a colour per field vertex.
+    averaged per texel (1 = straight along -normal); ``vertex_colors``: also a colour per mesh vertex.
     ``progress(fraction) -> False`` cancels (raises ``nm.Cancelled``).  Nothing in the field changes.
     """
     t0 = time.perf_counter()
@@ -210,14 +276,15 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: float 
     if resolution < 16:
         raise ValueError(f"resolution must be at least 16, got {resolution}")
     _cancel(progress, 0.0)
-    V = np.asarray(field.vertices, np.float32)
-    F = field.faces.cpu().numpy().astype(np.int64)
-    N = field.scaffold.normals.detach().cpu().numpy().astype(np.float32)
+    V, F, N, label = _target_mesh(field, mesh)
     vmap, faces, uvs, info = unwrap(V, F, resolution, padding)
     info["unwrap_s"] = time.perf_counter() - t0
+    info["mesh"] = label
+    info["mesh_vertices"] = int(len(V))
+    info["mesh_faces"] = int(len(F))
     _cancel(progress, 0.1)
     texel, face, bary = texel_coverage(uvs, faces, resolution)
-    corner = vmap[faces[face]]                      # (n,3) field vertex of each corner
+    corner = vmap[faces[face]]                      # (n,3) mesh vertex of each corner
     pts = (bary[..., None] * V[corner]).sum(1)
     nrm = (bary[..., None] * N[corner]).sum(1)
     bad = np.linalg.norm(nrm, axis=1) < 1e-8      # opposite normals cancelling: use the face normal
@@ -227,20 +294,31 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: float 
     info["texels"] = int(len(texel))
     _cancel(progress, 0.15)
     vspan = 0.1 if vertex_colors else 0.0
-    cols = surface_colours(field, pts, nrm, offset, directions, cone_deg, chunk, progress,
-                           span=(0.15, 0.95 - vspan))
+    cols, found = surface_colours(field, pts, nrm, offset, directions, cone_deg, chunk, progress,
+                                  span=(0.15, 0.95 - vspan), return_found=True)
+    info["missed_texels"] = int((~found).sum())
     image = np.zeros((resolution * resolution, 3), np.float32)
     mask = np.zeros(resolution * resolution, bool)
     image[texel] = cols
     mask[texel] = True
+    baked = np.zeros(resolution * resolution, bool)
+    baked[texel[found]] = True
     image = image.reshape(resolution, resolution, 3)
     mask = mask.reshape(resolution, resolution)
-    padded, grown = dilate(image, mask, max(1, padding))
+    baked = baked.reshape(resolution, resolution)
+    padded, grown = dilate(image, baked, max(1, padding))
+    for _ in range(16):         # missed texels inside charts: grown from their baked neighbours too
+        if not (mask & ~grown).any():
+            break
+        padded, grown = dilate(padded, grown, 4)
+    mean = cols[found].mean(0) if found.any() else 0.0
     if (~grown).any():   # the rest of the image: the mean colour (keeps mip-maps from greying to black)
-        padded[~grown] = cols.mean(0) if len(cols) else 0.0
+        padded[~grown] = mean
     vc = None
     if vertex_colors:
-        vc = surface_colours(field, V, N, offset, directions, cone_deg, chunk, progress, span=(0.85, 0.95))
+        vc, vfound = surface_colours(field, V, N, offset, directions, cone_deg, chunk, progress,
+                                     span=(0.85, 0.95), return_found=True)
+        vc[~vfound] = mean
     res = BakeResult(vertices=V[vmap], faces=faces.astype(np.int32), uvs=uvs, vertex_index=vmap,
                      texture=padded, mask=mask, vertex_colors=vc, info=info)
     res.seconds = time.perf_counter() - t0

@@ -341,11 +341,24 @@ def cmd_bake(args) -> int:
         print(f"\rbaking {100 * frac:5.1f}%", end="", file=sys.stderr, flush=True)
         return True
 
+    mesh = None
+    if args.mesh:
+        mesh = nm.load_mesh(args.mesh)
+    if args.decimate < 1.0:
+        from .bake import decimate
+
+        src = mesh if mesh is not None else nm.Mesh(np.asarray(field.vertices), field.faces.cpu().numpy())
+        mesh = nm.Mesh(*decimate(src.vertices, src.faces, args.decimate))
+        print(f"decimated {len(src.faces)} -> {len(mesh.faces)} faces", file=sys.stderr)
     res = bake_texture(field, resolution=args.resolution, padding=args.padding, directions=args.directions,
-                       progress=progress)
+                       offset=args.offset, progress=progress, mesh=mesh)
     print(file=sys.stderr)
     paths = save_bake(res, args.out, name, glb=args.glb, protect=(args.field,))
-    print(f"baked {res.info['texels']} texels ({res.info['charts']} charts, {args.resolution}x{args.resolution}) "
+    if res.info.get("missed_texels"):
+        print(f"warning: {res.info['missed_texels']} texels lie farther than the field radius from the field's "
+              "scaffold (no density there); they were filled from their neighbours", file=sys.stderr)
+    print(f"baked {res.info['texels']} texels ({res.info['charts']} charts, {args.resolution}x{args.resolution}, "
+          f"{res.info['mesh_vertices']} vertices, {res.info['mesh_faces']} faces) "
           f"in {res.seconds:.1f}s; wrote " + ", ".join(paths[k] for k in sorted(paths)))
     return 0
 
@@ -419,6 +432,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--directions", type=int, default=1,
                    help="rays averaged per texel: 1 = along -normal (default); more average view-dependent "
                         "highlights over a 30-degree cone")
+    p.add_argument("--mesh", help="bake onto this mesh (.ply/.obj/.glb, world space, lying near the field's "
+                                  "surface: within the field radius) instead of the scaffold, e.g. a "
+                                  "decimated copy")
+    p.add_argument("--decimate", type=float, default=1.0,
+                   help="bake onto a quadric-decimated copy of the scaffold (or of --mesh) with about this "
+                        "fraction of its faces, e.g. 0.1 (needs the fast-simplification package; "
+                        "default 1 = no decimation)")
+    p.add_argument("--offset", type=float, default=1.0,
+                   help="texel rays start this many field radii out along the mesh's normal and look back "
+                        "through twice that (default 1; raise it for a --mesh farther from the field's surface)")
     p.add_argument("--no-glb", dest="glb", action="store_false", help="skip the .glb (trimesh)")
     _add_device_option(p)
     p.set_defaults(func=cmd_bake)
