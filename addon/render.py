@@ -355,15 +355,11 @@ def holdout_meshes(depsgraph) -> tuple[np.ndarray, np.ndarray] | None:
     """World-space (V,3) vertices and (F,3) triangles of every object that is a holdout in the
     depsgraph's view layer (Object properties > Visibility > Holdout, or a holdout collection), or
     None when there is none. Those objects occlude the field and leave transparent holes."""
-    view_layer = depsgraph.view_layer
     verts, tris, base = [], [], 0
     for ob in depsgraph.objects:
         if ob.type not in {"MESH", "CURVE", "SURFACE", "META", "FONT"}:
             continue
-        try:
-            if not ob.original.holdout_get(view_layer=view_layer):
-                continue
-        except (TypeError, RuntimeError, ReferenceError):
+        if not _is_holdout(ob.original, depsgraph):
             continue
         me = ob.to_mesh()
         try:

@@ -80,19 +80,26 @@ def bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return ((t[yi, xi] * (1 - fx) + t[yi, x1] * fx) * (1 - fy) + (t[y1, xi] * (1 - fx) + t[y1, x1] * fx) * fy)
 
 
-def depth_buffer(vertices, faces, K, c2w, width: int, height: int, near: float = 1e-6) -> np.ndarray:
-    """Z-buffer of a triangle mesh seen by an OpenCV camera (``K`` 3x3, ``c2w`` 4x4): (H,W) float32
-    distance along the camera axis of the nearest surface at each pixel centre (perspective-correct),
-    inf where no triangle covers it.  Triangles with a vertex closer than ``near`` are skipped (no
-    clipping: an occluder must lie wholly in front of the camera)."""
+def _project(vertices, faces: np.ndarray, K, c2w, near: float):
+    """Camera-axis depth (M,) and pixel coordinates (M,2) of the vertices seen by an OpenCV camera,
+    and the indices of the faces whose corners all lie farther than ``near`` (no clipping)."""
     v = np.asarray(vertices, np.float64).reshape(-1, 3)
-    f = np.asarray(faces, np.int64).reshape(-1, 3)
     w2c = np.linalg.inv(np.asarray(c2w, np.float64))
     cam = v @ w2c[:3, :3].T + w2c[:3, 3]
     z = cam[:, 2]
     zc = np.where(z > near, z, 1.0)
     pix = (cam @ np.asarray(K, np.float64).T)[:, :2] / zc[:, None]
-    fi = np.nonzero((z[f] > near).all(1))[0] if len(f) else np.zeros(0, np.int64)
+    fi = np.nonzero((z[faces] > near).all(1))[0] if len(faces) else np.zeros(0, np.int64)
+    return z, pix, fi
+
+
+def depth_buffer(vertices, faces, K, c2w, width: int, height: int, near: float = 1e-6) -> np.ndarray:
+    """Z-buffer of a triangle mesh seen by an OpenCV camera (``K`` 3x3, ``c2w`` 4x4): (H,W) float32
+    distance along the camera axis of the nearest surface at each pixel centre (perspective-correct),
+    inf where no triangle covers it.  Triangles with a vertex closer than ``near`` are skipped (no
+    clipping: an occluder must lie wholly in front of the camera)."""
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    z, pix, fi = _project(vertices, f, K, c2w, near)
     best = np.full(width * height, np.inf)
     for ids, px, bary in raster_triangles(pix[f[fi]], width, height, eps=1e-9):
         depth = 1.0 / (bary / z[f[fi[ids]]]).sum(1)
@@ -109,21 +116,13 @@ def render_textured_mesh(vertices, faces, uvs, texture, K, c2w, width: int, heig
     composited on ``background``, coverage (H,W) in [0,1]); ``supersample`` S averages S x S samples.
     """
     s = int(supersample)
-    v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     uv = np.asarray(uvs, np.float64)
     tex = np.asarray(texture, np.float32)[..., :3]
-    c2w = np.asarray(c2w, np.float64)
-    w2c = np.linalg.inv(c2w)
-    cam = v @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2]
     Kd = np.asarray(K, np.float64).copy()
     Kd[:2] *= s
     W, H = width * s, height * s
-    zc = np.where(z > 1e-6, z, 1.0)
-    pix = (cam @ Kd.T)[:, :2] / zc[:, None]
-    front = (z[f] > 1e-6).all(1)
-    fi = np.nonzero(front)[0]
+    z, pix, fi = _project(vertices, f, Kd, c2w, 1e-6)
     best_z = np.full(W * H, np.inf)
     best_uv = np.zeros((W * H, 2))
     for ids, px, bary in raster_triangles(pix[f[fi]], W, H, eps=1e-9):

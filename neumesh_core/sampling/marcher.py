@@ -91,11 +91,12 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
             sigma = sigma.float()
             # transmittance along the window, only for the rays that have samples in it (rl is sorted)
             rows, row_of = torch.unique_consecutive(rl, return_inverse=True)
+            row_rays = alive[rows]
             dense = torch.zeros(len(rows), occ.shape[1], device=device)
             tau = sigma * step_size
             dense[row_of, si] = tau
             excl = torch.cumsum(dense, 1) - dense
-            log_t_sample = log_T[alive[rows]][row_of] - excl[row_of, si]
+            log_t_sample = log_T[row_rays][row_of] - excl[row_of, si]
             weights = torch.exp(log_t_sample) * (1.0 - torch.exp(-tau))
             keep = (weights > weight_threshold) & (log_t_sample > log_eps)
             if keep.any():
@@ -104,7 +105,7 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
                 out_t.append(t_s[k_idx])
                 out_s.append(sigma[k_idx])
                 out_aux.append(aux.select(k_idx) if aux is not None else None)
-            log_T[alive[rows]] = log_T[alive[rows]] - dense.sum(1)
+            log_T[row_rays] = log_T[row_rays] - dense.sum(1)
         t_cur[alive] = t0 + last.float() * step_size
         still = (t_cur[alive] < t_far[alive]) & (log_T[alive] > log_eps)
         alive = alive[still]

@@ -45,6 +45,12 @@ class OccupancyGrid:
         return torch.stack([lo, hi]), res
 
     @staticmethod
+    def _flat_index(ijk: torch.Tensor, res) -> torch.Tensor:
+        """(...,3) in-range cell indices -> (...) index into the flattened (X,Y,Z) grid."""
+        ry, rz = int(res[1]), int(res[2])
+        return (ijk[..., 0] * ry + ijk[..., 1]) * rz + ijk[..., 2]
+
+    @staticmethod
     def _splat(vertices: torch.Tensor, aabb: torch.Tensor, res: torch.Tensor):
         """(X,Y,Z) bool grid of the cells holding a vertex, and the per-axis cell size."""
         cell = (aabb[1] - aabb[0]) / res.float()
@@ -52,7 +58,7 @@ class OccupancyGrid:
         ijk = torch.minimum(torch.maximum(ijk, torch.zeros_like(ijk)), res - 1)
         rx, ry, rz = (int(v) for v in res.tolist())
         grid = torch.zeros(rx * ry * rz, dtype=torch.bool, device=vertices.device)
-        grid[(ijk[:, 0] * ry + ijk[:, 1]) * rz + ijk[:, 2]] = True
+        grid[OccupancyGrid._flat_index(ijk, res)] = True
         return grid.view(rx, ry, rz), cell
 
     @staticmethod
@@ -149,9 +155,7 @@ class OccupancyGrid:
         ijk = torch.floor(rel).long()
         inside = ((ijk >= 0) & (ijk < self.resolution)).all(-1)
         ijk = torch.minimum(torch.maximum(ijk, torch.zeros_like(ijk)), self.resolution - 1)
-        ry, rz = int(self.resolution[1]), int(self.resolution[2])
-        flat = (ijk[..., 0] * ry + ijk[..., 1]) * rz + ijk[..., 2]
-        return self.occ.reshape(-1)[flat] & inside
+        return self.occ.reshape(-1)[self._flat_index(ijk, self.resolution)] & inside
 
     def cell_coordinates(self, origins: torch.Tensor, dirs: torch.Tensor):
         """Rays in the grid's cell coordinates: (g_o, g_d) with the point at distance t in the cell
@@ -167,9 +171,7 @@ class OccupancyGrid:
         res = self.resolution.to(torch.int32)
         ijk = torch.floor(g_o[:, None, :] + g_d[:, None, :] * ts[..., None]).to(torch.int32)
         ijk = torch.minimum(ijk.clamp_min_(0), res - 1)
-        ry, rz = int(res[1]), int(res[2])
-        flat = (ijk[..., 0] * ry + ijk[..., 1]) * rz + ijk[..., 2]
-        return self.occ.reshape(-1)[flat]
+        return self.occ.reshape(-1)[self._flat_index(ijk, res)]
 
     def ray_aabb(self, origins: torch.Tensor, dirs: torch.Tensor):
         """Entry/exit distances of rays with the grid box; t_far < t_near where a ray misses."""
