@@ -9,6 +9,8 @@ Parts (seconds per frame, measured by timing the core's functions from the outsi
 core changes):
   marching        march_rays minus the density callback: ray/box, per-step occupancy lookups, window
                   bookkeeping, transmittance, packing (``occupancy_lookup`` is its grid-lookup share)
+  ray_ranges      the per-pixel intervals where rays can meet occupied cells (OccupancyGrid.camera_ranges;
+                  RenderSettings.skip_empty), which let the marcher skip empty pixels and distances
   neighbour_search  the K-nearest-within-radius query (pykdtree)
   indicators      the local indicators h_k = (p_k, w_k) from the neighbours (gathers, products)
   decode_sigma    the geometry decoder on every evaluated sample (codes, encodings, MLP)
@@ -162,6 +164,8 @@ class Profiler:
         self._wrap(occupancy.OccupancyGrid, "lookup", "occupancy_lookup", lambda a, k: a[1].numel() // 3)
         if hasattr(occupancy.OccupancyGrid, "lookup_steps"):     # the marcher's form (older code: lookup)
             self._wrap(occupancy.OccupancyGrid, "lookup_steps", "occupancy_lookup", lambda a, k: a[3].numel())
+        if hasattr(occupancy.OccupancyGrid, "camera_ranges"):   # per-pixel ray ranges (older code: none)
+            self._wrap(occupancy.OccupancyGrid, "camera_ranges", "ray_ranges")
         self._wrap(renderer, "composite", "compositing")
         self._wrap(renderer, "march_rays", "_march")
         sigma_fn = fmod.NeuMeshField.sigma_fn
@@ -204,7 +208,8 @@ class Profiler:
              "indicators": t["_neighbourhood"] - t["neighbour_search"],
              "decode_sigma": t["_sigma"] - t["_neighbourhood"],
              "decode_colour": t["decode_colour"],
-             "compositing": t["compositing"]}
+             "compositing": t["compositing"],
+             "ray_ranges": t["ray_ranges"]}
         p["other"] = total - sum(v for k, v in p.items() if k != "occupancy_lookup")
         return p
 
@@ -385,8 +390,12 @@ def main(argv=None) -> int:
             nm.render_camera(field, scaled(cams[0][0], 0.25), cams[0][1], 100, 100)   # warm up
             r = {"profile_400": profile_mode(field, cams, 400, machine)}
             r["frame_s"] = {str(s): float(np.median(time_frames(field, cams, s, args.repeats))) for s in args.sizes}
+            # the same frames marched through the whole box, every pixel (RenderSettings.skip_empty off)
+            r["frame_400_s_skip_empty_off"] = float(np.median(time_frames(
+                field, cams, 400, args.repeats, nm.RenderSettings(skip_empty=False))))
             pr = r["profile_400"]
-            print(f"[{mode}] frame " + ", ".join(f"{s}²: {v:.3f} s" for s, v in r["frame_s"].items()))
+            print(f"[{mode}] frame " + ", ".join(f"{s}²: {v:.3f} s" for s, v in r["frame_s"].items())
+                  + f" (400² without skip_empty: {r['frame_400_s_skip_empty_off']:.3f} s)")
             for part, sec in pr["parts_s"].items():
                 floor = pr["floors"]["seconds"].get(part)
                 print(f"  {part:18s} {sec:7.3f} s" + (f"   floor {floor:.4f} s" if floor is not None else ""))

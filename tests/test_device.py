@@ -49,9 +49,16 @@ def test_cuda_render_matches_cpu(blob_mesh, small_scene_dir):
     f_cpu = textured_field(blob_mesh)
     f_gpu = textured_field(blob_mesh).to("cuda")
     assert f_gpu.rest_vertices.is_cuda and f_gpu.grid.occ.is_cuda
+    # the CPU's KD-tree becomes the hash grid on the GPU (no host round trip per query), and back
+    from neumesh_core.field.knn import HashGridIndex, VertexIndex
+    assert isinstance(f_gpu.scaffold.index, HashGridIndex) and f_gpu.scaffold.index.v.is_cuda
+    assert isinstance(textured_field(blob_mesh).to("cuda").to("cpu").scaffold.index, VertexIndex)
     a = nm.render_camera(f_cpu, *_camera(scene), background=(1.0, 1.0, 1.0))
     b = nm.render_camera(f_gpu, *_camera(scene), background=(1.0, 1.0, 1.0))
     assert a.opacity.max() > 0.5   # the view sees the object
+    c = nm.render_camera(f_gpu, *_camera(scene), background=(1.0, 1.0, 1.0),
+                         settings=nm.RenderSettings(skip_empty=False))
+    assert np.abs(b.rgb - c.rgb).max() < 1e-4   # skipping empty pixels and distances on the GPU
     d = np.abs(a.rgb - b.rgb)
     assert d.mean() < 1e-3 and d.max() < 0.05, (d.mean(), d.max())
 
@@ -63,7 +70,7 @@ def test_cuda_hashgrid_field_renders_like_the_cpu_kdtree(blob_mesh, small_scene_
     scene = nm.load_scene(small_scene_dir)
     f_cpu = textured_field(blob_mesh)
     f_gpu = textured_field(blob_mesh, knn="hashgrid").to("cuda")   # moving the field moves its index
-    assert isinstance(f_gpu.index, HashGridIndex) and f_gpu.index.v.is_cuda
+    assert isinstance(f_gpu.scaffold.index, HashGridIndex) and f_gpu.scaffold.index.v.is_cuda
     a = nm.render_camera(f_cpu, *_camera(scene), background=(1.0, 1.0, 1.0))
     b = nm.render_camera(f_gpu, *_camera(scene), background=(1.0, 1.0, 1.0))
     d = np.abs(a.rgb - b.rgb)

@@ -12,7 +12,14 @@ def frequency_encoding(x: torch.Tensor, n_freqs: int) -> torch.Tensor:
         return x[..., None]
     freqs = (2.0 ** torch.arange(n_freqs, device=x.device, dtype=x.dtype)) * math.pi
     xb = x[..., None] * freqs
-    return torch.cat([x[..., None], torch.sin(xb), torch.cos(xb)], -1)
+    if torch.is_grad_enabled() and x.requires_grad:
+        return torch.cat([x[..., None], torch.sin(xb), torch.cos(xb)], -1)
+    # written into one output (torch.cat along the last axis is ~3x slower than slice copies on the CPU)
+    out = x.new_empty(*x.shape, 1 + 2 * n_freqs)
+    out[..., 0] = x
+    out[..., 1:1 + n_freqs] = torch.sin(xb)
+    out[..., 1 + n_freqs:] = torch.cos(xb)
+    return out
 
 
 def sh_encoding(d: torch.Tensor, degree: int = 4) -> torch.Tensor:
@@ -40,7 +47,12 @@ def sh_encoding(d: torch.Tensor, degree: int = 4) -> torch.Tensor:
             1.4453057213202769 * z * (xx - yy),
             0.59004358992664352 * x * (-xx + 3.0 * yy),
         ]
-    return torch.stack(out, -1)
+    if torch.is_grad_enabled() and d.requires_grad:
+        return torch.stack(out, -1)
+    res = d.new_empty(*x.shape, len(out))   # column writes: faster than stack along the last axis
+    for i, c in enumerate(out):
+        res[..., i] = c
+    return res
 
 
 _EXP_MAX = 15.0  # exp(15) = 3.3e6 per unit length: opaque at any step size, and never inf (inf-inf = nan)

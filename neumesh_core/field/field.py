@@ -46,12 +46,13 @@ from typing import Optional
 import numpy as np
 import torch
 from torch import nn
+import torch.nn.functional as F
 
 from ..device import draw_device
 from ..mesh import Mesh, mean_edge_length, unique_edges
 from .encoding import frequency_encoding, sh_encoding, trunc_exp
 from .knn import KNN_BACKENDS, vertex_neighbours
-from .scaffold import Neighbourhood, Scaffold, reference_neighbours, tangent_frames  # noqa: F401 (re-exported)
+from .scaffold import Neighbourhood, Scaffold, reference_neighbours, take_rows, tangent_frames  # noqa: F401 (re-exported)
 
 @dataclass
 class FieldConfig:
@@ -112,13 +113,38 @@ def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
 _INFERENCE_ROWS = 16384
 
 
-def run_decoder(module: nn.Module, x: torch.Tensor) -> torch.Tensor:
+def run_decoder(module: nn.Module, x) -> torch.Tensor:
     """``module(x)``, in row blocks of ``_INFERENCE_ROWS`` when autograd is off (rows are independent,
-    so the result is the same up to the float rounding of the matrix products)."""
-    n = x.shape[0]
-    if n <= _INFERENCE_ROWS or torch.is_grad_enabled() or x.device.type != "cpu":
-        return module(x)
-    return torch.cat([module(x[s:s + _INFERENCE_ROWS]) for s in range(0, n, _INFERENCE_ROWS)])
+    so the result is the same up to the float rounding of the matrix products).
+
+    ``x``: the input, or a list of column blocks (tensors with the same rows) that make the input side
+    by side.  On the CPU without autograd the blocks are copied into one small reused buffer per row
+    block, so the whole concatenated input never exists (``torch.cat`` along columns is ~3x slower than
+    slice copies on the CPU, and the decoder then reads its input from the cache, not from memory).
+    With autograd or on a GPU the blocks are concatenated (the reference)."""
+    parts = list(x) if isinstance(x, (list, tuple)) else None
+    first = parts[0] if parts is not None else x
+    n = first.shape[0]
+    if torch.is_grad_enabled() or first.device.type != "cpu":
+        return module(torch.cat(parts, -1) if parts is not None else x)
+    if parts is None:
+        if n <= _INFERENCE_ROWS:
+            return module(x)
+        return torch.cat([module(x[s:s + _INFERENCE_ROWS]) for s in range(0, n, _INFERENCE_ROWS)])
+    widths = [p.shape[1] for p in parts]
+    if n == 0:
+        return module(first.new_empty(0, sum(widths)))
+    rows = min(n, _INFERENCE_ROWS)
+    buf = first.new_empty(rows, sum(widths))
+    outs = []
+    for s in range(0, n, rows):
+        e = min(n, s + rows)
+        o = 0
+        for p, w in zip(parts, widths):
+            buf[:e - s, o:o + w].copy_(p[s:e])
+            o += w
+        outs.append(module(buf[:e - s]))
+    return outs[0] if len(outs) == 1 else torch.cat(outs)
 
 
 def decoder_key(module: nn.Module) -> str:
@@ -312,32 +338,33 @@ class NeuMeshField(nn.Module):
         """View directions ``d`` (...,3) (world, current pose) and rest normals of vertices ``vid`` (...,),
         both in the frame of each vertex's texture code (rest frame, then :attr:`tex_frame`)."""
         d = self.scaffold.rest_dirs(vid, d)
-        n = self.rest_normals[vid]
+        n = take_rows(self.rest_normals, vid)
         if self.tex_frame is not None:
-            Q = self.tex_frame[vid]
+            Q = take_rows(self.tex_frame, vid)
             d = (Q * d[..., None, :]).sum(-1)
             n = (Q * n[..., None, :]).sum(-1)
         return d, n
 
-    def _decode_rgb_rows(self, rad_in: torch.Tensor, vid: torch.Tensor) -> torch.Tensor:
+    def _decode_rgb_rows(self, rad_in: list, vid: torch.Tensor) -> torch.Tensor:
         """Radiance decoder output (pre-sigmoid) for rows whose texture codes belong to vertices ``vid``
-        (post-interpolation: each row with its own vertex's decoder)."""
+        (post-interpolation: each row with its own vertex's decoder).  ``rad_in``: the input's column
+        blocks (:func:`run_decoder`)."""
         if len(self.rad_decoders) == 1:
             return run_decoder(self.rad_decoders[0], rad_in)
-        dec = self.decoder_id[vid].long()
+        dec = take_rows(self.decoder_id, vid).long()
         if len(dec) == 0:
-            return rad_in.new_zeros(0, 3)
+            return rad_in[0].new_zeros(0, 3)
         lo, hi = int(dec.min()), int(dec.max())
         if lo == hi:   # every row on one decoder (most chunks of an edited field): no grouping
             return run_decoder(self.rad_decoders[lo], rad_in)
         out = None
         for d in torch.unique(dec).tolist():
             rows = (dec == d).nonzero().squeeze(1)
-            y = run_decoder(self.rad_decoders[d], rad_in[rows])
+            y = run_decoder(self.rad_decoders[d], [p.index_select(0, rows) for p in rad_in])
             if out is None:
-                out = y.new_zeros(rad_in.shape[0], y.shape[1])
+                out = y.new_zeros(len(dec), y.shape[1])
             out = out.index_copy(0, rows, y)
-        return out if out is not None else rad_in.new_zeros(0, 3)
+        return out if out is not None else rad_in[0].new_zeros(0, 3)
 
     # ------------------------------------------------------------------ semantics
     @staticmethod
@@ -399,7 +426,7 @@ class NeuMeshField(nn.Module):
         whole table per lookup, which made a training step at 1.8M vertices twice as slow."""
         if self.sparse_grads and table.requires_grad and torch.is_grad_enabled():
             return torch.nn.functional.embedding(idx, table, sparse=True)
-        return table[idx]
+        return take_rows(table, idx)
 
     @property
     def code_prior(self):
@@ -454,18 +481,16 @@ class NeuMeshField(nn.Module):
         pe = self._p_encoding(pk)
         sigma = None
         if with_sigma:
-            geo_in = torch.cat([self.codes(("geo",), vid)[0], pe, wk[:, None]], -1)
+            geo_in = [self.codes(("geo",), vid)[0], pe, wk[:, None]]
             sigma = reduce(trunc_exp(run_decoder(self.geo_decoder, geo_in))).squeeze(-1)
         if not with_rgb:
             return sigma, None, None
         d = dirs[:, None, :].expand(m, k, 3).reshape(-1, 3) if sample is None else dirs[sample]
         d, n = self._code_frame(vid, d)
-        rad_in = torch.cat([self.codes(("tex",), vid)[0], pe, wk[:, None], sh_encoding(d, self.config.sh_degree),
-                            n], -1)
+        rad_in = [self.codes(("tex",), vid)[0], pe, wk[:, None], sh_encoding(d, self.config.sh_degree), n]
         mod_k = self.rows(self.mod_colors, vid)
         c_k = torch.sigmoid(self._decode_rgb_rows(rad_in, vid)) + mod_k
-        out = reduce(torch.cat([c_k, mod_k], -1))
-        return sigma, out[:, :3], out[:, 3:]
+        return sigma, reduce(c_k), reduce(mod_k)
 
     def _decode_early(self, nb: Neighbourhood, dirs, with_rgb: bool, with_sigma: bool):
         w = nb.w[..., None]
@@ -474,20 +499,29 @@ class NeuMeshField(nn.Module):
         def wsum(rows):           # (M,K,C) -> (M,C)
             return torch.bmm(wb, rows).squeeze(1)
 
+        # without autograd and coarse code levels, sum_k w_k table[idx_k] is one embedding bag: no (M,K,C)
+        # gather (several times faster on the CPU; the reference is the gather-and-sum)
+        bag = not torch.is_grad_enabled() and self._code_prior is None
+
+        def wsum_rows(table):     # sum_k w_k table[idx_k] -> (M,C)
+            if bag:
+                return F.embedding_bag(nb.idx, table, per_sample_weights=nb.w, mode="sum")
+            return wsum(self.rows(table, nb.idx))
+
         p = (nb.p * nb.w).sum(1)
         wi = (nb.w * nb.w).sum(1)
         pe = self._p_encoding(p)
         names = (("geo",) if with_sigma else ()) + (("tex",) if with_rgb else ())
-        codes = dict(zip(names, self.codes(names, nb.idx)))
+        codes = {} if bag else dict(zip(names, self.codes(names, nb.idx)))
         sigma = None
         if with_sigma:
-            geo = wsum(codes["geo"])
-            sigma = trunc_exp(run_decoder(self.geo_decoder, torch.cat([geo, pe, wi[:, None]], -1)).squeeze(-1))
+            geo = wsum_rows(self.geo_codes) if bag else wsum(codes["geo"])
+            sigma = trunc_exp(run_decoder(self.geo_decoder, [geo, pe, wi[:, None]]).squeeze(-1))
             sigma = torch.where(nb.valid.any(1), sigma, torch.zeros_like(sigma))
         if not with_rgb:
             return sigma, None, None
         if self.tex_frame is None:
-            n = wsum(self.rest_normals[nb.idx])
+            n = wsum_rows(self.rest_normals)
             if self.to_rest is None:
                 d = dirs
             else:
@@ -499,36 +533,37 @@ class NeuMeshField(nn.Module):
             d = (dk * w).sum(1)
             d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-        mod = wsum(self.rows(self.mod_colors, nb.idx))
-        shared = torch.cat([pe, wi[:, None], sh_encoding(d, self.config.sh_degree), n], -1)
+        mod = wsum_rows(self.mod_colors)
+        shared = [pe, wi[:, None], sh_encoding(d, self.config.sh_degree), n]   # column blocks
         single = 0 if len(self.rad_decoders) == 1 else self._single_decoder(nb)
         if single is not None:   # one decoder for every neighbour: decode the interpolated code once
-            tex = wsum(codes["tex"])
-            rgb = torch.sigmoid(run_decoder(self.rad_decoders[single], torch.cat([tex, shared], -1))) + mod
+            tex = wsum_rows(self.tex_codes) if bag else wsum(codes["tex"])
+            rgb = torch.sigmoid(run_decoder(self.rad_decoders[single], [tex] + shared)) + mod
         else:
-            rgb = self._early_rgb_by_decoder(nb, codes["tex"], shared) + mod
+            tex_k = take_rows(self.tex_codes, nb.idx) if bag else codes["tex"]
+            rgb = self._early_rgb_by_decoder(nb, tex_k, shared) + mod
         return sigma, rgb, mod
 
     def _single_decoder(self, nb: Neighbourhood) -> Optional[int]:
         """The decoder every valid neighbour of every sample is bound to, or None when they differ."""
-        dec = self.decoder_id[nb.idx]
+        dec = take_rows(self.decoder_id, nb.idx)
         if not bool(nb.valid.any()):
             return 0
         lo = int(torch.where(nb.valid, dec, dec.new_full((), torch.iinfo(dec.dtype).max)).min())
         hi = int(torch.where(nb.valid, dec, dec.new_full((), -1)).max())
         return lo if lo == hi else None
 
-    def _early_rgb_by_decoder(self, nb: Neighbourhood, tex_k: torch.Tensor, shared: torch.Tensor):
+    def _early_rgb_by_decoder(self, nb: Neighbourhood, tex_k: torch.Tensor, shared: list):
         """Early interpolation over several decoders: sum_d W_d sigmoid(dec_d(codes of group d, h))."""
-        dec = self.decoder_id[nb.idx].long()
-        rgb = shared.new_zeros(shared.shape[0], 3)
+        dec = take_rows(self.decoder_id, nb.idx).long()
+        rgb = shared[0].new_zeros(shared[0].shape[0], 3)
         for d in torch.unique(dec[nb.valid]).tolist():
             wd = torch.where((dec == d) & nb.valid, nb.w, torch.zeros_like(nb.w))   # (M,K)
             W = wd.sum(1)
             rows = (W > 0).nonzero().squeeze(1)
             wn = wd[rows] / W[rows, None]
             tex = (tex_k[rows] * wn[..., None]).sum(1)
-            c = torch.sigmoid(run_decoder(self.rad_decoders[d], torch.cat([tex, shared[rows]], -1)))
+            c = torch.sigmoid(run_decoder(self.rad_decoders[d], [tex] + [p.index_select(0, rows) for p in shared]))
             rgb = rgb.index_add(0, rows, W[rows, None] * c)
         return rgb
 

@@ -20,10 +20,17 @@ from torch import nn
 
 from ..errors import VertexMismatchError
 from ..mesh import Mesh, vertex_normals
-from .knn import HashGridIndex, VertexIndex, make_index, vertex_neighbours
+from .knn import VertexIndex, make_index, vertex_neighbours
 
 # persistent buffers of a Scaffold (saved in field files as ``buffer/scaffold.<name>``)
 PERSISTENT = ("faces", "tangent_ref", "rest_vertices", "tv_neighbours")
+
+
+def take_rows(table: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """``table[idx]`` for an integer index of any shape, as one ``index_select`` over the flattened
+    index: the same values (a copy of rows), two to three times faster than advanced indexing on the
+    CPU for the narrow per-vertex tables gathered per sample; autograd flows as through indexing."""
+    return table.index_select(0, idx.reshape(-1)).view(*idx.shape, *table.shape[1:])
 
 
 @dataclass
@@ -43,7 +50,10 @@ class Neighbourhood:
         return self.idx.shape[0]
 
     def select(self, m: torch.Tensor) -> "Neighbourhood":
-        return Neighbourhood(self.idx[m], self.w[m], self.p[m], self.valid[m])
+        """The samples picked by ``m``: a boolean mask or an integer index."""
+        if m.dtype == torch.bool:
+            return Neighbourhood(self.idx[m], self.w[m], self.p[m], self.valid[m])
+        return Neighbourhood(*(take_rows(getattr(self, f), m) for f in ("idx", "w", "p", "valid")))
 
     @staticmethod
     def cat(items) -> "Neighbourhood":
@@ -192,7 +202,7 @@ class Scaffold(nn.Module):
         idx = idx.clamp_min(0)
         inv = torch.where(valid, 1.0 / dist.clamp_min(1e-8), torch.zeros_like(dist))
         w = inv / inv.sum(-1, keepdim=True).clamp_min(1e-12)
-        vn = self._vertex_table()[idx]          # one gather of (position, normal) rows
+        vn = take_rows(self._vertex_table(), idx)    # one gather of (position, normal) rows
         p = ((vn[..., :3] - x[:, None, :]) * vn[..., 3:]).sum(-1)
         return Neighbourhood(idx, w, p, valid)
 
@@ -211,7 +221,7 @@ class Scaffold(nn.Module):
         """View directions d (...,3) in the rest frame of vertices idx (...,)."""
         if self.to_rest is None:
             return d
-        return (self.to_rest[idx] * d[..., None, :]).sum(-1)
+        return (take_rows(self.to_rest, idx) * d[..., None, :]).sum(-1)
 
     def __deepcopy__(self, memo):
         """A copy with its own tensors; the neighbour index (a C object) is rebuilt, not copied."""
@@ -225,12 +235,13 @@ class Scaffold(nn.Module):
         return new
 
     def _apply(self, fn, *args, **kwargs):  # keep non-buffer tensors on the module's device
+        before = self.vertices_.device if hasattr(self, "vertices_") else None
         super()._apply(fn, *args, **kwargs)
         if self.to_rest is not None:
             self.to_rest = fn(self.to_rest)
         if hasattr(self, "grid"):
             self.grid.to(self.rest_vertices.device)
-        if isinstance(getattr(self, "index", None), HashGridIndex) and self.index.v.device != self.vertices_.device:
-            # the torch index lives with the vertices
+        if getattr(self, "index", None) is not None and self.vertices_.device != before:
+            # the index suits the vertices' device (a torch index lives with them; see make_index)
             self.index = make_index(self.vertices_, self.k, self.radius, self.knn)
         return self

@@ -27,12 +27,28 @@ class RenderSettings:
     early_stop_eps: float = 1e-4
     weight_threshold: float = 1e-4
     near: float = 0.0
-    chunk_rays: int = 8192
+    chunk_rays: Optional[int] = None   # rays per batch; None: 32768 on the CPU, 2**20 on a GPU
     supersample: int = 1   # render_camera: S x S rays per pixel on a regular sub-pixel grid, averaged
+    # render_camera: march each pixel only over the distances where its ray can meet an occupied cell,
+    # and skip the pixels that meet none (OccupancyGrid.camera_ranges, ``empty_tile`` pixels square);
+    # the same sample positions are evaluated, so the image is the same
+    skip_empty: bool = True
+    empty_tile: int = 8
 
     def __post_init__(self):
         if int(self.supersample) != self.supersample or self.supersample < 1:
             raise ValueError(f"supersample must be a whole number >= 1, got {self.supersample}")
+
+
+def chunk_size(settings: RenderSettings, device) -> int:
+    """Rays per batch: ``settings.chunk_rays``, or by default 32768 on the CPU (large enough that the
+    per-batch overheads of marching and the neighbour search stop mattering) and 2**20 on a GPU
+    (a whole 800² frame in one batch: a GPU frame is bound by kernel launches, not memory)."""
+    if settings.chunk_rays is not None:
+        if int(settings.chunk_rays) < 1:
+            raise ValueError(f"chunk_rays must be >= 1, got {settings.chunk_rays}")
+        return int(settings.chunk_rays)
+    return 1 << 20 if torch.device(device).type == "cuda" else 32768
 
 
 def default_step(field, settings: RenderSettings) -> float:
@@ -49,7 +65,8 @@ def _as_list(fields):
 def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=None,
                 settings: Optional[RenderSettings] = None, train: bool = False,
                 jitter: Optional[torch.Tensor] = None, vertex_ids: bool = False,
-                semantics: bool = False, far: Optional[torch.Tensor] = None) -> dict:
+                semantics: bool = False, far: Optional[torch.Tensor] = None,
+                ranges: Optional[Sequence] = None) -> dict:
     """Render rays (R,3) through one field or a list of fields (composited jointly, sorted by depth).
 
     Returns tensors: rgb (R,3), opacity (R,), depth (R,) (expected distance, normalised by opacity;
@@ -63,6 +80,8 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
     ``background``: None (black / premultiplied), an (3,) colour, or (R,3) per-ray colours.
     ``far``: None, or (R,) distances along the rays past which nothing is sampled (an opaque surface
     in front of the field, e.g. a holdout object: the field behind it is cut).
+    ``ranges``: None, or per field None or ((R,) near, (R,) far): the distances outside which that
+    field's grid has nothing on each ray (:meth:`OccupancyGrid.camera_ranges`); marching skips them.
     """
     settings = settings or RenderSettings()
     fl = _as_list(fields)
@@ -71,16 +90,21 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
     sem_width = _semantic_width(fl) if semantics else 0
     parts = []
     touched = []
-    for f in fl:
-        s = march_rays(origins, dirs, f.grid, f.sigma_fn, default_step(f, settings), near=settings.near,
-                       far=t_far, window=settings.window, early_stop_eps=settings.early_stop_eps,
+    for fi, f in enumerate(fl):
+        near_f, far_f = settings.near, t_far
+        if ranges is not None and ranges[fi] is not None:
+            r_near, r_far = (x.to(origins.device) for x in ranges[fi])
+            near_f = r_near.clamp_min(settings.near)
+            far_f = torch.minimum(r_far, far_f) if torch.is_tensor(far_f) else r_far.clamp_max(far_f)
+        s = march_rays(origins, dirs, f.grid, f.sigma_fn, default_step(f, settings), near=near_f,
+                       far=far_f, window=settings.window, early_stop_eps=settings.early_stop_eps,
                        weight_threshold=settings.weight_threshold, jitter=jitter)
         if vertex_ids:
             touched.append(torch.unique(s.aux.idx[s.aux.valid]) if len(s) else
                            torch.zeros(0, dtype=torch.long, device=origins.device))
         if len(s) == 0:
             continue
-        d = dirs[s.ray_indices]
+        d = dirs.index_select(0, s.ray_indices)
         if train:
             sigma, rgb, mod = f.decode(s.aux, d, with_rgb=True)
         else:
@@ -104,7 +128,7 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
             cols = parts[0]
         else:
             cols = [torch.cat(x) for x in zip(*parts)]
-            order = torch.argsort(cols[1])
+            order = torch.sort(cols[1], stable=True).indices   # ties (equal t in two fields): field order
             order = order[torch.sort(cols[0][order], stable=True).indices]
             cols = [x[order] for x in cols]
         ri, ts, te, sig, rgb, mod = cols[:6]
@@ -160,7 +184,7 @@ def mod_colour_weights(fields, origins: torch.Tensor, dirs: torch.Tensor,
     owner = torch.cat([torch.full((len(s),), fi, dtype=torch.long) for fi, s in parts])
     local = torch.cat([torch.arange(len(s)) for _, s in parts])
     if len(parts) > 1:   # the same order as render_rays
-        order = torch.argsort(ts)
+        order = torch.sort(ts, stable=True).indices
         order = order[torch.sort(ri[order], stable=True).indices]
         ri, ts, te, sig, owner, local = ri[order], ts[order], te[order], sig[order], owner[order], local[order]
     w = render_weights(ri, ts, te, sig, n)
@@ -238,41 +262,68 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     # and a pixel sensor apply); S == 1 is the single ray through the centre
     ss = int(settings.supersample)
     offsets = [((i + 0.5) / ss, (j + 0.5) / ss) for j in range(ss) for i in range(ss)]
-    rgb = torch.zeros(n, 3)
+    rgb = torch.zeros(n, 3)      # premultiplied; the background is added once at the end
     opac = torch.zeros(n)
-    depth_w = torch.zeros(n)   # opacity-weighted depth, normalised at the end
+    depth_w = torch.full((n,), float("inf")) if ss == 1 else torch.zeros(n)   # ss > 1: opacity-weighted
     mod = torch.zeros(n, 3)
     sem = torch.zeros(n, _semantic_width(fl)) if semantics else None
     n_samples = 0
-    total = len(offsets) * n
     far_t = None if far is None else torch.as_tensor(np.asarray(far, np.float32).reshape(-1)).to(device)
     if far_t is not None and far_t.numel() != n:
         raise ValueError(f"far must be (height, width) = ({height}, {width}), got {np.shape(far)}")
+    # the pixels whose rays can meet an occupied cell of some field, and per field where along them
+    pixels, ranges = None, None
+    if settings.skip_empty:
+        ranges = [f.grid.camera_ranges(K, c2w, width, height, settings.empty_tile) for f in fl]
+        if all(r is not None for r in ranges):
+            live = torch.zeros(n, dtype=torch.bool, device=device)
+            for r_near, r_far in ranges:
+                live |= r_near <= r_far
+            if far_t is not None:
+                live &= far_t > 0
+            pixels = live.nonzero().squeeze(1)
+            ranges = [(r_near[pixels], r_far[pixels]) for r_near, r_far in ranges]
+        # else: a camera inside some field's occupied cells marches every pixel (that field unbounded)
+    m = n if pixels is None else len(pixels)
+    chunk = chunk_size(settings, device)
+    total = max(1, len(offsets) * m)
+    far_m = far_t if pixels is None or far_t is None else far_t[pixels]
+    pix_cpu = None if pixels is None else pixels.cpu()
     with torch.no_grad():
         for k, off in enumerate(offsets):
             origins, dirs = pixel_rays(K, c2w, width, height, device=device, offset=off)
-            for s in range(0, n, settings.chunk_rays):
-                e = min(n, s + settings.chunk_rays)
-                out = render_rays(fl, origins[s:e], dirs[s:e], background, settings, train=False,
-                                  semantics=semantics, far=None if far_t is None else far_t[s:e])
+            if pixels is not None:
+                origins, dirs = origins[pixels], dirs[pixels]
+            for s in range(0, m, chunk):
+                e = min(m, s + chunk)
+                out = render_rays(fl, origins[s:e], dirs[s:e], None, settings, train=False,
+                                  semantics=semantics, far=None if far_m is None else far_m[s:e],
+                                  ranges=None if ranges is None else
+                                  [None if r is None else (r[0][s:e], r[1][s:e]) for r in ranges])
+                rows = slice(s, e) if pix_cpu is None else pix_cpu[s:e]
                 op = out["opacity"].cpu()
-                rgb[s:e] += out["rgb"].cpu()
-                opac[s:e] += op
+                rgb[rows] += out["rgb"].cpu()
+                opac[rows] += op
                 if ss == 1:
-                    depth_w[s:e] = out["depth"].cpu()
+                    depth_w[rows] = out["depth"].cpu()
                 else:
-                    depth_w[s:e] += torch.where(op > 1e-6, out["depth"].cpu() * op, torch.zeros_like(op))
-                mod[s:e] += out["mod_rgb"].cpu()
+                    depth_w[rows] += torch.where(op > 1e-6, out["depth"].cpu() * op, torch.zeros_like(op))
+                mod[rows] += out["mod_rgb"].cpu()
                 if sem is not None:
-                    sem[s:e] += out["sem"].cpu()
+                    sem[rows] += out["sem"].cpu()
                 n_samples += out["n_samples"]
-                if progress is not None and progress((k * n + e) / total) is False:
+                if progress is not None and progress((k * m + e) / total) is False:
                     raise Cancelled("rendering cancelled")
+    if progress is not None and m == 0 and progress(1.0) is False:
+        raise Cancelled("rendering cancelled")
     if ss == 1:
         depth = depth_w
     else:   # the opacity-weighted mean depth of the sub-pixel rays
         depth = torch.where(opac > 1e-6, depth_w / opac.clamp_min(1e-12), torch.full_like(opac, float("inf")))
     inv = 1.0 / len(offsets)
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=torch.float32)
+        rgb = rgb + (len(offsets) - opac)[:, None] * bg
     return RenderOutput((rgb * inv).view(height, width, 3).numpy(), (opac * inv).view(height, width).numpy(),
                         depth.view(height, width).numpy(), (mod * inv).view(height, width, 3).numpy(),
                         n_samples, time.perf_counter() - t0,

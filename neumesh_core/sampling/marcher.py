@@ -45,21 +45,23 @@ def _cat_aux(items):
 @torch.no_grad()
 def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
                sigma_fn: Callable[[torch.Tensor], tuple], step_size: float,
-               near: float = 0.0, far: float = float("inf"), window: int = 32,
+               near=0.0, far=float("inf"), window: int = 32,
                early_stop_eps: float = 1e-4, weight_threshold: float = 1e-4,
                jitter: Optional[torch.Tensor] = None, max_eval: int = 8) -> RaySamples:
     """March rays (R,3)/(R,3 unit) through ``grid``; returns packed samples sorted by (ray, t).
 
     Each round looks ``window`` steps ahead but evaluates at most ``max_eval`` occupied steps per ray,
     so a ray that turns opaque stops within a few samples.  ``jitter`` (R,) in [0,1) offsets each
-    ray's sample positions (training); None = step centres.  ``far``: one distance, or an (R,) tensor of
-    per-ray distances (an occluder in front of the field) past which nothing is sampled.
+    ray's sample positions (training); None = step centres.  ``near`` / ``far``: one distance each, or
+    (R,) tensors of per-ray distances (e.g. an occluder in front of the field, or the interval where a
+    ray can meet an occupied cell) outside which nothing is sampled; sample positions stay anchored at
+    multiples of the step from the origin, so a tighter interval samples the same points.
     """
     device = origins.device
     n_rays = origins.shape[0]
     t_near, t_far = grid.ray_aabb(origins, dirs)
-    t_near = t_near.clamp_min(near)
-    t_far = t_far.clamp_max(far)
+    t_near = torch.maximum(t_near, near) if torch.is_tensor(near) else t_near.clamp_min(near)
+    t_far = torch.minimum(t_far, far) if torch.is_tensor(far) else t_far.clamp_max(far)
     alive = (t_far > t_near).nonzero().squeeze(1)
     # sample positions are anchored at multiples of the step from the ray origin, so that moving the
     # scene and the camera together (or changing the grid box) samples exactly the same points
@@ -85,25 +87,27 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
         sel = occ.nonzero()
         if sel.numel():
             rl, si = sel[:, 0], sel[:, 1]
-            t_s = ts[rl, si]
-            ray = alive[rl]
-            sigma, aux = sigma_fn(origins[ray] + dirs[ray] * t_s[:, None])
+            flat = rl * occ.shape[1] + si
+            t_s = ts.reshape(-1).index_select(0, flat)
+            ray = alive.index_select(0, rl)
+            sigma, aux = sigma_fn(origins.index_select(0, ray) + dirs.index_select(0, ray) * t_s[:, None])
             sigma = sigma.float()
             # transmittance along the window, only for the rays that have samples in it (rl is sorted)
             rows, row_of = torch.unique_consecutive(rl, return_inverse=True)
-            row_rays = alive[rows]
+            row_rays = alive.index_select(0, rows)
             dense = torch.zeros(len(rows), occ.shape[1], device=device)
             tau = sigma * step_size
             dense[row_of, si] = tau
             excl = torch.cumsum(dense, 1) - dense
-            log_t_sample = log_T[row_rays][row_of] - excl[row_of, si]
+            log_t_sample = log_T.index_select(0, row_rays).index_select(0, row_of) - \
+                excl.reshape(-1).index_select(0, row_of * occ.shape[1] + si)
             weights = torch.exp(log_t_sample) * (1.0 - torch.exp(-tau))
             keep = (weights > weight_threshold) & (log_t_sample > log_eps)
             if keep.any():
                 k_idx = keep.nonzero().squeeze(1)
-                out_r.append(ray[k_idx])
-                out_t.append(t_s[k_idx])
-                out_s.append(sigma[k_idx])
+                out_r.append(ray.index_select(0, k_idx))
+                out_t.append(t_s.index_select(0, k_idx))
+                out_s.append(sigma.index_select(0, k_idx))
                 out_aux.append(aux.select(k_idx) if aux is not None else None)
             log_T[row_rays] = log_T[row_rays] - dense.sum(1)
         t_cur[alive] = t0 + last.float() * step_size
@@ -117,7 +121,7 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, grid: OccupancyGrid,
         # sort by (ray, t): t inside a ray is already increasing across windows; a stable sort by ray
         # index keeps that order
         order = torch.sort(ray_idx, stable=True).indices
-        ray_idx, t_mid, sig = ray_idx[order], t_mid[order], sig[order]
+        ray_idx, t_mid, sig = (x.index_select(0, order) for x in (ray_idx, t_mid, sig))
         if aux is not None:
             aux = aux.select(order)
     else:

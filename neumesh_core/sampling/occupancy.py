@@ -182,6 +182,115 @@ class OccupancyGrid:
         t_far = torch.maximum(t0, t1).min(-1).values
         return t_near, t_far
 
+    def camera_ranges(self, K, c2w, width: int, height: int, tile: int = 8):
+        """Where each pixel's ray can meet an occupied cell: per-pixel distances (near, far), each
+        (height*width,) float32 on the grid's device, with near > far (inf, -inf) for pixels whose rays
+        meet no occupied cell -- or None when an occupied cell reaches behind the camera (no bound).
+
+        Conservative screen-space splat: each occupied cell (of the grid max-pooled by a power of two
+        while its cells stay under a tile on screen) is bounded by the sphere through its corners; the
+        sphere's pixel box (interval arithmetic on x/z and y/z of the camera-aligned cube around it),
+        widened by a pixel and rounded out to ``tile`` x ``tile`` tiles, takes the interval [distance
+        to the centre - radius, distance + radius], and each tile keeps the smallest near and the
+        largest far over its cells.  A point of a ray lies at distance t = |x - o|, so no occupied point
+        of a pixel's ray lies outside its tile's interval (at any sub-pixel position of the ray).
+        :meth:`camera_ranges_reference` is the exact per-ray form.  K (3,3) pixels (no skew needed),
+        c2w (4,4) OpenCV.
+        """
+        dev = self.aabb.device
+        K = torch.as_tensor(K, dtype=torch.float32, device=dev)
+        c2w = torch.as_tensor(c2w, dtype=torch.float32, device=dev)
+        R, o = c2w[:3, :3], c2w[:3, 3]
+        tile = max(1, int(tile))
+        tw, th = -(-width // tile), -(-height // tile)
+        near = torch.full((th * tw,), float("inf"), device=dev)
+        far = torch.full((th * tw,), float("-inf"), device=dev)
+        # pool while a pooled cell stays within a tile on screen (seen from the box's nearest point)
+        gap = float(torch.maximum(self.aabb[0] - o, o - self.aabb[1]).clamp_min(0).norm())
+        depth = gap + 0.5 * float((self.aabb[1] - self.aabb[0]).norm())
+        px = float(torch.maximum(K[0, 0].abs(), K[1, 1].abs())) * float(self.cell.max()) / max(depth, 1e-9)
+        f = 1
+        while 2 * f * px <= tile and 2 * f < int(self.resolution.max()):
+            f *= 2
+        centres, rho = self._pooled_cells(f)
+        if len(centres):
+            cam = (centres - o) @ R                             # (C,3) camera coordinates (OpenCV)
+            z_lo = cam[:, 2] - rho
+            if bool((z_lo <= 1e-6).any()):
+                return None
+            z_hi = cam[:, 2] + rho
+
+            def ratio_bounds(c):   # min and max of (c +- rho) / z over z in [z_lo, z_hi] (z > 0)
+                lo, hi = c - rho, c + rho
+                return (torch.minimum(lo / z_lo, lo / z_hi), torch.maximum(hi / z_lo, hi / z_hi))
+
+            (xa, xb), (ya, yb) = ratio_bounds(cam[:, 0]), ratio_bounds(cam[:, 1])
+            fx, sk, cx, fy, cy = (float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]))
+            # u = fx x/z + sk y/z + cx (fx, fy > 0): bound each term over its interval
+            u_lo = fx * xa + torch.minimum(sk * ya, sk * yb) + cx
+            u_hi = fx * xb + torch.maximum(sk * ya, sk * yb) + cx
+            v_lo, v_hi = fy * ya + cy, fy * yb + cy
+            on = (u_hi >= -1) & (u_lo <= width + 1) & (v_hi >= -1) & (v_lo <= height + 1)
+            dist = cam.norm(dim=-1)
+            c_near, c_far = (dist - rho).clamp_min(0), dist + rho
+            u_lo, u_hi, v_lo, v_hi, c_near, c_far = (t[on] for t in (u_lo, u_hi, v_lo, v_hi, c_near, c_far))
+            # tiles under the pixel box [floor(lo - 1), floor(hi + 1)], clipped to the image
+            x0 = torch.div((u_lo - 1).floor().clamp(0, width - 1).long(), tile, rounding_mode="floor")
+            x1 = torch.div((u_hi + 1).floor().clamp(0, width - 1).long(), tile, rounding_mode="floor")
+            y0 = torch.div((v_lo - 1).floor().clamp(0, height - 1).long(), tile, rounding_mode="floor")
+            y1 = torch.div((v_hi + 1).floor().clamp(0, height - 1).long(), tile, rounding_mode="floor")
+            nx = x1 - x0 + 1
+            cnt = nx * (y1 - y0 + 1)
+            total = int(cnt.sum())
+            if total:
+                cid = torch.repeat_interleave(torch.arange(len(cnt), device=dev), cnt, output_size=total)
+                within = torch.arange(total, device=dev) - (torch.cumsum(cnt, 0) - cnt)[cid]
+                nxc = nx[cid]
+                t_idx = (y0[cid] + torch.div(within, nxc, rounding_mode="floor")) * tw + x0[cid] + within % nxc
+                near.scatter_reduce_(0, t_idx, c_near[cid], "amin")
+                far.scatter_reduce_(0, t_idx, c_far[cid], "amax")
+        # tiles -> pixels, widened by a small fraction of a cell against rounding at cell borders
+        pad = 0.01 * float(self.cell.min())
+        rows = torch.arange(height, device=dev) // tile
+        cols = torch.arange(width, device=dev) // tile
+        t_of_px = (rows[:, None] * tw + cols[None, :]).reshape(-1)
+        return near[t_of_px] - pad, far[t_of_px] + pad
+
+    def _pooled_cells(self, f: int):
+        """Centres (C,3) of the occupied cells of the grid max-pooled by ``f``, and the radius of the
+        sphere through a pooled cell's corners; cached until ``occ`` is replaced or written."""
+        key = (id(self.occ), self.occ.data_ptr(), self.occ._version, f, self.aabb.data_ptr())
+        cache = self.__dict__.setdefault("_pooled_cache", {})
+        if cache.get("key") != key:
+            cache.clear()
+            cache["key"] = key
+        if f not in cache:
+            occ = self.occ
+            if f > 1:
+                occ = F.max_pool3d(occ[None, None].float(), f, f, ceil_mode=True)[0, 0] > 0
+            ijk = occ.nonzero()
+            size = self.cell * f
+            lo = self.aabb[0] + ijk.float() * size
+            hi = torch.minimum(lo + size, self.aabb[1])
+            cache[f] = ((lo + hi) * 0.5, 0.5 * float(size.norm()) * 1.0001)
+        return cache[f]
+
+    def camera_ranges_reference(self, origins: torch.Tensor, dirs: torch.Tensor):
+        """Exact per-ray form of :meth:`camera_ranges` (slab test of every ray against every occupied
+        cell; small grids only): (near, far) (R,) of the cells each ray meets (inf, -inf where none)."""
+        idx = self.occ.reshape(-1).nonzero().squeeze(1)
+        lo = self.cell_centers(idx) - 0.5 * self.cell
+        hi = lo + self.cell
+        inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
+        t0 = (lo[None] - origins[:, None]) * inv[:, None]
+        t1 = (hi[None] - origins[:, None]) * inv[:, None]
+        t_in = torch.minimum(t0, t1).max(-1).values.clamp_min(0)
+        t_out = torch.maximum(t0, t1).min(-1).values
+        hit = t_out >= t_in
+        near = torch.where(hit, t_in, torch.full_like(t_in, float("inf"))).min(1).values
+        far = torch.where(hit, t_out, torch.full_like(t_out, float("-inf"))).max(1).values
+        return near, far
+
     def cell_centers(self, flat_idx: torch.Tensor) -> torch.Tensor:
         ry, rz = int(self.resolution[1]), int(self.resolution[2])
         i = torch.div(flat_idx, ry * rz, rounding_mode="floor")

@@ -96,3 +96,46 @@ def test_mod_colour_weights_predict_the_render_of_changed_mod_colours(blob_mesh,
         pred = sum(W @ dl.numpy() for W, dl in zip(Ws, deltas))
         assert np.abs(after - before).max() > 0.05
         assert np.allclose(after - before, pred, atol=1e-5)
+
+
+@pytest.mark.parametrize("interp", ["post", "early"])
+def test_skipping_empty_pixels_and_distances_renders_the_same_image(blob_mesh, interp):
+    """RenderSettings.skip_empty (per-pixel ray ranges from the occupancy grid, empty pixels not
+    marched) against marching every pixel through the whole box: the same samples, so the same image
+    up to float summation order; also supersampled, with a holdout in front, and for two fields."""
+    f = textured_field(blob_mesh, interpolation=interp)
+    f.grid.refresh(lambda x: f.query(x, with_rgb=False)[0], f.radius * 0.25)
+    g = textured_field(blob_mesh, interpolation=interp, seed=1)
+    g.set_vertices(g.rest_vertices + torch.tensor([0.9, 0.2, 0.0]))
+    K, c2w = _cam(40, 32)
+    c2w[2, 3] = -6.0    # the object in the middle, empty tiles around it
+    near, far_r = f.grid.camera_ranges(K, c2w, 40, 32, 2)
+    assert 0.3 < float((near <= far_r).float().mean()) < 0.9
+    far = np.full((32, 40), np.inf, np.float32)
+    far[:, :20] = 5.9   # a holdout cutting the left of the field
+    cases = [dict(fields=f), dict(fields=f, settings=dict(supersample=2)), dict(fields=f, far=far),
+             dict(fields=[f, g], background=None)]
+    for case in cases:
+        kw = {k: v for k, v in case.items() if k not in ("fields", "settings")}
+        outs = [nm.render_camera(case["fields"], K, c2w, 40, 32, **kw, settings=nm.RenderSettings(
+                    skip_empty=skip, empty_tile=2, **case.get("settings", {}))) for skip in (False, True)]
+        a, b = outs
+        assert a.opacity.max() > 0.5 and (a.opacity < 1e-6).mean() > 0.1, case   # object and empty pixels
+        np.testing.assert_allclose(b.rgb, a.rgb, atol=1e-5)
+        np.testing.assert_allclose(b.opacity, a.opacity, atol=1e-5)
+        np.testing.assert_allclose(b.mod_rgb, a.mod_rgb, atol=1e-5)
+        assert np.array_equal(np.isinf(a.depth), np.isinf(b.depth))
+        fin = np.isfinite(a.depth)
+        np.testing.assert_allclose(b.depth[fin], a.depth[fin], rtol=1e-4)
+        assert abs(a.n_samples - b.n_samples) <= 2
+
+
+def test_skip_empty_reports_progress_and_cancels(blob_mesh):
+    f = textured_field(blob_mesh)
+    K, c2w = _cam()
+    seen = []
+    nm.render_camera(f, K, c2w, 20, 16, progress=lambda x: seen.append(x),
+                     settings=nm.RenderSettings(chunk_rays=37))
+    assert len(seen) > 2 and seen == sorted(seen) and seen[-1] == pytest.approx(1.0)
+    with pytest.raises(nm.Cancelled):
+        nm.render_camera(f, K, c2w, 20, 16, progress=lambda x: False, settings=nm.RenderSettings(chunk_rays=37))
