@@ -485,9 +485,17 @@ class NeuMeshField(nn.Module):
             sigma = reduce(trunc_exp(run_decoder(self.geo_decoder, geo_in))).squeeze(-1)
         if not with_rgb:
             return sigma, None, None
-        d = dirs[:, None, :].expand(m, k, 3).reshape(-1, 3) if sample is None else dirs[sample]
-        d, n = self._code_frame(vid, d)
-        rad_in = [self.codes(("tex",), vid)[0], pe, wk[:, None], sh_encoding(d, self.config.sh_degree), n]
+        if self.to_rest is None and self.tex_frame is None and not torch.is_grad_enabled():
+            # every neighbour of a sample sees the same direction: encode it once per sample (the SH
+            # of each row, below, is the reference; the same values)
+            sh_s = sh_encoding(dirs, self.config.sh_degree)
+            sh = sh_s[:, None, :].expand(m, k, -1).reshape(m * k, -1) if sample is None else take_rows(sh_s, sample)
+            n = take_rows(self.rest_normals, vid)
+        else:
+            d = dirs[:, None, :].expand(m, k, 3).reshape(-1, 3) if sample is None else dirs[sample]
+            d, n = self._code_frame(vid, d)
+            sh = sh_encoding(d, self.config.sh_degree)
+        rad_in = [self.codes(("tex",), vid)[0], pe, wk[:, None], sh, n]
         mod_k = self.rows(self.mod_colors, vid)
         c_k = torch.sigmoid(self._decode_rgb_rows(rad_in, vid)) + mod_k
         return sigma, reduce(c_k), reduce(mod_k)
