@@ -250,6 +250,9 @@ class NEUMESH_PT_bake(EditSubPanel, bpy.types.Panel):
 classes = (NEUMESH_OT_bake_material, NEUMESH_PT_bake)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
 def register():
     bpy.types.WindowManager.neumesh_bake_resolution = IntProperty(
         name="Texture size", default=1024, min=64, max=8192, description="Baked texture width and height (pixels)")
@@ -259,13 +262,11 @@ def register():
         name="Decimate ratio", default=1.0, min=0.001, max=1.0, precision=3,
         description="Bake onto a copy of the scaffold reduced by Blender's Decimate modifier to this fraction "
                     "of its faces (1 = the scaffold itself)")
-    for c in classes:
-        bpy.utils.register_class(c)
+    _register_classes()
 
 
 def unregister():
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+    _unregister_classes()
     for p in ("neumesh_bake_resolution", "neumesh_bake_shading", "neumesh_bake_decimate"):
         if hasattr(bpy.types.WindowManager, p):
             delattr(bpy.types.WindowManager, p)

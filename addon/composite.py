@@ -241,11 +241,4 @@ class NEUMESH_OT_composite_with_scene(bpy.types.Operator):
 classes = (NEUMESH_OT_composite_with_scene,)
 
 
-def register():
-    for c in classes:
-        bpy.utils.register_class(c)
-
-
-def unregister():
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+register, unregister = bpy.utils.register_classes_factory(classes)

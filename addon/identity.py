@@ -189,13 +189,14 @@ def corner_rows(obj, field, corner_vertices: np.ndarray):
 classes = (NeuMeshFieldRef,)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
 def register():
-    for c in classes:
-        bpy.utils.register_class(c)
+    _register_classes()
     bpy.types.Scene.neumesh_fields = CollectionProperty(type=NeuMeshFieldRef)
 
 
 def unregister():
     del bpy.types.Scene.neumesh_fields
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+    _unregister_classes()

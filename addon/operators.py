@@ -456,9 +456,11 @@ classes = (NEUMESH_OT_import_dataset, NEUMESH_OT_import_mesh, NEUMESH_OT_build_s
            NEUMESH_OT_train_cancel, NEUMESH_OT_load_field, NEUMESH_OT_render_images)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
 def register():
-    for c in classes:
-        bpy.utils.register_class(c)
+    _register_classes()
 
 
 def unregister():
@@ -467,5 +469,4 @@ def unregister():
     job = worker.current()
     if job is not None and job.running:
         job.cancel()
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+    _unregister_classes()

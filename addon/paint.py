@@ -251,11 +251,4 @@ class NEUMESH_PT_paint(EditSubPanel, bpy.types.Panel):
 classes = (NEUMESH_OT_paint_view, NEUMESH_OT_apply_paint, NEUMESH_PT_paint)
 
 
-def register():
-    for c in classes:
-        bpy.utils.register_class(c)
-
-
-def unregister():
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+register, unregister = bpy.utils.register_classes_factory(classes)

@@ -282,9 +282,11 @@ classes = (NEUMESH_AP_preferences, NEUMESH_OT_check_dependencies, NEUMESH_OT_cop
            NEUMESH_OT_install_dependencies)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
 def register():
-    for c in classes:
-        bpy.utils.register_class(c)
+    _register_classes()
     try:
         deps.configure_sys_path(extra_paths())
     except Exception:
@@ -292,5 +294,4 @@ def register():
 
 
 def unregister():
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+    _unregister_classes()

@@ -216,9 +216,11 @@ def _relink(only_missing: bool):
 classes = (NeuMeshObjectSettings, NeuMeshSceneSettings)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
 def register():
-    for c in classes:
-        bpy.utils.register_class(c)
+    _register_classes()
     bpy.types.Object.neumesh = PointerProperty(type=NeuMeshObjectSettings)
     bpy.types.Scene.neumesh = PointerProperty(type=NeuMeshSceneSettings)
     for handlers, fn in _HANDLERS():
@@ -237,5 +239,4 @@ def unregister():
             handlers.remove(fn)
     del bpy.types.Scene.neumesh
     del bpy.types.Object.neumesh
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+    _unregister_classes()

@@ -150,11 +150,4 @@ classes = (NEUMESH_PT_data, NEUMESH_PT_scaffold, NEUMESH_PT_train, NEUMESH_PT_fi
            NEUMESH_PT_render)
 
 
-def register():
-    for c in classes:
-        bpy.utils.register_class(c)
-
-
-def unregister():
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+register, unregister = bpy.utils.register_classes_factory(classes)
