@@ -42,15 +42,12 @@ import threading
 import tempfile
 import time
 
-_BASE = tempfile.mkdtemp(prefix="neumesh_bench_")
-for _v, _s in (("BLENDER_USER_RESOURCES", "user"), ("XDG_CACHE_HOME", "cache"), ("TMPDIR", "tmp")):
-    os.makedirs(os.path.join(_BASE, _s), exist_ok=True)
-    os.environ[_v] = os.path.join(_BASE, _s)
-tempfile.tempdir = os.environ["TMPDIR"]
-
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "blender_tests"))
+import user_dirs  # noqa: E402
+
+_BASE = user_dirs.redirect("neumesh_bench_")
 
 import numpy as np  # noqa: E402
 

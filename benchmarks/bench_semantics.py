@@ -102,13 +102,10 @@ def _viewport_matrices(K, c2w, w: int, h: int):
 
 def blender_clicks(field_path: str, cams, clicks, threshold: float):
     """Seconds per click through the add-on operator (bpy), first and later clicks."""
-    import tempfile
+    sys.path.insert(0, os.path.join(ROOT, "blender_tests"))
+    import user_dirs
 
-    base = tempfile.mkdtemp(prefix="neumesh_bench_sem_")
-    for v, s in (("BLENDER_USER_RESOURCES", "user"), ("XDG_CACHE_HOME", "cache"), ("TMPDIR", "tmp")):
-        os.makedirs(os.path.join(base, s), exist_ok=True)
-        os.environ[v] = os.path.join(base, s)
-    tempfile.tempdir = os.environ["TMPDIR"]
+    base = user_dirs.redirect("neumesh_bench_sem_")
     import bpy
     import addon_utils
 

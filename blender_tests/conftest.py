@@ -8,14 +8,11 @@ from __future__ import annotations
 
 import os
 import sys
-import tempfile
 
-_BASE = tempfile.mkdtemp(prefix="neumesh_btests_")
-for _var, _sub in (("BLENDER_USER_RESOURCES", "blender_user"), ("XDG_CACHE_HOME", "cache"),
-                   ("XDG_CONFIG_HOME", "config"), ("TMPDIR", "tmp"), ("HOME", "home")):
-    os.makedirs(os.path.join(_BASE, _sub), exist_ok=True)
-    os.environ[_var] = os.path.join(_BASE, _sub)
-tempfile.tempdir = os.environ["TMPDIR"]
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import user_dirs  # noqa: E402
+
+_BASE = user_dirs.redirect("neumesh_btests_")
 
 import pytest  # noqa: E402
 

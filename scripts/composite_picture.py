@@ -21,18 +21,14 @@ import json
 import math
 import os
 import sys
-import tempfile
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-_BASE = tempfile.mkdtemp(prefix="neumesh_composite_")
-for _var, _sub in (("BLENDER_USER_RESOURCES", "blender_user"), ("XDG_CACHE_HOME", "cache"),
-                   ("XDG_CONFIG_HOME", "config"), ("TMPDIR", "tmp"), ("HOME", "home")):
-    os.makedirs(os.path.join(_BASE, _sub), exist_ok=True)
-    os.environ[_var] = os.path.join(_BASE, _sub)
-tempfile.tempdir = os.environ["TMPDIR"]
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "blender_tests"))
+import user_dirs  # noqa: E402
+
+_BASE = user_dirs.redirect("neumesh_composite_")
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
