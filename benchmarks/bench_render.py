@@ -72,6 +72,7 @@ def baseline_comparison(field, field_path: str, tree: str, cams, size: int, roun
     """Frame times of this code and of the code in ``tree`` on the same views, interleaved, and the
     PSNR of this code's images against that code's."""
     import neumesh_core as nm
+    from neumesh_core.metrics import psnr as image_psnr
 
     spec = [{"K": scaled(K, size / (2 * K[0, 2])).tolist(), "c2w": np.asarray(c2w).tolist(), "size": size}
             for K, c2w in cams]
@@ -93,10 +94,7 @@ def baseline_comparison(field, field_path: str, tree: str, cams, size: int, roun
                 new_imgs[i] = o.rgb
             new_t.append(times)
         old_imgs = np.load(img_file)
-        psnr = []
-        for i in range(len(spec)):
-            mse = float(np.mean((new_imgs[i] - old_imgs[str(i)]) ** 2))
-            psnr.append(float("inf") if mse == 0 else float(10 * np.log10(1.0 / mse)))
+        psnr = [image_psnr(new_imgs[i], old_imgs[str(i)]) for i in range(len(spec))]
     old_best = np.min(np.array(old_t), 0)
     new_best = np.min(np.array(new_t), 0)
     return {"tree": tree, "size": size, "rounds": rounds, "baseline_s": old_best.tolist(),

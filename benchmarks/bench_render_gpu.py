@@ -29,6 +29,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _results import write_results  # noqa: E402
 from bench_render import dataset_cameras, orbit_cameras, scaled  # noqa: E402
+from neumesh_core.metrics import psnr  # noqa: E402
 
 
 def cameras_from_file(path: str, n: int):
@@ -48,11 +49,6 @@ def set_knn(field, backend: str) -> None:
     sc = field.scaffold
     sc.knn = field.config.knn = backend
     sc.index = make_index(sc.vertices_, sc.k, sc.radius, backend)
-
-
-def psnr(a, b) -> float:
-    mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
-    return float("inf") if mse == 0 else float(10 * np.log10(1.0 / mse))
 
 
 def sync(device) -> None:

@@ -516,6 +516,9 @@ class NeuMeshField(nn.Module):
                 return F.embedding_bag(nb.idx, table, per_sample_weights=nb.w, mode="sum")
             return wsum(self.rows(table, nb.idx))
 
+        def code_sum(name):       # sum_k w_k codes_k (with the coarse levels, when attached)
+            return wsum_rows(self.code_table(name)) if bag else wsum(codes[name])
+
         p = (nb.p * nb.w).sum(1)
         wi = (nb.w * nb.w).sum(1)
         pe = self._p_encoding(p)
@@ -523,7 +526,7 @@ class NeuMeshField(nn.Module):
         codes = {} if bag else dict(zip(names, self.codes(names, nb.idx)))
         sigma = None
         if with_sigma:
-            geo = wsum_rows(self.geo_codes) if bag else wsum(codes["geo"])
+            geo = code_sum("geo")
             sigma = trunc_exp(run_decoder(self.geo_decoder, [geo, pe, wi[:, None]]).squeeze(-1))
             sigma = torch.where(nb.valid.any(1), sigma, torch.zeros_like(sigma))
         if not with_rgb:
@@ -545,7 +548,7 @@ class NeuMeshField(nn.Module):
         shared = [pe, wi[:, None], sh_encoding(d, self.config.sh_degree), n]   # column blocks
         single = 0 if len(self.rad_decoders) == 1 else self._single_decoder(nb)
         if single is not None:   # one decoder for every neighbour: decode the interpolated code once
-            tex = wsum_rows(self.tex_codes) if bag else wsum(codes["tex"])
+            tex = code_sum("tex")
             rgb = torch.sigmoid(run_decoder(self.rad_decoders[single], [tex] + shared)) + mod
         else:
             tex_k = take_rows(self.tex_codes, nb.idx) if bag else codes["tex"]

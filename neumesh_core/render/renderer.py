@@ -289,11 +289,10 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     total = max(1, len(offsets) * m)
     far_m = far_t if pixels is None or far_t is None else far_t[pixels]
     pix_cpu = None if pixels is None else pixels.cpu()
+    pix_xy = None if pixels is None else torch.stack([pixels % width, pixels // width], -1)
     with torch.no_grad():
         for k, off in enumerate(offsets):
-            origins, dirs = pixel_rays(K, c2w, width, height, device=device, offset=off)
-            if pixels is not None:
-                origins, dirs = origins[pixels], dirs[pixels]
+            origins, dirs = pixel_rays(K, c2w, width, height, device=device, pixels=pix_xy, offset=off)
             for s in range(0, m, chunk):
                 e = min(m, s + chunk)
                 out = render_rays(fl, origins[s:e], dirs[s:e], None, settings, train=False,

@@ -173,14 +173,18 @@ class OccupancyGrid:
         ijk = torch.minimum(ijk.clamp_min_(0), res - 1)
         return self.occ.reshape(-1)[self._flat_index(ijk, res)]
 
+    @staticmethod
+    def _slab(origins: torch.Tensor, dirs: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor):
+        """Entry/exit distances of rays (...,3) with boxes [lo, hi] (...,3), broadcast together (the
+        slab test); exit < entry where a ray misses its box."""
+        inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
+        t0 = (lo - origins) * inv
+        t1 = (hi - origins) * inv
+        return torch.minimum(t0, t1).max(-1).values, torch.maximum(t0, t1).min(-1).values
+
     def ray_aabb(self, origins: torch.Tensor, dirs: torch.Tensor):
         """Entry/exit distances of rays with the grid box; t_far < t_near where a ray misses."""
-        inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
-        t0 = (self.aabb[0] - origins) * inv
-        t1 = (self.aabb[1] - origins) * inv
-        t_near = torch.minimum(t0, t1).max(-1).values
-        t_far = torch.maximum(t0, t1).min(-1).values
-        return t_near, t_far
+        return self._slab(origins, dirs, self.aabb[0], self.aabb[1])
 
     def camera_ranges(self, K, c2w, width: int, height: int, tile: int = 8):
         """Where each pixel's ray can meet an occupied cell: per-pixel distances (near, far), each
@@ -194,7 +198,7 @@ class OccupancyGrid:
         to the centre - radius, distance + radius], and each tile keeps the smallest near and the
         largest far over its cells.  A point of a ray lies at distance t = |x - o|, so no occupied point
         of a pixel's ray lies outside its tile's interval (at any sub-pixel position of the ray).
-        :meth:`camera_ranges_reference` is the exact per-ray form.  K (3,3) pixels (no skew needed),
+        :meth:`camera_ranges_reference` is the exact per-ray form.  K (3,3) pixels (skew allowed),
         c2w (4,4) OpenCV.
         """
         dev = self.aabb.device
@@ -280,12 +284,8 @@ class OccupancyGrid:
         cell; small grids only): (near, far) (R,) of the cells each ray meets (inf, -inf where none)."""
         idx = self.occ.reshape(-1).nonzero().squeeze(1)
         lo = self.cell_centers(idx) - 0.5 * self.cell
-        hi = lo + self.cell
-        inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
-        t0 = (lo[None] - origins[:, None]) * inv[:, None]
-        t1 = (hi[None] - origins[:, None]) * inv[:, None]
-        t_in = torch.minimum(t0, t1).max(-1).values.clamp_min(0)
-        t_out = torch.maximum(t0, t1).min(-1).values
+        t_in, t_out = self._slab(origins[:, None], dirs[:, None], lo[None], (lo + self.cell)[None])
+        t_in = t_in.clamp_min(0)
         hit = t_out >= t_in
         near = torch.where(hit, t_in, torch.full_like(t_in, float("inf"))).min(1).values
         far = torch.where(hit, t_out, torch.full_like(t_out, float("-inf"))).max(1).values

@@ -227,6 +227,17 @@ def test_take_rows_is_advanced_indexing():
     assert t.grad[1].tolist() == [2.0, 2.0, 2.0] and t.grad[0].tolist() == [0.0, 0.0, 0.0]
 
 
+def _assert_decode_matches_autograd_reference(f, nb, d):
+    """The decode without autograd (rendering's fast paths) against the same decode with autograd on
+    (the reference paths): sigma, rgb and mod colour."""
+    with torch.no_grad():
+        fast = f.decode(nb, d)
+    with torch.enable_grad():
+        ref = [t.detach() for t in f.decode(nb, d)]
+    for a, b in zip(fast, ref):
+        assert torch.allclose(a, b, atol=1e-5, rtol=1e-5), (a - b).abs().max()
+
+
 @pytest.mark.parametrize("case", ["rest", "deformed", "tex_frame", "two_decoders"])
 def test_early_decode_without_autograd_matches_the_gather_reference(blob_mesh, case):
     """Rendering (autograd off) sums w-weighted per-vertex rows with one embedding bag; with autograd
@@ -251,12 +262,7 @@ def test_early_decode_without_autograd_matches_the_gather_reference(blob_mesh, c
     d = torch.nn.functional.normalize(torch.randn(3000, 3, generator=g), dim=-1)
     nb = f.neighbourhood(x)
     assert bool((~nb.valid).any()) and bool(nb.valid.all(1).any())   # partial and full neighbourhoods
-    with torch.no_grad():
-        fast = f.decode(nb, d)
-    with torch.enable_grad():
-        ref = [t.detach() for t in f.decode(nb, d)]
-    for a, b in zip(fast, ref):
-        assert torch.allclose(a, b, atol=1e-5, rtol=1e-5), (a - b).abs().max()
+    _assert_decode_matches_autograd_reference(f, nb, d)
 
 
 def test_run_decoder_on_column_blocks_matches_the_concatenated_input():
@@ -291,9 +297,4 @@ def test_post_decode_without_autograd_matches_the_per_row_reference(blob_mesh, s
     nb = f.neighbourhood(x)
     dense = int(nb.valid.sum()) >= 0.85 * nb.valid.numel()
     assert dense != sparse
-    with torch.no_grad():
-        fast = f.decode(nb, d)
-    with torch.enable_grad():
-        ref = [t.detach() for t in f.decode(nb, d)]
-    for a, b in zip(fast, ref):
-        assert torch.allclose(a, b, atol=1e-5, rtol=1e-5), (a - b).abs().max()
+    _assert_decode_matches_autograd_reference(f, nb, d)
