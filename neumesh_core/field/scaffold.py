@@ -12,6 +12,7 @@ move with the surface.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from concurrent.futures import ThreadPoolExecutor
 from typing import Optional
 
 import numpy as np
@@ -19,8 +20,11 @@ import torch
 from torch import nn
 
 from ..errors import VertexMismatchError
-from ..mesh import Mesh, vertex_normals
+from ..mesh import Mesh, face_incidence, vertex_normals
 from .knn import VertexIndex, make_index, vertex_neighbours
+
+# builds neighbour indices beside the main thread (Scaffold.set_vertices)
+_INDEX_BUILDER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="neumesh-index")
 
 # persistent buffers of a Scaffold (saved in field files as ``buffer/scaffold.<name>``)
 PERSISTENT = ("faces", "tangent_ref", "rest_vertices", "tv_neighbours")
@@ -61,17 +65,32 @@ class Neighbourhood:
 
 
 def tangent_frames(vertices: torch.Tensor, normals: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """(N,3,3) orthonormal frames with columns (t, b, n); t points towards vertex ``ref``."""
-    e = vertices[ref] - vertices
+    """(N,3,3) orthonormal frames with columns (t, b, n); t points towards vertex ``ref``.
+
+    t is the edge to ``ref`` projected on the tangent plane; where that edge is missing or within 1e-4
+    rad of the normal, a fixed axis projected instead.  Edges within 0.01 rad of the normal are
+    projected twice, so float32 round-off cannot leave t off the plane.
+    """
+    e = vertices.index_select(0, ref) - vertices
     t = e - (e * normals).sum(-1, keepdim=True) * normals
-    # fall back to a fixed axis where the edge is (nearly) parallel to the normal or missing
-    axis = torch.where(normals[:, :1].abs() < 0.9,
-                       torch.tensor([1.0, 0.0, 0.0], device=normals.device).expand_as(normals),
-                       torch.tensor([0.0, 1.0, 0.0], device=normals.device).expand_as(normals))
-    t_fb = axis - (axis * normals).sum(-1, keepdim=True) * normals
-    tl = t.norm(dim=-1, keepdim=True)
-    t = torch.where(tl > 1e-8, t / tl.clamp_min(1e-12), t_fb / t_fb.norm(dim=-1, keepdim=True))
-    b = torch.cross(normals, t, dim=-1)
+    tl = torch.linalg.vector_norm(t, dim=-1, keepdim=True)
+    el = torch.linalg.vector_norm(e, dim=-1, keepdim=True)
+    t = t / tl.clamp_min(1e-30)
+    steep = (tl[:, 0] < 1e-2 * el[:, 0]).nonzero().squeeze(1)
+    if steep.numel():
+        ns = normals.index_select(0, steep)
+        ts = t.index_select(0, steep)
+        ts = ts - (ts * ns).sum(-1, keepdim=True) * ns
+        t = t.index_copy(0, steep, ts / torch.linalg.vector_norm(ts, dim=-1, keepdim=True).clamp_min(1e-30))
+    bad = (tl[:, 0] <= 1e-4 * el[:, 0]).nonzero().squeeze(1)
+    if bad.numel():
+        nb = normals.index_select(0, bad)
+        axis = torch.where(nb[:, :1].abs() < 0.9,
+                           torch.tensor([1.0, 0.0, 0.0], device=normals.device).expand_as(nb),
+                           torch.tensor([0.0, 1.0, 0.0], device=normals.device).expand_as(nb))
+        t_fb = axis - (axis * nb).sum(-1, keepdim=True) * nb
+        t = t.index_copy(0, bad, t_fb / t_fb.norm(dim=-1, keepdim=True))
+    b = torch.linalg.cross(normals, t, dim=-1)
     return torch.stack([t, b, normals], -1)
 
 
@@ -161,17 +180,35 @@ class Scaffold(nn.Module):
                 "on the new mesh.")
         if not torch.isfinite(v).all():
             raise VertexMismatchError("new vertex positions contain NaN/inf; check the deformer")
+        # the neighbour index is built on a worker thread (pykdtree's build releases the GIL) while the
+        # normals and frames are computed here; nothing is changed before both are ready, so a failure
+        # leaves the field as it was
+        index = _INDEX_BUILDER.submit(make_index, v, self.k, self.radius, self.knn)
         with torch.no_grad():
-            self.vertices_.copy_(v)
             if torch.equal(v, self.rest_vertices):
-                self.normals.copy_(self.rest_normals)
-                self.to_rest = None
+                normals, to_rest = self.rest_normals, None
             else:
-                self.normals.copy_(vertex_normals(v, self.faces))
-                frames = tangent_frames(v, self.normals, self.tangent_ref)
+                normals = vertex_normals(v, self.faces, self._face_incidence())
+                frames = tangent_frames(v, normals, self.tangent_ref)
                 # rotation current -> rest: R = F_rest F_cur^T
-                self.to_rest = self.rest_frames @ frames.transpose(1, 2)
-        self.index = make_index(v, self.k, self.radius, self.knn)
+                to_rest = self.rest_frames @ frames.transpose(1, 2)
+            self.index = index.result()
+            self.vertices_.copy_(v)
+            self.normals.copy_(normals)
+            self.to_rest = to_rest
+        self._update_grid(v)
+
+    def _face_incidence(self) -> torch.Tensor:
+        """:func:`face_incidence` of the faces, cached while the faces (buffer and device) stay."""
+        f = self.faces
+        key = (f.data_ptr(), f._version, self.num_vertices)
+        cached = self.__dict__.get("_incidence_cache")
+        if cached is None or cached[0] != key:
+            cached = (key, face_incidence(f, self.num_vertices))
+            self.__dict__["_incidence_cache"] = cached
+        return cached[1]
+
+    def _update_grid(self, v: torch.Tensor) -> None:
         # the grid refined from densities is valid in the rest pose only: keep it aside while deformed,
         # and carry its occupied cells along with the surface (each moves rigidly with its nearest vertex)
         if self.to_rest is None:
@@ -191,8 +228,9 @@ class Scaffold(nn.Module):
             carried = None
             if self._grid_anchors is not None:
                 vid, offset = self._grid_anchors
-                rest_to_cur = self.to_rest[vid].transpose(1, 2)
-                carried = v[vid] + (rest_to_cur * offset[:, None, :]).sum(-1)
+                # rest -> current is to_rest transposed: offset_j R_ij summed over i, one bmm
+                carried = v.index_select(0, vid) + torch.bmm(
+                    offset[:, None, :], take_rows(self.to_rest, vid)).squeeze(1)
             self.grid.rebuild_from_vertices(v, self.radius, carried)
 
     def neighbourhood(self, x: torch.Tensor) -> Neighbourhood:
@@ -230,6 +268,8 @@ class Scaffold(nn.Module):
         new = type(self).__new__(type(self))
         memo[id(self)] = new
         for k, v in self.__dict__.items():
+            if k.endswith("_cache"):   # derived data (vertex table, face incidence): rebuilt on use
+                continue
             new.__dict__[k] = None if k == "index" else copy.deepcopy(v, memo)
         new.index = make_index(new.vertices_, new.k, new.radius, new.knn)
         return new
