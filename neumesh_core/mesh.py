@@ -46,10 +46,10 @@ def face_incidence(faces, num_vertices: int) -> torch.Tensor:
     """
     import warnings
 
-    f = torch.as_tensor(np.asarray(faces) if isinstance(faces, np.ndarray) else faces, dtype=torch.long)
+    f = torch.as_tensor(faces, dtype=torch.long)
     rows = f.reshape(-1)
     cols = torch.arange(len(f), device=f.device).repeat_interleave(3)
-    order = torch.argsort(rows * max(len(f), 1) + cols)   # CSR wants rows sorted (faces ascending inside)
+    order = torch.sort(rows, stable=True).indices   # CSR wants rows sorted (stable: faces ascending inside)
     crow = torch.zeros(num_vertices + 1, dtype=torch.long, device=f.device)
     crow[1:] = torch.cumsum(torch.bincount(rows, minlength=num_vertices), 0)
     with warnings.catch_warnings():   # "sparse CSR support is in beta": the product used here is stable
@@ -67,14 +67,13 @@ def vertex_normals(vertices, faces, incidence: "torch.Tensor | None" = None):
     is_np = isinstance(vertices, np.ndarray)
     v = torch.as_tensor(vertices, dtype=torch.float32)
     f = torch.as_tensor(np.asarray(faces) if is_np else faces, dtype=torch.long, device=v.device)
-    if len(f) and incidence is not None:
+    n = torch.zeros_like(v)
+    if len(f):
         tri = v.index_select(0, f.reshape(-1)).reshape(-1, 3, 3)
-        fn = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        n = incidence @ fn
-    else:
-        n = torch.zeros_like(v)
-        if len(f):
-            fn = torch.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]], dim=-1)
+        fn = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])   # twice the face areas
+        if incidence is not None:
+            n = incidence @ fn
+        else:
             for i in range(3):
                 n.index_add_(0, f[:, i], fn)
     length = n.norm(dim=-1, keepdim=True)

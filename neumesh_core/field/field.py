@@ -535,12 +535,9 @@ class NeuMeshField(nn.Module):
             n = wsum_rows(self.rest_normals)
             if self.to_rest is None:
                 d = dirs
-            elif bag:   # sum_k w_k R_k d = (sum_k w_k R_k) d: one bag of the (N,9) rotations
+            else:   # sum_k w_k R_k d = (sum_k w_k R_k) d: one weighted sum of the (N,9) rotations
                 r = wsum_rows(self.to_rest.reshape(-1, 9)).view(-1, 3, 3)
                 d = torch.bmm(r, dirs[:, :, None]).squeeze(-1)
-                d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-            else:
-                d = (self.scaffold.rest_dirs(nb.idx, dirs[:, None, :]) * w).sum(1)
                 d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         else:   # each neighbour's normal and view direction in its code frame, then w-weighted means
             dk, nk = self._code_frame(nb.idx, dirs[:, None, :].expand(-1, nb.idx.shape[1], 3))

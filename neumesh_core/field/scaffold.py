@@ -198,15 +198,19 @@ class Scaffold(nn.Module):
             self.to_rest = to_rest
         self._update_grid(v)
 
-    def _face_incidence(self) -> torch.Tensor:
-        """:func:`face_incidence` of the faces, cached while the faces (buffer and device) stay."""
-        f = self.faces
-        key = (f.data_ptr(), f._version, self.num_vertices)
-        cached = self.__dict__.get("_incidence_cache")
+    def _derived(self, name: str, key: tuple, build):
+        """``build()``, cached as ``name`` while ``key`` (tensor pointers and versions) stays the same."""
+        cached = self.__dict__.get(name)
         if cached is None or cached[0] != key:
-            cached = (key, face_incidence(f, self.num_vertices))
-            self.__dict__["_incidence_cache"] = cached
+            cached = (key, build())
+            self.__dict__[name] = cached
         return cached[1]
+
+    def _face_incidence(self) -> torch.Tensor:
+        """:func:`face_incidence` of the faces, rebuilt when the faces buffer is written or moved."""
+        f = self.faces
+        return self._derived("_incidence_cache", (f.data_ptr(), f._version, self.num_vertices),
+                             lambda: face_incidence(f, self.num_vertices))
 
     def _update_grid(self, v: torch.Tensor) -> None:
         # the grid refined from densities is valid in the rest pose only: keep it aside while deformed,
@@ -248,12 +252,8 @@ class Scaffold(nn.Module):
         """(N,6) current positions and normals side by side (one gather per neighbourhood instead of
         two); rebuilt whenever either buffer was written (their version counters) or moved."""
         v, n = self.vertices_, self.normals
-        key = (v.data_ptr(), v._version, n.data_ptr(), n._version)
-        cached = self.__dict__.get("_vertex_table_cache")
-        if cached is None or cached[0] != key:
-            cached = (key, torch.cat([v, n], 1))
-            self.__dict__["_vertex_table_cache"] = cached
-        return cached[1]
+        return self._derived("_vertex_table_cache", (v.data_ptr(), v._version, n.data_ptr(), n._version),
+                             lambda: torch.cat([v, n], 1))
 
     def rest_dirs(self, idx: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         """View directions d (...,3) in the rest frame of vertices idx (...,)."""
