@@ -34,8 +34,14 @@ class RenderSettings:
     # the same sample positions are evaluated, so the image is the same
     skip_empty: bool = True
     empty_tile: int = 8
+    # which renderer marches and decodes: "auto" (the fused Triton kernel on CUDA when triton imports and
+    # the field is covered, render/fused_triton.py; the torch path otherwise, the CPU included),
+    # "torch" (the reference) or "triton" (the kernel, an error where it cannot run)
+    backend: str = "auto"
 
     def __post_init__(self):
+        if self.backend not in ("auto", "torch", "triton"):
+            raise ValueError(f"backend must be 'auto', 'torch' or 'triton', not {self.backend!r}")
         if int(self.supersample) != self.supersample or self.supersample < 1:
             raise ValueError(f"supersample must be a whole number >= 1, got {self.supersample}")
 
@@ -86,6 +92,9 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
     settings = settings or RenderSettings()
     fl = _as_list(fields)
     n = origins.shape[0]
+    if settings.backend != "torch" and _fused(settings, fl, origins.device, train, jitter, vertex_ids, semantics):
+        return _render_fused(fl[0], origins, dirs, background, settings, far,
+                             None if ranges is None else ranges[0])
     t_far = float("inf") if far is None else far.to(origins.device, torch.float32)
     sem_width = _semantic_width(fl) if semantics else 0
     parts = []
@@ -144,6 +153,34 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
             out["sem"] = c["sem"]
     if vertex_ids:
         out["vertex_ids"] = touched
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)
+        out["rgb"] = out["rgb"] + (1.0 - out["opacity"])[:, None] * bg
+    return out
+
+
+def _fused(settings, fl, device, train, jitter, vertex_ids, semantics) -> bool:
+    if settings.backend == "auto" and torch.device(device).type != "cuda":
+        return False   # the CPU's default: the torch path (triton is not even imported)
+    from .fused_triton import use_triton
+
+    return use_triton(settings, fl, device, train=train, jitter=jitter, vertex_ids=vertex_ids,
+                      semantics=semantics)
+
+
+def _render_fused(field, origins, dirs, background, settings, far, ranges) -> dict:
+    """:func:`render_rays` through the fused Triton kernel (render/fused_triton.py): the same near/far
+    limits as the torch path, the same outputs."""
+    from .fused_triton import render_rays_fused
+
+    near_f = settings.near
+    far_f = float("inf") if far is None else far.to(origins.device, torch.float32)
+    if ranges is not None:
+        r_near, r_far = (x.to(origins.device) for x in ranges)
+        near_f = r_near.clamp_min(settings.near)
+        far_f = torch.minimum(r_far, far_f) if torch.is_tensor(far_f) else r_far.clamp_max(far_f)
+    out = render_rays_fused(field, origins, dirs, settings, near=near_f, far=far_f)
+    out["n_samples"] = int(out["n_samples"].sum())
     if background is not None:
         bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)
         out["rgb"] = out["rgb"] + (1.0 - out["opacity"])[:, None] * bg
