@@ -312,7 +312,7 @@ if triton is not None:
                 any_valid = tl.max(valid.to(tl.int32), 1) > 0
                 if EARLY:
                     gin = tl.zeros([BLOCK, GI], tl.float32)
-                    for k in tl.static_range(K):
+                    for k in range(K):
                         gin += tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)[:, None] * _rows(geo, tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1), found, GEO_D, GI, 0)
                     p = tl.sum(pk * w, 1)
                     wi = tl.sum(w * w, 1)
@@ -323,7 +323,7 @@ if triton is not None:
                     sigma = tl.where(any_valid, sigma, 0.0)
                 else:
                     sigma = tl.zeros([BLOCK], tl.float32)
-                    for k in tl.static_range(K):
+                    for k in range(K):
                         wk = tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)
                         gin = _rows(geo, tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1), found, GEO_D, GI, 0)
                         gin += _pe_cols(tl.sum(tl.where(slot[None, :] == k, pk, tl.zeros_like(pk)), 1) / radius, GI, GEO_D, PE_F) + tl.where((tl.arange(0, GI) == GEO_D + PE)[None, :], (wk)[:, None], 0.0)
@@ -367,7 +367,7 @@ if triton is not None:
                         r6 = tl.zeros([BLOCK], tl.float32)
                         r7 = tl.zeros([BLOCK], tl.float32)
                         r8 = tl.zeros([BLOCK], tl.float32)
-                        for k in tl.static_range(K):
+                        for k in range(K):
                             wk = tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)
                             ik = tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1).to(tl.int64)
                             tin += wk[:, None] * _rows(tex, ik, keep, TEX_D, RI, 0)
@@ -421,7 +421,7 @@ if triton is not None:
                         mg = tl.zeros([BLOCK], tl.float32)
                         mb = tl.zeros([BLOCK], tl.float32)
                         NO2: tl.constexpr = TEX_D + PE + 1 + SH
-                        for k in tl.static_range(K):
+                        for k in range(K):
                             wk = tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)
                             ik = tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1).to(tl.int64)
                             if DEFORMED:
