@@ -151,7 +151,7 @@ def profile_frame(field, cam, size, settings, device) -> dict:
                          "cpu_ms": e.self_cpu_time_total / 1e3} for e in top]}
 
 
-def sweep_options(field, cam, device, repeats, grid) -> list:
+def sweep_options(field, cam, device, repeats, grid, size=800) -> list:
     import neumesh_core as nm
     from neumesh_core.render import fused_triton as ft
 
@@ -162,12 +162,13 @@ def sweep_options(field, cam, device, repeats, grid) -> list:
         ft.KERNEL_OPTIONS.update(opts)
         try:
             t = time.perf_counter()
-            nm.render_camera(field, scaled(cam[0], 0.5), cam[1], 200, 200, settings=st)   # compile
+            w0 = min(200, size)
+            nm.render_camera(field, scaled(cam[0], w0 / 400), cam[1], w0, w0, settings=st)   # compile
             sync(device)
             compile_s = time.perf_counter() - t
-            s = min(frame_times(field, [cam], 800, st, repeats, device))
-            rows.append({**opts, "frame_800_s": s, "fps_800": 1 / s, "first_call_s": compile_s})
-            print(f"  sweep {opts}: 800² {s * 1e3:.2f} ms ({1 / s:.1f} fps), first call {compile_s:.1f} s", flush=True)
+            s = min(frame_times(field, [cam], size, st, repeats, device))
+            rows.append({**opts, "size": size, "frame_s": s, "fps": 1 / s, "first_call_s": compile_s})
+            print(f"  sweep {opts}: {size}² {s * 1e3:.2f} ms ({1 / s:.1f} fps), first call {compile_s:.1f} s", flush=True)
         except Exception as e:   # an option the compiler rejects on this GPU: record it, go on
             rows.append({**opts, "error": repr(e)[:300]})
             print(f"  sweep {opts}: failed {e!r}"[:300], flush=True)
@@ -236,10 +237,12 @@ def main(argv=None) -> int:
             base = {"block": 32, "cells_per_radius": 2, "num_warps": 4, "precision": "ieee"}
             grid = [base, {**base, "block": 64}, {**base, "cells_per_radius": 1}, {**base, "precision": "tf32x3"},
                     {**base, "block": 16, "num_warps": 2}]
-            result["sweep"] = sweep_options(field, cams[0], dev, args.repeats, grid)
+            if dev.type != "cuda":
+                grid = grid[:2]
+            result["sweep"] = sweep_options(field, cams[0], dev, args.repeats, grid, max(args.sizes))
             ok = [r for r in result["sweep"] if "error" not in r]
             if ok:
-                best = min(ok, key=lambda r: r["frame_800_s"])
+                best = min(ok, key=lambda r: r["frame_s"])
                 ft.KERNEL_OPTIONS.update({k: best[k] for k in ("block", "cells_per_radius", "num_warps", "precision")})
         result["kernel_options"] = dict(ft.KERNEL_OPTIONS)
         print(f"kernel options: {ft.KERNEL_OPTIONS}", flush=True)
@@ -258,7 +261,8 @@ def main(argv=None) -> int:
                     continue
                 st = nm.RenderSettings(backend=backend)
                 t = time.perf_counter()
-                nm.render_camera(field, scaled(cams[0][0], 0.5), cams[0][1], 200, 200, settings=st)  # warm up
+                w0 = min(200, min(args.sizes))
+                nm.render_camera(field, scaled(cams[0][0], w0 / 400), cams[0][1], w0, w0, settings=st)  # warm up
                 sync(dev)
                 row = dict(key, first_call_s=time.perf_counter() - t)
                 for size in args.sizes:

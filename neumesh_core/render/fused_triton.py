@@ -519,7 +519,7 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
     if n:
         tb = FieldTables(field, int(opts["cells_per_radius"]))
         occ = grid.occ.contiguous().view(torch.uint8)
-        res = [int(x) for x in grid.resolution.tolist()]
+        res = list(grid.occ.shape)   # host metadata: no device sync
         blk = int(opts["block"] or default_block(dev))
         rot = tb.rot if tb.rot is not None else tb.rest_n
         _render_kernel[(triton.cdiv(n, blk),)](
