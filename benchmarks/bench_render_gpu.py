@@ -178,6 +178,29 @@ def sweep_options(field, cam, device, repeats, grid, size=800) -> list:
     return rows
 
 
+def measure(field, cams, st, args, dev, key) -> dict:
+    """One configuration: the first call (Triton compiles), frame times per size, the images at the
+    largest size (``outs``, for the PSNR), one profiled frame."""
+    import neumesh_core as nm
+
+    t = time.perf_counter()
+    w0 = min(200, min(args.sizes))
+    nm.render_camera(field, scaled(cams[0][0], w0 / 400), cams[0][1], w0, w0, settings=st)  # warm up
+    sync(dev)
+    row = dict(key, first_call_s=time.perf_counter() - t)
+    for size in args.sizes:
+        s = float(statistics.median(frame_times(field, cams, size, st, args.repeats, dev)))
+        row[f"frame_{size}_s"] = s
+        row[f"fps_{size}"] = 1.0 / s
+    big = max(args.sizes)
+    outs = [nm.render_camera(field, scaled(K, big / 400), c2w, big, big, settings=st) for K, c2w in cams]
+    row["outs"] = [o.rgb for o in outs]
+    row["n_samples_per_frame"] = float(np.mean([o.n_samples for o in outs]))
+    if not args.no_profile:
+        row[f"profile_{big}"] = profile_frame(field, cams[0], big, st, dev)
+    return row
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--field", help="a .neumesh field; without it a field is made on the spot")
@@ -260,22 +283,18 @@ def main(argv=None) -> int:
                     print(f"  skipped (budget): {key}", flush=True)
                     continue
                 st = nm.RenderSettings(backend=backend)
-                t = time.perf_counter()
-                w0 = min(200, min(args.sizes))
-                nm.render_camera(field, scaled(cams[0][0], w0 / 400), cams[0][1], w0, w0, settings=st)  # warm up
-                sync(dev)
-                row = dict(key, first_call_s=time.perf_counter() - t)
-                for size in args.sizes:
-                    s = float(statistics.median(frame_times(field, cams, size, st, args.repeats, dev)))
-                    row[f"frame_{size}_s"] = s
-                    row[f"fps_{size}"] = 1.0 / s
-                big = max(args.sizes)
-                outs = [nm.render_camera(field, scaled(K, big / 400), c2w, big, big, settings=st) for K, c2w in cams]
-                images[backend] = [o.rgb for o in outs]
-                row["n_samples_per_frame"] = float(np.mean([o.n_samples for o in outs]))
-                if not args.no_profile:
-                    row[f"profile_{big}"] = profile_frame(field, cams[0], big, st, dev)
+                try:
+                    row = measure(field, cams, st, args, dev, key)
+                except Exception as e:   # e.g. a kernel the GPU's compiler rejects: record it, go on
+                    import traceback
+
+                    traceback.print_exc()
+                    result["runs"].append(dict(key, error=repr(e)[:500]))
+                    continue
+                if row.get("outs"):
+                    images[backend] = row.pop("outs")
                 result["runs"].append(row)
+                big = max(args.sizes)
                 p = row.get(f"profile_{big}", {})
                 print(f"  {mode:5s} {'deformed' if deformed else 'rest    '} {backend:6s}: "
                       + ", ".join(f"{sz}² {row[f'frame_{sz}_s'] * 1e3:7.2f} ms ({row[f'fps_{sz}']:6.1f} fps)"
@@ -285,7 +304,7 @@ def main(argv=None) -> int:
             if "triton" in images and "torch" in images:
                 db = [psnr(a, b) for a, b in zip(images["triton"], images["torch"])]
                 for r in result["runs"]:
-                    if r["mode"] == mode and r["deformed"] == deformed and r["backend"] == "triton":
+                    if r["mode"] == mode and r["deformed"] == deformed and r["backend"] == "triton" and "error" not in r:
                         r["psnr_vs_torch_db"] = db
                 print(f"  {mode} {'deformed' if deformed else 'rest'}: triton vs torch {max(args.sizes)}² "
                       f"PSNR min {min(db):.1f} dB", flush=True)
@@ -293,6 +312,9 @@ def main(argv=None) -> int:
     result["seconds"] = time.perf_counter() - t_start
     summary = {}
     for r in result["runs"]:
+        if "error" in r:
+            summary[f"{r['mode']}_{'deformed' if r['deformed'] else 'rest'}_{r['backend']}"] = {"error": r["error"][:200]}
+            continue
         summary[f"{r['mode']}_{'deformed' if r['deformed'] else 'rest'}_{r['backend']}"] = {
             k: round(r[k], 2) for k in r if k.startswith("fps_")}
         if "psnr_vs_torch_db" in r:

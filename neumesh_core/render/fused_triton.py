@@ -25,6 +25,7 @@ autograd, no jitter).  Everything else falls back to the torch path (:func:`supp
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext as _nullcontext
 from typing import Optional
 
 import torch
@@ -245,6 +246,7 @@ if triton is not None:
         active = inb & (tf > tn)
         j = tl.zeros([BLOCK], tl.int32)
         nev = tl.zeros([BLOCK], tl.int32)
+        walked = tl.zeros([BLOCK], tl.int32)
         log_t = tl.zeros([BLOCK], tl.float32)       # transmittance seen by the marcher (every sample)
         log_tc = tl.zeros([BLOCK], tl.float32)      # transmittance of the kept samples (compositing)
         acc_r = tl.zeros([BLOCK], tl.float32)
@@ -274,7 +276,10 @@ if triton is not None:
                 first = tl.min(tl.where(in_range & (o != 0), sc[None, :], SCAN), 1)
                 past = tl.min(tl.where(inwin & (t2 >= tf[:, None]), sc[None, :], SCAN), 1)
                 hit = searching & (first < SCAN) & (first < past)
-                ended = searching & ~hit & (past < SCAN)
+                # past the interval's end (or, a guard against a ray that cannot advance in float32 far
+                # from the origin, after 2^22 steps)
+                ended = searching & ~hit & ((past < SCAN) | (walked >= 4194304))
+                walked += tl.where(searching, SCAN, 0)
                 active = active & ~ended
                 # hits stand on their step; the others move past the steps they scanned
                 scanned = tl.minimum(WINDOW - j, SCAN)
@@ -522,19 +527,21 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
         res = list(grid.occ.shape)   # host metadata: no device sync
         blk = int(opts["block"] or default_block(dev))
         rot = tb.rot if tb.rot is not None else tb.rest_n
-        _render_kernel[(triton.cdiv(n, blk),)](
-            origins, dirs, g_o.contiguous(), g_d.contiguous(), t_near.contiguous(), t_far.contiguous(),
-            t_start.contiguous(), n,
-            occ, res[0], res[1], res[2],
-            *tb.hash.args()[:11], float(field.radius),
-            tb.vtab, tb.geo, tb.tex, tb.mod, tb.rest_n, rot,
-            *tb.mlp,
-            out, float(step), float(math.log(settings.early_stop_eps)), float(settings.weight_threshold),
-            BLOCK=blk, KP=tb.kp, K=tb.k, WINDOW=int(settings.window), MAX_EVAL=8,
-            EARLY=field.config.interpolation == "early", DEFORMED=tb.rot is not None,
-            GEO_D=tb.geo_d, TEX_D=tb.tex_d, PE_F=int(field.config.pos_freqs), SH_DEG=int(field.config.sh_degree),
-            GI=tb.gi, RI=tb.ri, H=tb.h, PREC=opts["precision"], C=tb.hash.c, NCP=tb.hash.ncp,
-            SCAN=int(opts["scan"]), num_warps=int(opts["num_warps"]))
+        launch = _render_kernel[(triton.cdiv(n, blk),)]
+        with torch.cuda.device(dev) if dev.type == "cuda" else _nullcontext():
+            launch(
+                origins, dirs, g_o.contiguous(), g_d.contiguous(), t_near.contiguous(), t_far.contiguous(),
+                t_start.contiguous(), n,
+                occ, res[0], res[1], res[2],
+                *tb.hash.args()[:11], float(field.radius),
+                tb.vtab, tb.geo, tb.tex, tb.mod, tb.rest_n, rot,
+                *tb.mlp,
+                out, float(step), float(math.log(settings.early_stop_eps)), float(settings.weight_threshold),
+                BLOCK=blk, KP=tb.kp, K=tb.k, WINDOW=int(settings.window), MAX_EVAL=8,
+                EARLY=field.config.interpolation == "early", DEFORMED=tb.rot is not None,
+                GEO_D=tb.geo_d, TEX_D=tb.tex_d, PE_F=int(field.config.pos_freqs), SH_DEG=int(field.config.sh_degree),
+                GI=tb.gi, RI=tb.ri, H=tb.h, PREC=opts["precision"], C=tb.hash.c, NCP=tb.hash.ncp,
+                SCAN=int(opts["scan"]), num_warps=int(opts["num_warps"]))
     opacity = out[:, 3]
     depth = torch.where(opacity > 1e-6, out[:, 4] / opacity.clamp_min(1e-6), torch.full_like(opacity, float("inf")))
     return {"rgb": out[:, :3], "opacity": opacity, "depth": depth, "mod_rgb": out[:, 5:8],
