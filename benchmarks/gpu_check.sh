@@ -50,7 +50,7 @@ TEST_RC=${PIPESTATUS[0]}
 echo "tests exit code: $TEST_RC (124: timed out)" | tee -a "$OUT/tests.log"
 
 echo "== benchmark"
-ARGS=(--sweep --budget-s "${BENCH_BUDGET_S:-140}" --results-dir "$OUT")
+ARGS=(--sweep --budget-s "${BENCH_BUDGET_S:-150}" --results-dir "$OUT")
 [ -n "${FIELD:-}" ] && ARGS+=(--field "$FIELD")
 [ -n "${DATA:-}" ] && ARGS+=(--data "$DATA")
 timeout "${BENCH_TIMEOUT_S:-230}" $PY benchmarks/bench_render_gpu.py "${ARGS[@]}" 2>&1 | tee "$OUT/bench.log"

@@ -75,10 +75,8 @@ class TritonHashGrid:
     :data:`MAX_TABLE_CELLS` cells; a query reads the ``(2 cells_per_radius + 1)^3`` cells around its
     own (1: 27 cells one radius wide; 2: 125 cells half a radius wide, fewer vertices measured)."""
 
-    @property
-    def ncp(self) -> int:
-        """The kernel's cell-tile width: the next power of two of (2C+1)^3."""
-        return next_pow2((2 * self.c + 1) ** 3)
+    #: cells the kernel reads side by side (a (block, 32) tile per round: 1 round for C=1, 4 for C=2)
+    ncp = 32
 
     def __init__(self, vertices: torch.Tensor, radius: float, cells_per_radius: int = 2):
         radius = float(radius)
@@ -139,8 +137,9 @@ if triton is not None:
                  BLOCK: tl.constexpr, KP: tl.constexpr, K: tl.constexpr, C: tl.constexpr,
                  NCP: tl.constexpr):
         """The K nearest vertices within ``radius`` of points (px, py, pz) (BLOCK,) where ``live``:
-        (BLOCK, KP) int64 keys, unsorted (C: grid cells per radius, NCP: next power of two of (2C+1)^3); a key's high word is the float bits of the distance (+inf for
-        a slot that found nothing), the low word the vertex id.  Slots K..KP-1 are padding (-1)."""
+        (BLOCK, KP) int64 keys, unsorted (C: grid cells per radius; NCP: cells per round); a key's high
+        word is the float bits of the distance (+inf for a slot that found nothing), the low word the
+        vertex id.  Slots K..KP-1 are padding (-1)."""
         slot = tl.arange(0, KP)
         inf_key = (tl.full([BLOCK, KP], _INF_BITS, tl.int64) << 32) + slot[None, :].to(tl.int64)
         keys = tl.where(slot[None, :] < K, inf_key, tl.full([BLOCK, KP], -1, tl.int64))
@@ -149,46 +148,47 @@ if triton is not None:
         qy = tl.minimum(tl.maximum(tl.floor((py - lo_y) / cell), -2.0), big).to(tl.int32)
         qz = tl.minimum(tl.maximum(tl.floor((pz - lo_z) / cell), -2.0), big).to(tl.int32)
         r2 = radius * radius
-        # the (2C+1)^3 cells around each point's cell side by side: a (BLOCK, NCP) tile, NCP the next power
-        # of two (the columns past (2C+1)^3 unused)
+        # the (2C+1)^3 cells around each point's cell, NCP at a time side by side: (BLOCK, NCP) tiles
         S: tl.constexpr = 2 * C + 1
-        o = tl.arange(0, NCP)
-        cx = qx[:, None] + (o // (S * S) - C)[None, :]
-        cy = qy[:, None] + ((o // S) % S - C)[None, :]
-        cz = qz[:, None] + (o % S - C)[None, :]
-        inside = (o[None, :] < S * S * S) & (cx >= 0) & (cx < dim_x) & (cy >= 0) & (cy < dim_y) & (cz >= 0) & (cz < dim_z)
-        bx = lo_x + cx.to(tl.float32) * cell
-        by = lo_y + cy.to(tl.float32) * cell
-        bz = lo_z + cz.to(tl.float32) * cell
-        gx = tl.maximum(bx - px[:, None], 0.0) + tl.maximum(px[:, None] - (bx + cell), 0.0)
-        gy = tl.maximum(by - py[:, None], 0.0) + tl.maximum(py[:, None] - (by + cell), 0.0)
-        gz = tl.maximum(bz - pz[:, None], 0.0) + tl.maximum(pz[:, None] - (bz + cell), 0.0)
-        near = live[:, None] & inside & (gx * gx + gy * gy + gz * gz <= r2)
-        ckey = (cx * dim_y + cy) * dim_z + cz
-        start = tl.load(cell_start + ckey, mask=near, other=0)
-        cnt = tl.load(cell_count + ckey, mask=near, other=0)
-        n_max = tl.max(tl.max(cnt, 1), 0)
         none = tl.full([BLOCK, NCP], _NONE_KEY, tl.int64)
-        for c in range(n_max):
-            # the c-th vertex of every cell at once, then the K smallest of them merged into the keys
-            m = c < cnt
-            j = start + c
-            vx = tl.load(v_sorted + j * 4, mask=m, other=0.0)
-            vy = tl.load(v_sorted + j * 4 + 1, mask=m, other=0.0)
-            vz = tl.load(v_sorted + j * 4 + 2, mask=m, other=0.0)
-            vid = tl.load(ids_sorted + j, mask=m, other=0)
-            dx = px[:, None] - vx
-            dy = py[:, None] - vy
-            dz = pz[:, None] - vz
-            d = tl.sqrt(dx * dx + dy * dy + dz * dz)
-            ok = m & (d <= radius)
-            cand = tl.where(ok, (d.to(tl.int32, bitcast=True).to(tl.int64) << 32) | vid.to(tl.int64), none)
-            for _r in tl.static_range(K):
-                best = tl.min(cand, 1)
-                worst = tl.max(keys, 1)
-                better = best < worst
-                keys = tl.where((keys == worst[:, None]) & better[:, None], best[:, None], keys)
-                cand = tl.where(cand == best[:, None], none, cand)
+        for c0 in range(0, S * S * S, NCP):
+            o = c0 + tl.arange(0, NCP)
+            cx = qx[:, None] + (o // (S * S) - C)[None, :]
+            cy = qy[:, None] + ((o // S) % S - C)[None, :]
+            cz = qz[:, None] + (o % S - C)[None, :]
+            inside = (o[None, :] < S * S * S) & (cx >= 0) & (cx < dim_x) & (cy >= 0) & (cy < dim_y) & \
+                (cz >= 0) & (cz < dim_z)
+            bx = lo_x + cx.to(tl.float32) * cell
+            by = lo_y + cy.to(tl.float32) * cell
+            bz = lo_z + cz.to(tl.float32) * cell
+            gx = tl.maximum(bx - px[:, None], 0.0) + tl.maximum(px[:, None] - (bx + cell), 0.0)
+            gy = tl.maximum(by - py[:, None], 0.0) + tl.maximum(py[:, None] - (by + cell), 0.0)
+            gz = tl.maximum(bz - pz[:, None], 0.0) + tl.maximum(pz[:, None] - (bz + cell), 0.0)
+            near = live[:, None] & inside & (gx * gx + gy * gy + gz * gz <= r2)
+            ckey = (cx * dim_y + cy) * dim_z + cz
+            start = tl.load(cell_start + ckey, mask=near, other=0)
+            cnt = tl.load(cell_count + ckey, mask=near, other=0)
+            n_max = tl.max(tl.max(cnt, 1), 0)
+            for c in range(n_max):
+                # the c-th vertex of every cell at once, then the K smallest of them merged into the keys
+                m = c < cnt
+                j = start + c
+                vx = tl.load(v_sorted + j * 4, mask=m, other=0.0)
+                vy = tl.load(v_sorted + j * 4 + 1, mask=m, other=0.0)
+                vz = tl.load(v_sorted + j * 4 + 2, mask=m, other=0.0)
+                vid = tl.load(ids_sorted + j, mask=m, other=0)
+                dx = px[:, None] - vx
+                dy = py[:, None] - vy
+                dz = pz[:, None] - vz
+                d = tl.sqrt(dx * dx + dy * dy + dz * dz)
+                ok = m & (d <= radius)
+                cand = tl.where(ok, (d.to(tl.int32, bitcast=True).to(tl.int64) << 32) | vid.to(tl.int64), none)
+                for _r in tl.static_range(K):
+                    best = tl.min(cand, 1)
+                    worst = tl.max(keys, 1)
+                    better = best < worst
+                    keys = tl.where((keys == worst[:, None]) & better[:, None], best[:, None], keys)
+                    cand = tl.where(cand == best[:, None], none, cand)
         return keys
 
     @triton.jit
