@@ -482,14 +482,16 @@ if triton is not None:
 
 
 def default_block(device) -> int:
-    """Rays per program: 32 on a GPU; in the interpreter (CPU) one big block, since there each
-    operation costs about the same for any block size."""
-    return 32 if torch.device(device).type == "cuda" else 1024
+    """Rays per program: 64 on a GPU (with 8 warps: the sm_90 build of 64 rays x 8 warps spills the least,
+    0.14 KB per thread against 0.6-0.7 KB for 32 rays; benchmarks/bench_render_gpu.py --sweep times
+    the others); in the interpreter (CPU) one big block, since there each operation costs about the same
+    for any block size."""
+    return 64 if torch.device(device).type == "cuda" else 1024
 
 
 # launch options, chosen by benchmarks/bench_render_gpu.py (``--sweep``); render_rays_fused's defaults
-# (block / cells_per_radius None: by device, see default_block / default_cells)
-KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 4, "cells_per_radius": None, "scan": 8}
+# (block / cells_per_radius None: by device, see default_block / default_cells; num_warps: per program)
+KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 8, "cells_per_radius": None, "scan": 8}
 
 
 def default_cells(device) -> int:
