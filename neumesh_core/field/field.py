@@ -625,3 +625,8 @@ class NeuMeshField(nn.Module):
                 if name not in mod._non_persistent_buffers_set:
                     out.add(f"{mod_name}.{name}" if mod_name else name)
         return out
+
+
+def create_field(mesh: Mesh, config: FieldConfig | None = None, device="cpu") -> NeuMeshField:
+    """A new, untrained field on ``mesh`` (vertex order is the field's vertex order)."""
+    return NeuMeshField(mesh, config or FieldConfig()).to(device)

@@ -11,10 +11,10 @@ import neumesh_core as nm
 from neumesh_core.cli import main
 
 from ..conftest import textured_field
-from .helpers import render
-from .test_fill import _grid, _spherical_corner_uvs
-from .test_io import write_obj
-from .test_swap import _other_texture, _region
+from ..edit.helpers import render
+from ..edit.test_fill import _grid, _spherical_corner_uvs
+from ..edit.test_io import write_obj
+from ..edit.test_swap import _other_texture, _region
 
 
 def _digest(path):
