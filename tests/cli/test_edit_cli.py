@@ -110,7 +110,7 @@ def test_paint_workflow_render_paint_apply(blob_mesh, tmp_path, capsys):
     shows it in that view."""
     from neumesh_core.imageio import read_image, save_image
 
-    from .helpers import camera
+    from ..edit.helpers import camera
 
     f = textured_field(blob_mesh)
     path = str(tmp_path / "f.neumesh")
