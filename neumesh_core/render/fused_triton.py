@@ -501,17 +501,16 @@ def default_cells(device) -> int:
 
 
 @torch.no_grad()
-def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings, near=0.0,
+def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings, step: float, near=0.0,
                       far=float("inf"), **options) -> dict:
     """Render rays (R,3) through ``field`` with the fused kernel: the outputs of
     :func:`~neumesh_core.render.renderer.render_rays` (rgb premultiplied, no background) with
-    ``n_samples`` the number of samples composited.  ``near``/``far``: a distance or (R,) per ray.
+    ``n_samples`` the number of samples composited.  ``step``: the marching step
+    (:func:`~neumesh_core.render.renderer.default_step`).  ``near``/``far``: a distance or (R,) per ray.
     ``options``: launch options overriding :data:`KERNEL_OPTIONS` (block: rays per program; precision:
     tl.dot's input precision, "ieee" (fp32) or "tf32x3"/"tf32"; num_warps; cells_per_radius: 1 or 2, the
     neighbour grid's cells per radius; scan: occupancy steps looked at per marching iteration)."""
     opts = {**KERNEL_OPTIONS, **options}
-    from ..render.renderer import default_step
-
     require_triton(origins.device)
     reason = supported(field)
     if reason is not None:
@@ -520,7 +519,6 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
         raise NeuMeshError(f"the Triton renderer cannot render this field: {reason}")
     dev = origins.device
     n = origins.shape[0]
-    step = default_step(field, settings)
     grid = field.grid
     origins = origins.float().contiguous()
     dirs = dirs.float().contiguous()

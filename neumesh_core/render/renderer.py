@@ -179,7 +179,7 @@ def _render_fused(field, origins, dirs, background, settings, far, ranges) -> di
         r_near, r_far = (x.to(origins.device) for x in ranges)
         near_f = r_near.clamp_min(settings.near)
         far_f = torch.minimum(r_far, far_f) if torch.is_tensor(far_f) else r_far.clamp_max(far_f)
-    out = render_rays_fused(field, origins, dirs, settings, near=near_f, far=far_f)
+    out = render_rays_fused(field, origins, dirs, settings, default_step(field, settings), near=near_f, far=far_f)
     out["n_samples"] = int(out["n_samples"].sum())
     if background is not None:
         bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)
