@@ -1,4 +1,4 @@
-"""`neumesh` command line: train, render, eval, demo (+ scaffold, fit, edit, semantics, bake)."""
+"""`neumesh` command line: train, render, eval, demo (+ scaffold, fit, edit, semantics, bake, poses)."""
 from __future__ import annotations
 
 import argparse
@@ -84,10 +84,12 @@ def _add_train_options(ap):
 def _add_data_options(ap, required=True):
     g = ap.add_argument_group("data")
     g.add_argument("--data", required=required,
-                   help="dataset folder: NeRF-synthetic/Blender (transforms_*.json) or NeuS/DTU "
-                        "(cameras_sphere.npz + image(s)/ + mask/)")
-    g.add_argument("--downscale", type=float, default=1,
-                   help="image downscale factor (2 = half resolution); cameras are scaled to match")
+                   help="dataset folder: NeRF-synthetic/Blender (transforms_*.json), NeuS/DTU "
+                        "(cameras_sphere.npz + image(s)/ + mask/), instant-ngp/nerfstudio (transforms.json) "
+                        "or COLMAP (sparse/0 + images/; `neumesh poses` makes one from photos)")
+    g.add_argument("--downscale", type=float, default=None,
+                   help="image downscale factor (2 = half resolution); cameras are scaled to match. Default 1, "
+                        "except photos over 1600 px, which are reduced to at most 1600 (said when loading)")
     g.add_argument("--background", choices=["white", "black"], default="white",
                    help="background colour that Blender-format RGBA images are composited on")
 
@@ -455,6 +457,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .semantics.cli import add_commands as add_semantics_commands
 
     add_semantics_commands(sub)
+    from .scaffold.poses_cli import add_commands as add_poses_commands
+
+    add_poses_commands(sub)
     p = sub.add_parser("fit", help="images alone -> scaffold -> trained field -> evaluation (resumable)",
                        description="Build the scaffold (skipped when OUT/scaffold.ply exists), train the "
                                    "field (resumes OUT/field.neumesh), evaluate on 'val'. Progress per stage.")

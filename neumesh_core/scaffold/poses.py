@@ -1,0 +1,354 @@
+"""Poses from plain photos or a video: pycolmap feature extraction, matching and incremental mapping
+on the CPU, with progress and cancel.
+
+``estimate_poses(images_dir, out_dir)`` writes a COLMAP model that ``load_scene(out_dir)`` reads
+(``out_dir/sparse/0/{cameras,images,points3D}.bin``), the feature database (``out_dir/database.db``)
+and a short report (``out_dir/poses_report.json``: registered photos, mean reprojection error, times,
+and the photo folder, so the photos are read where they are: nothing is renamed or moved).
+``frames_from_video(clip, out_dir, fps)`` extracts the sharpest frame of every 1/fps seconds with
+OpenCV and refuses a video too blurry to reconstruct.
+
+Progress: ``callback(p: PosesProgress) -> False`` cancels (raises ``nm.Cancelled``); it is called
+from the calling thread about four times a second while pycolmap works in a helper thread.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..errors import DataError, NeuMeshError
+
+REPORT_NAME = "poses_report.json"
+_STAGES = ("extract", "match", "map")
+
+
+class PosesError(NeuMeshError):
+    """Poses could not be recovered (too few photos registered, no images, blurry video ...)."""
+
+
+@dataclass
+class PosesConfig:
+    """matcher: 'auto' (sequential for video frames, else exhaustive up to 300 photos, sequential with
+    loop closure above), 'exhaustive' or 'sequential'. max_image_size: SIFT runs on photos reduced to
+    this long side (px). camera_model: COLMAP model to estimate (OPENCV: k1,k2,p1,p2, what phones need;
+    SIMPLE_RADIAL for few photos). single_camera: one camera shared by all photos (one phone, fixed zoom).
+    min_registered_fraction: below it the run fails with advice. num_threads -1: all cores."""
+
+    matcher: str = "auto"
+    max_image_size: int = 1600
+    max_num_features: int = 8192
+    camera_model: str = "OPENCV"
+    single_camera: bool = True
+    min_registered_fraction: float = 0.5
+    min_registered: int = 3
+    num_threads: int = -1
+    sequential_overlap: int = 10
+    seed: int = 0
+
+
+@dataclass
+class PosesProgress:
+    stage: str           # 'extract' | 'match' | 'map'
+    fraction: float      # of the whole run, 0..1 (estimated)
+    message: str
+    elapsed_s: float
+    registered: int = 0  # images registered so far (mapping)
+
+
+@dataclass
+class PosesReport:
+    images_dir: str
+    model_dir: str
+    num_images: int
+    registered: int
+    unregistered: list
+    mean_reprojection_error: float
+    num_points: int
+    seconds: float
+    stage_seconds: dict = field(default_factory=dict)
+    matcher: str = ""
+    camera_model: str = ""
+    num_models: int = 1
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["images"] = self.images_dir  # read by data/colmap.py to find the photos where they are
+        return d
+
+
+def _pycolmap():
+    try:
+        import pycolmap
+    except ImportError as exc:  # pragma: no cover - a declared dependency
+        raise PosesError("recovering poses needs pycolmap: pip install pycolmap") from exc
+    return pycolmap
+
+
+def _is_cancelled(token) -> bool:
+    v = token.is_cancelled
+    return bool(v() if callable(v) else v)
+
+
+def _run_stage(fn, token, report: Callable[[], Optional[bool]]):
+    """Run ``fn()`` in a helper thread; call ``report()`` here ~4x/s; False cancels through ``token``."""
+    from ..render.renderer import Cancelled
+
+    box = {}
+
+    def work():
+        try:
+            box["out"] = fn()
+        except BaseException as exc:  # handed to the caller
+            box["exc"] = exc
+
+    t = threading.Thread(target=work, name="neumesh-poses", daemon=True)
+    t.start()
+    cancelled = False
+    try:
+        while t.is_alive():
+            t.join(0.25)
+            if not cancelled and report() is False:
+                token.cancel()
+                cancelled = True
+    except BaseException:  # Ctrl-C (or a failing callback): stop pycolmap before leaving
+        token.cancel()
+        t.join(30)
+        raise
+    if cancelled or _is_cancelled(token):
+        raise Cancelled("pose recovery cancelled; nothing usable was written")
+    if "exc" in box:
+        raise box["exc"]
+    return box.get("out")
+
+
+def _list_photos(images_dir: str) -> list:
+    from ..data.capture import list_images
+
+    if not os.path.isdir(images_dir):
+        raise PosesError(f"photo folder not found: {images_dir}; pass the folder that holds the photos (--images DIR)")
+    names = list_images(images_dir)
+    if not names:
+        raise PosesError(f"{images_dir} holds no photos (.jpg, .png, .tif ...); pass the folder that holds them, "
+                         "or a video with --video clip.mp4")
+    return names
+
+
+def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = None,
+                   callback: Callable[[PosesProgress], Optional[bool]] | None = None,
+                   sequential: bool = False) -> PosesReport:
+    """Recover camera poses and sparse points of the photos in ``images_dir`` into ``out_dir``.
+
+    ``sequential``: the photos are frames of one video in order (matcher 'auto' then matches each
+    frame with its neighbours, not all pairs). Raises :class:`PosesError` with what to do when too few
+    photos register, and ``nm.Cancelled`` when the callback returns False.
+    """
+    pycolmap = _pycolmap()
+    cfg = config or PosesConfig()
+    if cfg.matcher not in ("auto", "exhaustive", "sequential"):
+        raise ValueError(f"matcher must be 'auto', 'exhaustive' or 'sequential', got {cfg.matcher!r}")
+    images_dir = os.path.abspath(os.fspath(images_dir))
+    out_dir = os.path.abspath(os.fspath(out_dir))
+    names = _list_photos(images_dir)
+    n = len(names)
+    if n < 3:
+        raise PosesError(f"{images_dir} holds {n} photo(s); poses need at least 3 (20-100 overlapping photos "
+                         "taken around the object work best)")
+    matcher = cfg.matcher
+    if matcher == "auto":
+        matcher = "sequential" if (sequential or n > 300) else "exhaustive"
+    os.makedirs(out_dir, exist_ok=True)
+    db = os.path.join(out_dir, "database.db")
+    if os.path.exists(db):
+        os.remove(db)  # a fresh run: stale features of other photos would mix in
+    token = pycolmap.CancellationToken()
+    t_start = time.perf_counter()
+    state = {"stage": "extract", "registered": 0}
+    weights = {"extract": (0.0, 0.3), "match": (0.3, 0.3), "map": (0.6, 0.4)}
+    stage_t = {}
+
+    def report():
+        if callback is None:
+            return None
+        st = state["stage"]
+        lo, span = weights[st]
+        frac = lo + span * (state["registered"] / n if st == "map" else 0.0)
+        msg = {"extract": f"finding features in {n} photos", "match": f"matching photos ({matcher})",
+               "map": f"placing cameras: {state['registered']} of {n} registered"}[st]
+        return callback(PosesProgress(st, min(frac, 1.0), msg, time.perf_counter() - t_start, state["registered"]))
+
+    if pycolmap.set_random_seed is not None:
+        pycolmap.set_random_seed(int(cfg.seed))
+    # 1. features
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = cfg.camera_model
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.max_image_size = int(cfg.max_image_size)
+    ext.num_threads = int(cfg.num_threads)
+    ext.sift.max_num_features = int(cfg.max_num_features)
+    mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.AUTO
+    t0 = time.perf_counter()
+    _run_stage(lambda: pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=mode,
+                                                 reader_options=reader, extraction_options=ext,
+                                                 device=pycolmap.Device.cpu, cancellation_token=token), token, report)
+    stage_t["extract"] = time.perf_counter() - t0
+    # 2. matching
+    state["stage"] = "match"
+    mopt = pycolmap.FeatureMatchingOptions()
+    mopt.num_threads = int(cfg.num_threads)
+    t0 = time.perf_counter()
+    if matcher == "exhaustive":
+        fn = lambda: pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu,  # noqa: E731
+                                               cancellation_token=token)
+    else:
+        pair = pycolmap.SequentialPairingOptions()
+        pair.overlap = int(cfg.sequential_overlap)
+        fn = lambda: pycolmap.match_sequential(db, matching_options=mopt, pairing_options=pair,  # noqa: E731
+                                               device=pycolmap.Device.cpu, cancellation_token=token)
+    _run_stage(fn, token, report)
+    stage_t["match"] = time.perf_counter() - t0
+    # 3. incremental mapping
+    state["stage"] = "map"
+    popt = pycolmap.IncrementalPipelineOptions()
+    popt.num_threads = int(cfg.num_threads)
+    popt.random_seed = int(cfg.seed)
+    popt.mapper.random_seed = int(cfg.seed)
+    popt.triangulation.random_seed = int(cfg.seed)
+
+    def next_image():
+        state["registered"] += 1
+
+    tmp_models = tempfile.mkdtemp(prefix=".models_", dir=out_dir)
+    t0 = time.perf_counter()
+    try:
+        recs = _run_stage(lambda: pycolmap.incremental_mapping(db, images_dir, tmp_models, options=popt,
+                                                               next_image_callback=next_image,
+                                                               cancellation_token=token), token, report)
+    finally:
+        shutil.rmtree(tmp_models, ignore_errors=True)
+    stage_t["map"] = time.perf_counter() - t0
+    recs = dict(recs or {})
+    if not recs:
+        raise PosesError(f"no two of the {n} photos in {images_dir} could be matched into a start pair; the photos "
+                         "need more overlap (each part of the object in 3+ photos, ~70% overlap between neighbours), "
+                         "texture, sharp focus and no moving parts")
+    rec = max(recs.values(), key=lambda r: r.num_reg_images())
+    model_dir = os.path.join(out_dir, "sparse", "0")
+    _write_model(rec, model_dir)
+    reg_names = {rec.images[i].name for i in rec.reg_image_ids()}
+    unreg = [nm_ for nm_ in names if nm_ not in reg_names]
+    registered = len(reg_names)
+    rep = PosesReport(images_dir, model_dir, n, registered, unreg, float(rec.compute_mean_reprojection_error()),
+                      int(rec.num_points3D()), time.perf_counter() - t_start, stage_t, matcher, cfg.camera_model,
+                      len(recs))
+    _write_report(os.path.join(out_dir, REPORT_NAME), rep)
+    need = max(cfg.min_registered, int(np.ceil(cfg.min_registered_fraction * n)))
+    if registered < need:
+        raise PosesError(
+            f"only {registered} of {n} photos could be placed (at least {need} needed; the partial model is in "
+            f"{model_dir}). Take more photos with more overlap (~70% between neighbours, walk around the object "
+            "at two heights), avoid blur, reflections and plain backgrounds"
+            + (", or try --matcher exhaustive" if matcher == "sequential" else ""))
+    if callback is not None:
+        callback(PosesProgress("map", 1.0, f"done: {registered} of {n} photos registered",
+                               time.perf_counter() - t_start, registered))
+    return rep
+
+
+def _write_model(rec, model_dir: str) -> None:
+    """Write a reconstruction into model_dir atomically (a temporary sibling folder, then renamed)."""
+    parent = os.path.dirname(model_dir)
+    os.makedirs(parent, exist_ok=True)
+    tmp = tempfile.mkdtemp(prefix=".tmp_model_", dir=parent)
+    try:
+        rec.write_binary(tmp)
+        if os.path.isdir(model_dir):
+            shutil.rmtree(model_dir)
+        os.replace(tmp, model_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _write_report(path: str, rep: PosesReport) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=".tmp_", suffix=".json", dir=os.path.dirname(path))
+    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+        json.dump(rep.to_json(), fh, indent=1)
+    os.replace(tmp, path)
+
+
+def sharpness(grey: np.ndarray) -> float:
+    """Variance of the Laplacian of a grey uint8 image reduced to at most 960 px (higher = sharper)."""
+    import cv2
+
+    h, w = grey.shape[:2]
+    s = 960.0 / max(h, w)
+    if s < 1:
+        grey = cv2.resize(grey, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
+    return float(cv2.Laplacian(grey, cv2.CV_64F).var())
+
+
+def frames_from_video(video: str, out_dir: str, fps: float = 2.0, min_sharpness: float = 20.0,
+                      callback: Callable[[float], Optional[bool]] | None = None) -> list:
+    """Write the sharpest frame of every 1/fps seconds of ``video`` as out_dir/frame_00001.jpg ...
+    Returns the paths. PosesError when the video cannot be read, is too short, or most kept frames are
+    blurrier than ``min_sharpness`` (variance of the Laplacian). ``callback(fraction) -> False`` cancels."""
+    import cv2
+
+    from ..render.renderer import Cancelled
+
+    if fps <= 0:
+        raise ValueError(f"fps must be > 0, got {fps}")
+    if not os.path.isfile(video):
+        raise PosesError(f"video not found: {video}")
+    cap = cv2.VideoCapture(video)
+    if not cap.isOpened():
+        raise PosesError(f"could not open the video {video}; convert it to an .mp4 (H.264) and try again")
+    try:
+        src_fps = cap.get(cv2.CAP_PROP_FPS) or 30.0
+        total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        step = max(1, int(round(src_fps / fps)))
+        best, kept, i = None, [], 0
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+            sc = sharpness(grey)
+            if best is None or sc > best[0]:
+                best = (sc, frame)
+            i += 1
+            if i % step == 0:
+                kept.append(best)
+                best = None
+                if callback is not None and total and callback(min(i / total, 1.0)) is False:
+                    raise Cancelled("frame extraction cancelled")
+        if best is not None and (not kept or i % step > step // 2):
+            kept.append(best)
+    finally:
+        cap.release()
+    if i == 0:
+        raise PosesError(f"no frames could be read from {video}; the file is empty or its codec is not supported "
+                         "(convert it to an .mp4, H.264)")
+    if len(kept) < 3:
+        raise PosesError(f"{video} gives only {len(kept)} frames at {fps:g} fps; use a longer clip or a higher --fps")
+    scores = np.array([k[0] for k in kept])
+    if np.median(scores) < min_sharpness:
+        raise PosesError(f"the video {video} is too blurry to recover poses (median sharpness {np.median(scores):.1f} "
+                         f"< {min_sharpness:g}): film more slowly, with more light, or take photos instead")
+    os.makedirs(out_dir, exist_ok=True)
+    paths = []
+    for j, (sc, frame) in enumerate(kept):
+        if sc < 0.3 * np.median(scores):
+            continue  # a blurred moment: its neighbours cover it
+        p = os.path.join(out_dir, f"frame_{j + 1:05d}.jpg")
+        cv2.imwrite(p, frame, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        paths.append(p)
+    return paths
