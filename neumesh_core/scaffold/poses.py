@@ -168,24 +168,7 @@ def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = N
     db = os.path.join(out_dir, "database.db")
     if os.path.exists(db):
         os.remove(db)  # a fresh run: stale features of other photos would mix in
-    token = pycolmap.CancellationToken()
-    t_start = time.perf_counter()
-    state = {"stage": "extract", "registered": 0}
-    weights = {"extract": (0.0, 0.3), "match": (0.3, 0.3), "map": (0.6, 0.4)}
-    stage_t = {}
-
-    def report():
-        if callback is None:
-            return None
-        st = state["stage"]
-        lo, span = weights[st]
-        frac = lo + span * (state["registered"] / n if st == "map" else 0.0)
-        msg = {"extract": f"finding features in {n} photos", "match": f"matching photos ({matcher})",
-               "map": f"placing cameras: {state['registered']} of {n} registered"}[st]
-        return callback(PosesProgress(st, min(frac, 1.0), msg, time.perf_counter() - t_start, state["registered"]))
-
-    if pycolmap.set_random_seed is not None:
-        pycolmap.set_random_seed(int(cfg.seed))
+    run = _Run(pycolmap, n, matcher, callback)
     # 1. features
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = cfg.camera_model
@@ -194,28 +177,77 @@ def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = N
     ext.num_threads = int(cfg.num_threads)
     ext.sift.max_num_features = int(cfg.max_num_features)
     mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.AUTO
-    t0 = time.perf_counter()
-    _run_stage(lambda: pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=mode,
-                                                 reader_options=reader, extraction_options=ext,
-                                                 device=pycolmap.Device.cpu, cancellation_token=token), token, report)
-    stage_t["extract"] = time.perf_counter() - t0
+    run.stage("extract", lambda: pycolmap.extract_features(
+        db, images_dir, image_names=names, camera_mode=mode, reader_options=reader, extraction_options=ext,
+        device=pycolmap.Device.cpu, cancellation_token=run.token))
     # 2. matching
-    state["stage"] = "match"
     mopt = pycolmap.FeatureMatchingOptions()
     mopt.num_threads = int(cfg.num_threads)
-    t0 = time.perf_counter()
     if matcher == "exhaustive":
         fn = lambda: pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu,  # noqa: E731
-                                               cancellation_token=token)
+                                               cancellation_token=run.token)
     else:
         pair = pycolmap.SequentialPairingOptions()
         pair.overlap = int(cfg.sequential_overlap)
         fn = lambda: pycolmap.match_sequential(db, matching_options=mopt, pairing_options=pair,  # noqa: E731
-                                               device=pycolmap.Device.cpu, cancellation_token=token)
-    _run_stage(fn, token, report)
-    stage_t["match"] = time.perf_counter() - t0
+                                               device=pycolmap.Device.cpu, cancellation_token=run.token)
+    run.stage("match", fn)
     # 3. incremental mapping
-    state["stage"] = "map"
+    return _map(db, images_dir, out_dir, names, cfg, run)
+
+
+class _Run:
+    """State of one pose recovery: cancellation token, stage, registered count, progress reports."""
+
+    _WEIGHTS = {"extract": (0.0, 0.3), "match": (0.3, 0.3), "map": (0.6, 0.4)}
+
+    def __init__(self, pycolmap, n: int, matcher: str, callback):
+        self.token = pycolmap.CancellationToken()
+        self.n, self.matcher, self.callback = n, matcher, callback
+        self.t_start = time.perf_counter()
+        self.current, self.registered = "extract", 0
+        self.seconds = {}
+
+    def report(self):
+        if self.callback is None:
+            return None
+        st = self.current
+        lo, span = self._WEIGHTS[st]
+        frac = lo + span * (self.registered / self.n if st == "map" else 0.0)
+        msg = {"extract": f"finding features in {self.n} photos", "match": f"matching photos ({self.matcher})",
+               "map": f"placing cameras: {self.registered} of {self.n} registered"}[st]
+        return self.callback(PosesProgress(st, min(frac, 1.0), msg, time.perf_counter() - self.t_start,
+                                           self.registered))
+
+    def stage(self, name: str, fn):
+        self.current = name
+        t0 = time.perf_counter()
+        out = _run_stage(fn, self.token, self.report)
+        self.seconds[name] = time.perf_counter() - t0
+        return out
+
+
+def map_database(database: str, images_dir: str, out_dir: str, config: PosesConfig | None = None,
+                 callback: Callable[[PosesProgress], Optional[bool]] | None = None) -> PosesReport:
+    """Stage 3 alone: incremental mapping of a COLMAP database whose features and matches exist
+    (e.g. made by COLMAP's GUI), written like :func:`estimate_poses` writes it."""
+    pycolmap = _pycolmap()
+    cfg = config or PosesConfig()
+    db = pycolmap.Database.open(database)
+    try:
+        names = sorted(im.name for im in db.read_all_images())
+    finally:
+        db.close()
+    if not names:
+        raise PosesError(f"{database} holds no images; run feature extraction first (`neumesh poses --images DIR`)")
+    os.makedirs(out_dir, exist_ok=True)
+    return _map(database, os.path.abspath(images_dir), os.path.abspath(out_dir), names, cfg,
+                _Run(pycolmap, len(names), "existing", callback))
+
+
+def _map(db: str, images_dir: str, out_dir: str, names: list, cfg: PosesConfig, run: _Run) -> PosesReport:
+    pycolmap = _pycolmap()
+    n = len(names)
     popt = pycolmap.IncrementalPipelineOptions()
     popt.num_threads = int(cfg.num_threads)
     popt.random_seed = int(cfg.seed)
@@ -223,17 +255,15 @@ def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = N
     popt.triangulation.random_seed = int(cfg.seed)
 
     def next_image():
-        state["registered"] += 1
+        run.registered += 1
 
     tmp_models = tempfile.mkdtemp(prefix=".models_", dir=out_dir)
-    t0 = time.perf_counter()
     try:
-        recs = _run_stage(lambda: pycolmap.incremental_mapping(db, images_dir, tmp_models, options=popt,
-                                                               next_image_callback=next_image,
-                                                               cancellation_token=token), token, report)
+        recs = run.stage("map", lambda: pycolmap.incremental_mapping(db, images_dir, tmp_models, options=popt,
+                                                                     next_image_callback=next_image,
+                                                                     cancellation_token=run.token))
     finally:
         shutil.rmtree(tmp_models, ignore_errors=True)
-    stage_t["map"] = time.perf_counter() - t0
     recs = dict(recs or {})
     if not recs:
         raise PosesError(f"no two of the {n} photos in {images_dir} could be matched into a start pair; the photos "
@@ -246,8 +276,8 @@ def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = N
     unreg = [nm_ for nm_ in names if nm_ not in reg_names]
     registered = len(reg_names)
     rep = PosesReport(images_dir, model_dir, n, registered, unreg, float(rec.compute_mean_reprojection_error()),
-                      int(rec.num_points3D()), time.perf_counter() - t_start, stage_t, matcher, cfg.camera_model,
-                      len(recs))
+                      int(rec.num_points3D()), time.perf_counter() - run.t_start, dict(run.seconds), run.matcher,
+                      cfg.camera_model, len(recs))
     _write_report(os.path.join(out_dir, REPORT_NAME), rep)
     need = max(cfg.min_registered, int(np.ceil(cfg.min_registered_fraction * n)))
     if registered < need:
@@ -255,10 +285,10 @@ def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = N
             f"only {registered} of {n} photos could be placed (at least {need} needed; the partial model is in "
             f"{model_dir}). Take more photos with more overlap (~70% between neighbours, walk around the object "
             "at two heights), avoid blur, reflections and plain backgrounds"
-            + (", or try --matcher exhaustive" if matcher == "sequential" else ""))
-    if callback is not None:
-        callback(PosesProgress("map", 1.0, f"done: {registered} of {n} photos registered",
-                               time.perf_counter() - t_start, registered))
+            + (", or try --matcher exhaustive" if run.matcher == "sequential" else ""))
+    if run.callback is not None:
+        run.callback(PosesProgress("map", 1.0, f"done: {registered} of {n} photos registered",
+                                   time.perf_counter() - run.t_start, registered))
     return rep
 
 
