@@ -36,8 +36,8 @@ class PosesError(NeuMeshError):
 
 @dataclass
 class PosesConfig:
-    """matcher: 'auto' (sequential for video frames, else exhaustive up to 300 photos, sequential with
-    loop closure above), 'exhaustive' or 'sequential'. max_image_size: SIFT runs on photos reduced to
+    """matcher: 'auto' (sequential for video frames, else exhaustive up to 300 photos, sequential
+    (neighbours in name order) above), 'exhaustive' or 'sequential'. max_image_size: SIFT runs on photos reduced to
     this long side (px). camera_model: COLMAP model to estimate (OPENCV: k1,k2,p1,p2, what phones need;
     SIMPLE_RADIAL for few photos). single_camera: one camera shared by all photos (one phone, fixed zoom).
     min_registered_fraction: below it the run fails with advice. num_threads -1: all cores."""
