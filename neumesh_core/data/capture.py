@@ -93,6 +93,14 @@ def auto_downscale(width: int, height: int, max_side: int = MAX_AUTO_SIDE) -> in
     return max(1, math.ceil(max(width, height) / float(max_side)))
 
 
+def _physical_memory() -> int:
+    """Bytes of RAM (0 when unknown)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
 def reduced_size(width: int, height: int, downscale: float) -> tuple:
     """(w, h) of an image of width x height read with ``downscale`` (as ``undistort.read_uint8`` does)."""
     if float(downscale).is_integer():
@@ -206,6 +214,11 @@ def scene_from_capture(capture: Capture, downscale: float | None = None, holdout
     gib = n * h * w * 3 * 4 / 2**30
     log(f"loading {n} photos at {w}x{h} ({gib:.2f} GiB as float32)"
         + (", removing lens distortion (cached in " + cache_dir + ")" if capture.is_distorted else ""))
+    total = _physical_memory()
+    if total and gib * 2**30 > 0.8 * total:
+        fit = next(f for f in range(int(downscale) + 1, 64) if n * (-(-H0 // f)) * (-(-W0 // f)) * 12 < 0.5 * total)
+        raise DataError(f"{n} photos at {w}x{h} need {gib:.1f} GiB as float32 but this machine has "
+                        f"{total / 2**30:.1f} GiB; load them with --downscale {fit} (or fewer photos)")
     idx = _split_indices(capture, holdout_every)
     if len(idx["train"]) == 0:
         raise DataError(f"{capture.source}: no training views are left after the held-out split; "

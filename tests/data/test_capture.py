@@ -348,3 +348,13 @@ def test_large_photos_get_a_default_downscale(tmp_path):
     with pytest.raises(DataError):  # the files are 64x48, the cameras say 2560x1920: a clear mismatch error
         scene_from_capture(cap, log=msgs.append)
     assert msgs and "downscale 2" in msgs[0]
+
+
+def test_too_many_pixels_for_the_memory_is_a_clear_error(tmp_path, monkeypatch):
+    import neumesh_core.data.capture as capture_mod
+
+    root = str(tmp_path / "cap")
+    write_colmap(root, n=3)
+    monkeypatch.setattr(capture_mod, "_physical_memory", lambda: 60_000)  # 3 x 64x48 float32 = 110 KB
+    with pytest.raises(DataError, match="--downscale 2"):
+        load_scene(root, downscale=1, log=lambda m: None)
