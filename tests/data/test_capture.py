@@ -358,3 +358,16 @@ def test_too_many_pixels_for_the_memory_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setattr(capture_mod, "_physical_memory", lambda: 60_000)  # 3 x 64x48 float32 = 110 KB
     with pytest.raises(DataError, match="--downscale 2"):
         load_scene(root, downscale=1, log=lambda m: None)
+
+
+def test_a_capture_without_masks_trains(tmp_path, blob_mesh):
+    """masks None and background None (a real background): training runs and its loss is finite."""
+    import neumesh_core as nm
+
+    root = str(tmp_path / "cap")
+    write_transforms(root, n=9, dist={"k1": 0.05})
+    scene = load_scene(root, log=lambda m: None)
+    assert scene.split("train").masks is None and not scene.has_masks
+    field = nm.create_field(blob_mesh, nm.FieldConfig())
+    res = nm.train(field, scene, nm.TrainConfig(steps=3, rays_per_batch=128, log_every=1))
+    assert res.steps_done == 3 and np.isfinite(res.final_loss)
