@@ -101,9 +101,19 @@ def bench_poses(data: str, args) -> dict:
             last[0] = p.elapsed_s
             print(f"  {p.elapsed_s:6.0f} s  {p.stage}: {p.message}", flush=True)
 
-    t0 = time.perf_counter()
-    rep = estimate_poses(img_dir, out, cfg, callback=cb)
-    wall = time.perf_counter() - t0
+    if args.poses_from:  # evaluate the model of an earlier run (its report gives the times)
+        from neumesh_core.scaffold.poses import PosesReport
+
+        out = args.poses_from
+        with open(os.path.join(out, "poses_report.json")) as fh:
+            r = json.load(fh)
+        r.pop("images", None)
+        rep = PosesReport(**r)
+        wall = rep.seconds
+    else:
+        t0 = time.perf_counter()
+        rep = estimate_poses(img_dir, out, cfg, callback=cb)
+        wall = time.perf_counter() - t0
     est = read_colmap(out)
     by_name = {os.path.basename(n): i for i, n in enumerate(ref.names)}
     pairs = [(i, by_name[os.path.basename(n)]) for i, n in enumerate(est.names) if os.path.basename(n) in by_name]
@@ -114,6 +124,7 @@ def bench_poses(data: str, args) -> dict:
            "seconds": wall, "stage_seconds": rep.stage_seconds, "matcher": rep.matcher,
            "threads": args.threads, "max_image_size": args.max_image_size, "max_features": args.max_features,
            "camera_model": args.camera_model, "compared_cameras": len(pairs), **agree,
+           "recovered_lens": est.lenses[0].to_dict(), "given_lens": ref.lenses[0].to_dict(),
            "goals": {"all_registered": rep.registered == rep.num_images,
                      "median_rotation_le_1deg": agree["rotation_deg"]["median"] <= 1.0,
                      "median_centre_le_1pct": agree["centre_rel"]["median"] <= 0.01},
@@ -135,6 +146,9 @@ def main(argv=None) -> int:
     ap.add_argument("--max-features", type=int, default=8192)
     ap.add_argument("--camera-model", default="OPENCV")
     ap.add_argument("--poses-out", default=None, help="where the recovered model goes (default: a temp folder)")
+    ap.add_argument("--poses-from", default=None,
+                    help="evaluate the model an earlier run wrote in this folder (no new reconstruction; its "
+                         "poses_report.json gives the times; --threads/--max-* must name what that run used)")
     ap.add_argument("--skip-poses", action="store_true")
     ap.add_argument("--skip-load", action="store_true")
     args = ap.parse_args(argv)
