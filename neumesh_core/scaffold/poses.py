@@ -177,23 +177,86 @@ def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = N
     ext.num_threads = int(cfg.num_threads)
     ext.sift.max_num_features = int(cfg.max_num_features)
     mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.AUTO
-    run.stage("extract", lambda: pycolmap.extract_features(
-        db, images_dir, image_names=names, camera_mode=mode, reader_options=reader, extraction_options=ext,
-        device=pycolmap.Device.cpu, cancellation_token=run.token))
-    # 2. matching
+    # in chunks, for progress: later chunks reuse the first chunk's camera when there is one camera
+    chunk = max(1, int(np.ceil(n / 20)))
+
+    def extract():
+        for k in range(0, n, chunk):
+            pycolmap.extract_features(db, images_dir, image_names=names[k:k + chunk], camera_mode=mode,
+                                      reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu,
+                                      cancellation_token=run.token)
+            if _is_cancelled(run.token):
+                return
+            if k == 0 and cfg.single_camera:
+                reader.existing_camera_id = _first_camera_id(pycolmap, db)
+            run.done = min(n, k + chunk) / n
+
+    run.stage("extract", extract)
+    # 2. matching: the pairs (all, or each photo with its next neighbours) matched in chunks, for progress
     mopt = pycolmap.FeatureMatchingOptions()
     mopt.num_threads = int(cfg.num_threads)
-    if matcher == "exhaustive":
-        fn = lambda: pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu,  # noqa: E731
-                                               cancellation_token=run.token)
+    pairs = _exhaustive_pairs(n) if matcher == "exhaustive" else _sequential_pairs(n, cfg.sequential_overlap)
+    if any(" " in nm_ for nm_ in names):  # COLMAP's pair lists are space separated: its own pairing then
+        if matcher == "exhaustive":
+            fn = lambda: pycolmap.match_exhaustive(db, matching_options=mopt,  # noqa: E731
+                                                   device=pycolmap.Device.cpu, cancellation_token=run.token)
+        else:
+            pair = pycolmap.SequentialPairingOptions()
+            pair.overlap = int(cfg.sequential_overlap)
+            fn = lambda: pycolmap.match_sequential(db, matching_options=mopt, pairing_options=pair,  # noqa: E731
+                                                   device=pycolmap.Device.cpu, cancellation_token=run.token)
     else:
-        pair = pycolmap.SequentialPairingOptions()
-        pair.overlap = int(cfg.sequential_overlap)
-        fn = lambda: pycolmap.match_sequential(db, matching_options=mopt, pairing_options=pair,  # noqa: E731
-                                               device=pycolmap.Device.cpu, cancellation_token=run.token)
-    run.stage("match", fn)
+        def fn():
+            step = max(1, int(np.ceil(len(pairs) / 20)))
+            for k in range(0, len(pairs), step):
+                imp = pycolmap.ImportedPairingOptions()
+                imp.match_list_path = _write_pairs(out_dir, names, pairs[k:k + step])
+                pycolmap.match_image_pairs(db, matching_options=mopt, pairing_options=imp,
+                                           device=pycolmap.Device.cpu, cancellation_token=run.token)
+                if _is_cancelled(run.token):
+                    return
+                run.done = min(len(pairs), k + step) / len(pairs)
+    try:
+        run.stage("match", fn)
+    finally:
+        if os.path.exists(os.path.join(out_dir, ".pairs.txt")):
+            os.remove(os.path.join(out_dir, ".pairs.txt"))
     # 3. incremental mapping
     return _map(db, images_dir, out_dir, names, cfg, run)
+
+
+def _first_camera_id(pycolmap, db_path: str) -> int:
+    db = pycolmap.Database.open(db_path)
+    try:
+        cams = db.read_all_cameras()
+    finally:
+        db.close()
+    return int(min(c.camera_id for c in cams))
+
+
+def _exhaustive_pairs(n: int) -> list:
+    return [(i, j) for i in range(n) for j in range(i + 1, n)]
+
+
+def _sequential_pairs(n: int, overlap: int) -> list:
+    """Each photo with its next ``overlap`` photos and with those 2^k ahead (COLMAP's quadratic overlap)."""
+    out = set()
+    for i in range(n):
+        for k in range(1, overlap + 1):
+            if i + k < n:
+                out.add((i, i + k))
+        k = 1
+        while i + (1 << k) < n and k <= overlap:
+            out.add((i, i + (1 << k)))
+            k += 1
+    return sorted(out)
+
+
+def _write_pairs(out_dir: str, names: list, pairs: list) -> str:
+    path = os.path.join(out_dir, ".pairs.txt")
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.writelines(f"{names[i]} {names[j]}\n" for i, j in pairs)
+    return path
 
 
 class _Run:
@@ -205,7 +268,7 @@ class _Run:
         self.token = pycolmap.CancellationToken()
         self.n, self.matcher, self.callback = n, matcher, callback
         self.t_start = time.perf_counter()
-        self.current, self.registered = "extract", 0
+        self.current, self.registered, self.done = "extract", 0, 0.0
         self.seconds = {}
 
     def report(self):
@@ -213,14 +276,15 @@ class _Run:
             return None
         st = self.current
         lo, span = self._WEIGHTS[st]
-        frac = lo + span * (self.registered / self.n if st == "map" else 0.0)
-        msg = {"extract": f"finding features in {self.n} photos", "match": f"matching photos ({self.matcher})",
+        frac = lo + span * (self.registered / self.n if st == "map" else self.done)
+        msg = {"extract": f"finding features in {self.n} photos ({100 * self.done:.0f}%)",
+               "match": f"matching photos ({self.matcher}, {100 * self.done:.0f}%)",
                "map": f"placing cameras: {self.registered} of {self.n} registered"}[st]
         return self.callback(PosesProgress(st, min(frac, 1.0), msg, time.perf_counter() - self.t_start,
                                            self.registered))
 
     def stage(self, name: str, fn):
-        self.current = name
+        self.current, self.done = name, 0.0
         t0 = time.perf_counter()
         out = _run_stage(fn, self.token, self.report)
         self.seconds[name] = time.perf_counter() - t0

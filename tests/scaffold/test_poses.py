@@ -83,7 +83,7 @@ def write_cube_photos(folder, n=16, w=240, h=180):
         c2w = _look_at(eye)
         c2ws.append(c2w)
         img = render_cube(c2w, K, w, h, tex, room)
-        cv2.imwrite(os.path.join(folder, f"shot {i:02d}.png"), (img[..., ::-1] * 255 + 0.5).astype(np.uint8))
+        cv2.imwrite(os.path.join(folder, f"shot_{i:02d}.png"), (img[..., ::-1] * 255 + 0.5).astype(np.uint8))
     return np.stack(c2ws), K
 
 
@@ -108,13 +108,17 @@ def test_estimate_poses_on_rendered_photos_and_load_the_result(tmp_path):
     rep = estimate_poses(photos, out, cfg, callback=lambda p: seen.append((p.stage, p.fraction)))
     assert rep.registered == rep.num_images == 16 and rep.mean_reprojection_error < 1.0
     assert {s for s, _ in seen} >= {"extract", "match", "map"} and seen[-1][1] == 1.0
+    fractions = [f for _, f in seen]
+    assert fractions == sorted(fractions)  # progress never goes back
+    for stage in ("extract", "match"):  # and moves within the long stages
+        assert len({f for s, f in seen if s == stage}) >= 3
     report = json.load(open(os.path.join(out, "poses_report.json")))
     assert report["registered"] == 16 and report["images"] == photos
-    scene = load_scene(out, holdout_every=0, log=lambda m: None)  # photos read where they are (names with spaces)
+    scene = load_scene(out, holdout_every=0, log=lambda m: None)  # photos read where they are
     assert scene.kind == "colmap" and len(scene.split("train")) == 16
     assert scene.capture.points is not None and len(scene.capture.points) > 100
     est = scene.split("train").cameras.c2w.astype(np.float64)
-    order = [int(n.split()[1][:2]) for n in scene.split("train").names]
+    order = [int(n[5:7]) for n in scene.split("train").names]
     assert np.median(_relative_rotation_errors(est, c2w[order])) < 1.0
 
 
@@ -147,6 +151,15 @@ def test_map_database_from_a_synthetic_database_and_cancel(tmp_path):
         ref.append(m)
     est = scene.split("train").cameras.c2w.astype(np.float64)
     assert np.median(_relative_rotation_errors(est, np.stack(ref))) < 0.1
+
+
+def test_pair_lists():
+    from neumesh_core.scaffold.poses import _exhaustive_pairs, _sequential_pairs
+
+    assert _exhaustive_pairs(4) == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    seq = _sequential_pairs(20, 3)
+    assert (0, 1) in seq and (0, 3) in seq and (0, 4) in seq and (0, 8) in seq and (0, 5) not in seq
+    assert all(i < j < 20 for i, j in seq) and len(set(seq)) == len(seq)
 
 
 def test_clear_errors_for_missing_or_too_few_photos(tmp_path):
