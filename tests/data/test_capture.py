@@ -371,3 +371,27 @@ def test_a_capture_without_masks_trains(tmp_path, blob_mesh):
     field = nm.create_field(blob_mesh, nm.FieldConfig())
     res = nm.train(field, scene, nm.TrainConfig(steps=3, rays_per_batch=128, log_every=1))
     assert res.steps_done == 3 and np.isfinite(res.final_loss)
+
+
+def test_undistorted_images_for_blender_backgrounds(tmp_path):
+    """read_capture + undistorted_images: what Import Cameras needs (no pixels until asked; PNG files)."""
+    from neumesh_core.data import read_capture as rc, undistorted_images
+    from neumesh_core.render.renderer import Cancelled
+
+    root = str(tmp_path / "cap")
+    write_transforms(root, n=3, dist={"k1": 0.1, "k2": -0.02})
+    cap = rc(root)
+    assert cap.is_distorted and cap.points is None and cap.aabb_scale == 4
+    Ks, paths = undistorted_images(cap)
+    assert all(p.endswith(".png") and os.path.isfile(p) and not p.startswith(root) for p in paths)
+    from PIL import Image
+
+    img = np.asarray(Image.open(paths[0]), np.float32) / 255
+    err = np.abs(img - pinhole_render(Ks[0]))[3:-3, 3:-3]
+    assert err.mean() < 0.01
+    with pytest.raises(Cancelled):
+        undistorted_images(cap, progress=lambda f: False)
+    pin = str(tmp_path / "pin")
+    write_transforms(pin, n=2)
+    Ks, paths = undistorted_images(rc(pin))
+    assert paths == rc(pin).image_paths
