@@ -114,8 +114,9 @@ def _named_splits(root: str, names: list) -> dict | None:
     return out or None
 
 
-def read_colmap(root: str, images_dir: str | None = None) -> Capture:
-    """Read a COLMAP capture folder as a :class:`Capture` (registered photos only, no pixels)."""
+def read_colmap(root: str, images_dir: str | None = None, log=None) -> Capture:
+    """Read a COLMAP capture folder as a :class:`Capture` (registered photos only, no pixels).
+    Missing photos are said once through ``log(message)``, or as a Python warning without it."""
     root = os.path.abspath(os.fspath(root))
     if not os.path.isdir(root):
         raise DataError(f"dataset folder not found: {root}")
@@ -142,7 +143,10 @@ def read_colmap(root: str, images_dir: str | None = None) -> Capture:
     notes = []
     if missing:
         msg = f"{root}: {len(missing)} of {len(imgs)} registered photos are missing and were skipped (e.g. {missing[0]})"
-        warnings.warn(msg, stacklevel=2)
+        if log is not None:
+            log(msg)
+        else:
+            warnings.warn(msg, stacklevel=2)
         notes.append(msg)
     lenses, lens_of = [], {}
     for im in kept:
@@ -167,4 +171,7 @@ def load_colmap(root: str, downscale: float | None = None, holdout_every: int = 
     """Load a COLMAP capture as a :class:`Scene` (see ``capture.scene_from_capture``)."""
     from .capture import scene_from_capture
 
-    return scene_from_capture(read_colmap(root, images_dir), downscale=downscale, holdout_every=holdout_every, **kw)
+    from .capture import _stderr_log
+
+    cap = read_colmap(root, images_dir, log=kw.get("log") or _stderr_log)
+    return scene_from_capture(cap, downscale=downscale, holdout_every=holdout_every, **kw)

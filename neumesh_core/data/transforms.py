@@ -87,8 +87,9 @@ def _lens(meta: dict, frame: dict, where: str) -> Lens:
     return Lens(model, int(round(w)), int(round(h)), fl_x, fl_y, cx, cy, dist)
 
 
-def read_transforms(root: str, json_name: str = _FILE) -> Capture:
-    """Read ``root/transforms.json`` as a :class:`Capture` (cameras, photo paths; no pixels)."""
+def read_transforms(root: str, json_name: str = _FILE, log=None) -> Capture:
+    """Read ``root/transforms.json`` as a :class:`Capture` (cameras, photo paths; no pixels).
+    Skipped frames are said once through ``log(message)``, or as a Python warning without it."""
     root = os.fspath(root)
     path = os.path.join(root, json_name) if os.path.isdir(root) else root
     root = os.path.dirname(os.path.abspath(path))
@@ -132,7 +133,10 @@ def read_transforms(root: str, json_name: str = _FILE) -> Capture:
     if missing:
         msg = (f"{path}: {len(missing)} of {len(frames)} frames have no image and were skipped "
                f"(e.g. {', '.join(missing[:3])})")
-        warnings.warn(msg, stacklevel=2)
+        if log is not None:
+            log(msg)
+        else:
+            warnings.warn(msg, stacklevel=2)
         notes.append(msg)
     rows.sort(key=lambda r: r[0])
     names = [r[0] for r in rows]
@@ -184,4 +188,7 @@ def load_transforms(root: str, downscale: float | None = None, holdout_every: in
     """Load a transforms.json capture as a :class:`Scene` (see ``capture.scene_from_capture``)."""
     from .capture import scene_from_capture
 
-    return scene_from_capture(read_transforms(root), downscale=downscale, holdout_every=holdout_every, **kw)
+    from .capture import _stderr_log
+
+    cap = read_transforms(root, log=kw.get("log") or _stderr_log)
+    return scene_from_capture(cap, downscale=downscale, holdout_every=holdout_every, **kw)

@@ -154,6 +154,11 @@ def test_transforms_missing_frames_one_warning_that_counts(tmp_path):
     msgs = [str(x.message) for x in w]
     assert len(msgs) == 1 and "2 of 12 frames" in msgs[0]
     assert len(cap) == 10 and "images/0003.png" in cap.skipped
+    msgs = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # through the loader the count goes to the progress output instead
+        scene = load_scene(root, log=msgs.append)
+    assert sum("2 of 12 frames" in m for m in msgs) == 1 and len(scene.split("train")) + len(scene.split("val")) == 10
 
 
 def test_transforms_windows_paths_and_per_frame_intrinsics(tmp_path):
