@@ -36,8 +36,8 @@ def _has_model(d: str) -> str | None:
 
 
 def find_model(root: str) -> str | None:
-    """The folder that holds the COLMAP model of ``root`` (sparse/0, sparse, the largest sparse/N,
-    or root itself), or None."""
+    """The folder that holds the COLMAP model of ``root`` (sparse/0, else the other sparse/N in name
+    order, sparse itself, or root), or None."""
     root = os.fspath(root)
     cands = [os.path.join(root, "sparse", "0"), os.path.join(root, "sparse"), root]
     sp = os.path.join(root, "sparse")

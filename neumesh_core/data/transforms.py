@@ -44,14 +44,21 @@ def _resolve(root: str, rel: str) -> str | None:
     return None
 
 
-def _lens(meta: dict, frame: dict, where: str) -> Lens:
+def _lens(meta: dict, frame: dict, where: str, image_path: str) -> Lens:
     def get(key):
         v = frame.get(key, meta.get(key))
         return None if v is None else float(v)
 
     w, h = get("w"), get("h")
-    if w is None or h is None:
-        raise DataError(f"{where} has no image size: add 'w' and 'h' (pixels) at the top level or per frame")
+    if w is None or h is None:  # not written by every tool: the photo's header has it
+        from PIL import Image
+
+        try:
+            with Image.open(image_path) as im:
+                w, h = (float(v) for v in im.size)
+        except Exception as exc:
+            raise DataError(f"{where}: could not read the size of {image_path} ({exc}); add 'w' and 'h' "
+                            "(pixels) to transforms.json or replace the photo") from exc
     fl_x, fl_y = get("fl_x"), get("fl_y")
     if fl_x is None and get("camera_angle_x") is not None:
         fl_x = 0.5 * w / np.tan(0.5 * get("camera_angle_x"))
@@ -118,7 +125,7 @@ def read_transforms(root: str, json_name: str = _FILE, log=None) -> Capture:
             m = np.vstack([m, [0, 0, 0, 1]])
         if m.shape != (4, 4) or not np.isfinite(m).all():
             raise DataError(f"{path}: frame {i} transform_matrix must be a finite 4x4 matrix, got shape {m.shape}")
-        lens = _lens(meta, fr, f"{path} (frame {i})")
+        lens = _lens(meta, fr, f"{path} (frame {i})", img)
         mask = None
         if fr.get("mask_path"):
             mask = _resolve(root, fr["mask_path"])

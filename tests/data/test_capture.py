@@ -167,6 +167,16 @@ def test_transforms_windows_paths_and_per_frame_intrinsics(tmp_path):
     cap = read_transforms(root)
     assert len(cap) == 4
     assert [lens.fx for lens in cap.lenses] == [FX, FX + 1, FX + 2, FX + 3]
+    # no w/h and only a field of view (as NeRF-synthetic-style exports write): size from the photos
+    meta = json.load(open(os.path.join(root, "transforms.json")))
+    meta["camera_angle_x"] = 2 * np.arctan(0.5 * W / FX)
+    del meta["w"], meta["h"]
+    for fr in meta["frames"]:
+        for k in ("w", "h", "fl_x", "fl_y", "cx", "cy"):
+            fr.pop(k)
+    json.dump(meta, open(os.path.join(root, "transforms.json"), "w"))
+    lens = read_transforms(root).lenses[0]
+    assert (lens.width, lens.height, lens.cx, lens.cy) == (W, H, W / 2, H / 2) and abs(lens.fx - FX) < 1e-9
 
 
 def test_transforms_named_splits_and_masks(tmp_path):
