@@ -216,7 +216,8 @@ def scene_from_capture(capture: Capture, downscale: float | None = None, holdout
         + (", removing lens distortion (cached in " + cache_dir + ")" if capture.is_distorted else ""))
     total = _physical_memory()
     if total and gib * 2**30 > 0.8 * total:
-        fit = next(f for f in range(int(downscale) + 1, 64) if n * (-(-H0 // f)) * (-(-W0 // f)) * 12 < 0.5 * total)
+        fit = next((f for f in range(int(downscale) + 1, 64) if n * (-(-H0 // f)) * (-(-W0 // f)) * 12 < 0.5 * total),
+                   64)
         raise DataError(f"{n} photos at {w}x{h} need {gib:.1f} GiB as float32 but this machine has "
                         f"{total / 2**30:.1f} GiB; load them with --downscale {fit} (or fewer photos)")
     idx = _split_indices(capture, holdout_every)

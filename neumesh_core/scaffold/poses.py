@@ -409,40 +409,49 @@ def frames_from_video(video: str, out_dir: str, fps: float = 2.0, min_sharpness:
         src_fps = cap.get(cv2.CAP_PROP_FPS) or 30.0
         total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         step = max(1, int(round(src_fps / fps)))
-        best, kept, i = None, [], 0
+        os.makedirs(out_dir, exist_ok=True)
+        for old in os.listdir(out_dir):  # frames of an earlier run would mix in
+            if old.startswith("frame_") and old.endswith(".jpg"):
+                os.remove(os.path.join(out_dir, old))
+        kept, best, i = [], None, 0  # kept: (sharpness, path); frames go to disk as they are chosen
+
+        def keep(b):
+            p = os.path.join(out_dir, f"frame_{len(kept) + 1:05d}.jpg")
+            cv2.imwrite(p, b[1], [cv2.IMWRITE_JPEG_QUALITY, 95])
+            kept.append((b[0], p))
+
         while True:
             ok, frame = cap.read()
             if not ok:
                 break
-            grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-            sc = sharpness(grey)
+            sc = sharpness(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
             if best is None or sc > best[0]:
                 best = (sc, frame)
             i += 1
             if i % step == 0:
-                kept.append(best)
+                keep(best)
                 best = None
                 if callback is not None and total and callback(min(i / total, 1.0)) is False:
                     raise Cancelled("frame extraction cancelled")
         if best is not None and (not kept or i % step > step // 2):
-            kept.append(best)
+            keep(best)
     finally:
         cap.release()
     if i == 0:
         raise PosesError(f"no frames could be read from {video}; the file is empty or its codec is not supported "
                          "(convert it to an .mp4, H.264)")
-    if len(kept) < 3:
-        raise PosesError(f"{video} gives only {len(kept)} frames at {fps:g} fps; use a longer clip or a higher --fps")
     scores = np.array([k[0] for k in kept])
-    if np.median(scores) < min_sharpness:
+    if len(kept) < 3 or np.median(scores) < min_sharpness:
+        for _, p in kept:
+            os.remove(p)
+        if len(kept) < 3:
+            raise PosesError(f"{video} gives only {len(kept)} frames at {fps:g} fps; use a longer clip or a higher --fps")
         raise PosesError(f"the video {video} is too blurry to recover poses (median sharpness {np.median(scores):.1f} "
                          f"< {min_sharpness:g}): film more slowly, with more light, or take photos instead")
-    os.makedirs(out_dir, exist_ok=True)
     paths = []
-    for j, (sc, frame) in enumerate(kept):
+    for sc, p in kept:
         if sc < 0.3 * np.median(scores):
-            continue  # a blurred moment: its neighbours cover it
-        p = os.path.join(out_dir, f"frame_{j + 1:05d}.jpg")
-        cv2.imwrite(p, frame, [cv2.IMWRITE_JPEG_QUALITY, 95])
-        paths.append(p)
+            os.remove(p)  # a blurred moment: its neighbours cover it
+        else:
+            paths.append(p)
     return paths
