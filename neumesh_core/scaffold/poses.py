@@ -24,7 +24,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..errors import DataError, NeuMeshError
+from ..errors import NeuMeshError
 
 REPORT_NAME = "poses_report.json"
 _STAGES = ("extract", "match", "map")
