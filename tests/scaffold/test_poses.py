@@ -219,3 +219,21 @@ def test_cli_poses_errors_are_clear(tmp_path, capsys):
     assert main(["poses", "--images", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "holds no photos" in capsys.readouterr().err
     assert main(["poses", "--out", str(tmp_path / "o")]) == 2
+
+
+def test_cli_poses_from_a_video(tmp_path, capsys):
+    """`neumesh poses --video`: frames extracted, matched sequentially, every frame placed, loadable."""
+    from neumesh_core.cli import main
+
+    photos = tmp_path / "frames_src"
+    write_cube_photos(str(photos), n=20)
+    clip = str(tmp_path / "clip.avi")
+    _write_video(clip, [cv2.imread(str(photos / n)) for n in sorted(os.listdir(photos))], fps=8)
+    out = tmp_path / "out"
+    assert main(["poses", "--video", clip, "--fps", "8", "--out", str(out), "--threads", "1",
+                 "--camera-model", "PINHOLE"]) == 0
+    text = capsys.readouterr().out
+    assert "registered 20 of 20 photos" in text
+    report = json.load(open(out / "poses_report.json"))
+    assert report["matcher"] == "sequential" and report["images"] == str(out / "images")
+    assert len(load_scene(str(out), log=lambda m: None).split("train")) == 17
