@@ -85,9 +85,9 @@ def pose_agreement(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> dict:
 
 
 def bench_poses(data: str, args) -> dict:
-    from neumesh_core.data.capture import read_capture
+    from neumesh_core.data.loader import read_capture
     from neumesh_core.data.colmap import read_colmap
-    from neumesh_core.scaffold.poses import PosesConfig, estimate_poses
+    from neumesh_core.reconstruct.poses import PosesConfig, estimate_poses
 
     ref = read_capture(data)
     img_dir = os.path.dirname(ref.image_paths[0])
@@ -102,7 +102,7 @@ def bench_poses(data: str, args) -> dict:
             print(f"  {p.elapsed_s:6.0f} s  {p.stage}: {p.message}", flush=True)
 
     if args.poses_from:  # evaluate the model of an earlier run (its report gives the times)
-        from neumesh_core.scaffold.poses import PosesReport
+        from neumesh_core.reconstruct.poses import PosesReport
 
         out = args.poses_from
         with open(os.path.join(out, "poses_report.json")) as fh:

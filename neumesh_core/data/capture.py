@@ -4,7 +4,7 @@ Every reader of a real capture (``transforms.py``, ``colmap.py``) returns a :cla
 camera rig (one :class:`~.undistort.Lens` and one OpenCV camera-to-world pose per photo), the photo
 paths where they are (nothing is renamed or moved), the sparse points in world space when the tool
 wrote them, ``aabb_scale`` when given, and the splits the data names. Reading a capture touches no
-pixels: it is what *Import Cameras* in Blender needs (:func:`read_capture`), and
+pixels: it is what *Import Cameras* in Blender needs (``loader.read_capture``), and
 :func:`undistorted_images` gives pinhole cameras plus image files without distortion (cached) for
 backgrounds.
 
@@ -109,29 +109,12 @@ def reduced_size(width: int, height: int, downscale: float) -> tuple:
     return max(1, round(width / downscale)), max(1, round(height / downscale))
 
 
-def read_capture(path: str, kind: str = "auto") -> Capture:
-    """Cameras, photo paths and sparse points of a capture folder (COLMAP or transforms.json), no
-    pixels read. ``kind``: 'auto', 'transforms' or 'colmap'. The core call behind Import Cameras."""
-    from .loader import detect_kind
-
-    kind = detect_kind(path) if kind == "auto" else kind
-    if kind == "transforms":
-        from .transforms import read_transforms
-
-        return read_transforms(path)
-    if kind == "colmap":
-        from .colmap import read_colmap
-
-        return read_colmap(path)
-    raise DataError(f"{path} is a '{kind}' dataset, not a real capture (COLMAP or transforms.json)")
-
-
 def undistorted_images(capture: Capture, cache_dir: str | None = None,
                        progress: Callable[[float], object] | None = None) -> tuple[list, list]:
     """Pinhole intrinsics (list of 3x3 float64 for the full-size images) and paths of images without
     lens distortion: the photos themselves for pinhole cameras, else undistorted copies in the cache
     (made on the first call). ``progress(fraction) -> False`` cancels (nm.Cancelled)."""
-    from ..render.renderer import Cancelled
+    from ..errors import Cancelled
 
     cache_dir = cache_dir or default_cache_dir()
     Ks, paths = [], []
@@ -293,5 +276,5 @@ def list_images(folder: str) -> list:
     return sorted(names, key=key)
 
 
-__all__ = ["Capture", "Lens", "auto_downscale", "list_images", "read_capture", "scene_from_capture",
+__all__ = ["Capture", "Lens", "auto_downscale", "list_images", "scene_from_capture",
            "undistorted_images", "read_uint8"]

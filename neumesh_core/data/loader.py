@@ -68,3 +68,19 @@ def load_scene(path: str, kind: str = "auto", downscale: float | None = None, ba
     from .dtu import load_dtu
 
     return load_dtu(path, downscale=downscale, **kw)
+
+
+def read_capture(path: str, kind: str = "auto"):
+    """Cameras, photo paths and sparse points of a real capture folder (COLMAP or transforms.json) as a
+    :class:`~.capture.Capture`, no pixels read. ``kind``: 'auto', 'transforms' or 'colmap'. The core
+    call behind Import Cameras."""
+    kind = detect_kind(path) if kind == "auto" else kind
+    if kind == "transforms":
+        from .transforms import read_transforms
+
+        return read_transforms(path)
+    if kind == "colmap":
+        from .colmap import read_colmap
+
+        return read_colmap(path)
+    raise DataError(f"{path} is a '{kind}' dataset, not a real capture (COLMAP or transforms.json)")

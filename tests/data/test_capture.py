@@ -11,9 +11,9 @@ import warnings
 import numpy as np
 import pytest
 
-from neumesh_core.data.capture import auto_downscale, read_capture, scene_from_capture
+from neumesh_core.data.capture import auto_downscale, scene_from_capture
 from neumesh_core.data.colmap import read_colmap
-from neumesh_core.data.loader import detect_kind, load_scene
+from neumesh_core.data.loader import detect_kind, load_scene, read_capture
 from neumesh_core.data.transforms import read_transforms
 from neumesh_core.data.undistort import Lens, pinhole_for, undistort_image
 from neumesh_core.errors import DataError
@@ -391,7 +391,7 @@ def test_a_capture_without_masks_trains(tmp_path, blob_mesh):
 def test_undistorted_images_for_blender_backgrounds(tmp_path):
     """read_capture + undistorted_images: what Import Cameras needs (no pixels until asked; PNG files)."""
     from neumesh_core.data import read_capture as rc, undistorted_images
-    from neumesh_core.render.renderer import Cancelled
+    from neumesh_core.errors import Cancelled
 
     root = str(tmp_path / "cap")
     write_transforms(root, n=3, dist={"k1": 0.1, "k2": -0.02})

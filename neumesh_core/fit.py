@@ -1,0 +1,79 @@
+"""`fit`: images alone -> scaffold -> trained field -> evaluation (resumable per stage).
+
+out_dir layout: scaffold.ply (+ scaffold.scaffold.json report), field.neumesh, fit.json (summary).
+The scaffold stage is skipped when out_dir/scaffold.ply exists (delete it to rebuild); training
+resumes from out_dir/field.neumesh (its step and optimiser state) when that exists.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from typing import Callable, Optional
+
+from .reconstruct.build import ScaffoldConfig, build_scaffold
+
+
+def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, background="white",
+        scaffold_config: Optional[ScaffoldConfig] = None, field_config=None, train_config=None,
+        scaffold_progress: Optional[Callable[[str, float], object]] = None,
+        train_callback=None, evaluate_split: str = "val", log: Callable[[str], None] = print,
+        device="cpu") -> dict:
+    """Run the whole pipeline on a dataset folder; returns a summary dict (also written to fit.json).
+
+    ``device``: where the field trains and is evaluated (the scaffold is built on the CPU)."""
+    from .data.loader import load_scene
+    from .errors import VertexMismatchError
+    from .evaluate import evaluate
+    from .field.field import FieldConfig, create_field
+    from .field.io import load_field, save_field
+    from .mesh import load_mesh, save_mesh
+    from .train.trainer import TrainConfig, train
+
+    os.makedirs(out_dir, exist_ok=True)
+    t0 = time.perf_counter()
+    scene = load_scene(data_dir, downscale=downscale, background=background)
+    summary = {"data": os.path.abspath(data_dir), "downscale": downscale}
+
+    mesh_path = os.path.join(out_dir, "scaffold.ply")
+    report_path = os.path.join(out_dir, "scaffold.scaffold.json")
+    if os.path.isfile(mesh_path):
+        mesh = load_mesh(mesh_path)
+        log(f"scaffold: reusing {mesh_path} ({mesh.num_vertices} vertices); delete it to rebuild")
+        summary["scaffold"] = {"reused": True, "vertices": mesh.num_vertices}
+    else:
+        mesh, rep = build_scaffold(scene, scaffold_config or ScaffoldConfig(), progress=scaffold_progress)
+        save_mesh(mesh, mesh_path)
+        rep.save(report_path)
+        log(rep.summary())
+        summary["scaffold"] = {"reused": False, "vertices": rep.num_vertices,
+                               "seconds": rep.timings.get("total"), "silhouette_iou": rep.silhouette_iou}
+
+    field_path = os.path.join(out_dir, "field.neumesh")
+    tcfg = train_config or TrainConfig(steps=steps)
+    if getattr(tcfg, "checkpoint_path", None) is None:
+        tcfg.checkpoint_path = field_path
+    if os.path.isfile(field_path):
+        field = load_field(field_path, device=device)
+        if field.num_vertices != mesh.num_vertices:
+            raise VertexMismatchError(
+                f"{field_path} has {field.num_vertices} vertices but {mesh_path} has {mesh.num_vertices}; "
+                "delete one of them to start over")
+        done = field._checkpoint_meta.get("train_state", {}).get("step", 0)
+        log(f"training: resuming {field_path} from step {done}")
+        summary["resumed_from_step"] = done
+    else:
+        field = create_field(mesh, field_config or FieldConfig(), device=device)
+    res = train(field, scene, tcfg, callback=train_callback)
+    if os.path.abspath(tcfg.checkpoint_path) != os.path.abspath(field_path):
+        save_field(field, field_path)  # (the trainer already wrote field_path with its step/optimiser)
+    summary["train"] = {"steps": getattr(res, "steps_done", None), "psnr": getattr(res, "final_psnr", None),
+                        "seconds": getattr(res, "seconds", None)}
+    if evaluate_split in scene.splits:
+        metrics = evaluate(field, scene.split(evaluate_split),
+                           background=scene.background or (0.0, 0.0, 0.0), masked=scene.kind == "dtu")
+        summary["eval"] = metrics.get("mean", metrics) if isinstance(metrics, dict) else metrics
+    summary["seconds"] = time.perf_counter() - t0
+    with open(os.path.join(out_dir, "fit.json"), "w") as fh:
+        json.dump(summary, fh, indent=2, default=str)
+    return summary
