@@ -91,7 +91,7 @@ def bench_poses(data: str, args) -> dict:
 
     ref = read_capture(data)
     img_dir = os.path.dirname(ref.image_paths[0])
-    out = args.poses_out or tempfile.mkdtemp(prefix="nm_poses_")
+    out = args.poses_out or (None if args.poses_from else tempfile.mkdtemp(prefix="nm_poses_"))
     cfg = PosesConfig(max_image_size=args.max_image_size, max_num_features=args.max_features,
                       num_threads=args.threads, camera_model=args.camera_model)
     last = [0.0]
