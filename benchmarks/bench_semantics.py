@@ -12,14 +12,23 @@
 3. A picture per click: the view as the field renders it with the click marked, and the selection
    tinted magenta and the rest darkened (--pictures PNG, one row per click).
 4. On the built-in multi-part scene (the data folder holds part_labels.npy) the clicks are chosen from
-   the ground truth when none are given, and the IoU per part is reported.
+   the ground truth when none are given, and the IoU per part is reported.  --make-multipart writes
+   the small multi-part scene to --data (--same-colour: one texture on every part) and trains the
+   field to --field (200 steps, as the tests) when they do not exist yet.
+5. The geometric features (neumesh_core.semantics.geometry): their time on the field's scaffold, and
+   with --scaffold PLY [--subdivide N] on any mesh (e.g. lego's 200k-vertex scaffold); --scaffold
+   without --field times only that.
 
     nice -n 10 .venv/bin/python benchmarks/bench_semantics.py --field F --data DIR \\
         [--click bucket:0:120:200 ...] [--pictures docs/semantics_lego.png] [--save F_sem.neumesh]
+    .venv/bin/python benchmarks/bench_semantics.py --make-multipart --same-colour --data /tmp/mp_same \\
+        --field /tmp/mp_same.neumesh --steps 300 --rays-per-view 1024 --name semantics_multipart_same.json
+    .venv/bin/python benchmarks/bench_semantics.py --scaffold /work/runs/lego/scaffold.ply
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import platform
 import sys
@@ -57,6 +66,66 @@ def label_clicks(data: str, split: str):
                 y, x = np.unravel_index(dt.argmax(), dt.shape)
                 best[name] = (dt.max(), i, (x + 0.5, y + 0.5), p)
     return [(name, i, xy, p) for name, (_, i, xy, p) in best.items()]
+
+
+def make_multipart(data: str, field_path: str, same_colour: bool) -> dict:
+    """The small multi-part scene (as the tests use it) at ``data`` and a field trained on it 200 steps
+    at ``field_path``, each made only when missing."""
+    import torch
+
+    import neumesh_core as nm
+    from neumesh_core.data.multipart import SMALL_KWARGS, make_multipart_scene
+
+    out = {"same_colour": same_colour}
+    if not os.path.isfile(os.path.join(data, "scene.json")):
+        t = time.perf_counter()
+        make_multipart_scene(data, same_colour=same_colour, **SMALL_KWARGS)
+        out["scene_s"] = time.perf_counter() - t
+    if not os.path.isfile(field_path):
+        t = time.perf_counter()
+        torch.manual_seed(0)
+        field = nm.create_field(nm.load_mesh(os.path.join(data, "mesh.ply")), nm.FieldConfig(interpolation="early"))
+        res = nm.train(field, nm.load_scene(data), nm.TrainConfig(steps=200, rays_per_batch=1024, log_every=50))
+        nm.save_field(field, field_path)
+        out.update({"train_s": time.perf_counter() - t, "train_psnr": res.final_psnr})
+    return out
+
+
+def subdivide(vertices: np.ndarray, faces: np.ndarray):
+    """One midpoint subdivision (each triangle into four)."""
+    from neumesh_core.mesh import unique_edges
+
+    e = unique_edges(faces)
+    n = len(vertices)
+    key = e[:, 0] * n + e[:, 1]
+    mid = (vertices[e[:, 0]] + vertices[e[:, 1]]) / 2
+
+    def m(a, b):
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        return n + np.searchsorted(key, lo * n + hi)
+
+    a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
+    ab, bc, ca = m(a, b), m(b, c), m(c, a)
+    f = np.concatenate([np.stack(x, 1) for x in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    return np.concatenate([vertices, mid]), f
+
+
+def scaffold_features(path: str, times: int) -> dict:
+    """Seconds of the geometric features of the mesh at ``path`` (subdivided ``times`` times)."""
+    import neumesh_core as nm
+    from neumesh_core.semantics.geometry import compute_geometric_features
+
+    mesh = nm.load_mesh(path)
+    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+    for _ in range(times):
+        v, f = subdivide(v, f)
+    t = time.perf_counter()
+    feats = compute_geometric_features(v.astype(np.float32), f)
+    dt = time.perf_counter() - t
+    print(f"geometric features of {path} ({len(v)} vertices, {len(f)} faces): {dt:.2f}s "
+          f"({', '.join(f'{k} {x:.2f}' for k, x in feats.timings.items() if k.endswith('_s'))})")
+    return {"mesh": path, "subdivided": times, "vertices": int(len(v)), "faces": int(len(f)), "seconds": dt,
+            **feats.timings}
 
 
 def tinted_render(field, K, c2w, w, h, vertices, tint=(1.0, 0.0, 1.0), amount=0.8, dim=0.35):
@@ -156,8 +225,16 @@ def blender_clicks(field_path: str, cams, clicks, threshold: float):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", required=True, help="trained field (.neumesh); with --skip-distil, one with semantics")
-    ap.add_argument("--data", required=True, help="its dataset")
+    ap.add_argument("--field", help="trained field (.neumesh); with --skip-distil, one with semantics")
+    ap.add_argument("--data", help="its dataset")
+    ap.add_argument("--make-multipart", action="store_true",
+                    help="write the small multi-part scene to --data and train --field on it when missing")
+    ap.add_argument("--same-colour", action="store_true", help="with --make-multipart: one texture on every part")
+    ap.add_argument("--geometry", type=float, default=None, help="weight of the geometric similarity (default: "
+                    "SelectConfig's; 0: semantic features only)")
+    ap.add_argument("--no-creases", action="store_true", help="let the growth cross concave creases")
+    ap.add_argument("--scaffold", help="also time the geometric features on this mesh (.ply/.obj)")
+    ap.add_argument("--subdivide", type=int, default=0, help="midpoint-subdivide --scaffold this many times first")
     ap.add_argument("--split", default="val", help="split whose cameras the clicks index (default val)")
     ap.add_argument("--click", action="append", type=parse_click, default=[], metavar="NAME:VIEW:X:Y")
     ap.add_argument("--extractor", default=None, help="2D features (default colour-texture)")
@@ -182,10 +259,22 @@ def main(argv=None) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    result = {}
+    if args.scaffold:
+        result["scaffold_features"] = scaffold_features(args.scaffold, args.subdivide)
+    if not args.field:
+        if not args.scaffold:
+            ap.error("give --field and --data, or --scaffold")
+        write_results(result, args.name or "semantics_geometry_scaffold.json")
+        return 0
+    if not args.data:
+        ap.error("--field needs --data")
+    if args.make_multipart:
+        result["made"] = make_multipart(args.data, args.field, args.same_colour)
     field = nm.load_field(args.field)
     scene = nm.load_scene(args.data)
-    result = {"field": args.field, "data": args.data, "vertices": field.num_vertices,
-              "machine": {"cpus": os.cpu_count(), "threads": torch.get_num_threads(), "platform": platform.platform()}}
+    result.update({"field": args.field, "data": args.data, "vertices": field.num_vertices,
+              "machine": {"cpus": os.cpu_count(), "threads": torch.get_num_threads(), "platform": platform.platform()}})
     print(f"field {args.field}: {field.num_vertices} vertices")
     if not args.skip_distil:
         ex = make_extractor(args.extractor)
@@ -213,7 +302,20 @@ def main(argv=None) -> int:
         clicks = label_clicks(args.data, args.split)
     if not clicks:
         print("no --click given and no part labels: nothing to select")
-    cfg = SelectConfig(threshold=args.threshold)
+    sel_kw = {"creases": not args.no_creases}
+    if args.geometry is not None:
+        sel_kw["geometry"] = args.geometry
+    cfg = SelectConfig(threshold=args.threshold, **sel_kw)
+    result["select_config"] = {"threshold": cfg.threshold, "geometry": cfg.geometry, "creases": cfg.creases,
+                               "geometry_config": dataclasses.asdict(cfg.geometry_config)}
+    from neumesh_core.semantics import geometry as geo_mod
+
+    geo_mod._MEMO.clear()   # time the features of this scaffold from scratch
+    t = time.perf_counter()
+    gf = geo_mod.geometric_features(field, cfg.geometry_config)
+    result["geometry"] = {"seconds": time.perf_counter() - t, **gf.timings}
+    print(f"geometric features of the field's scaffold: {result['geometry']['seconds']:.2f}s "
+          f"({', '.join(f'{k} {v:.2f}' for k, v in gf.timings.items() if k.endswith('_s'))})")
     rows, tiles = [], []
     ctx = None
     for name, view, xy, part in clicks:
@@ -224,8 +326,8 @@ def main(argv=None) -> int:
         sel = select_region(field, (K, c2w, w, h), xy, cfg, context=ctx)
         dt = time.perf_counter() - t
         t = time.perf_counter()
-        redo = select_region(field, (K, c2w, w, h), xy, SelectConfig(threshold=min(0.95, args.threshold + 0.1)),
-                             context=ctx)
+        redo = select_region(field, (K, c2w, w, h), xy,
+                             SelectConfig(threshold=min(0.95, args.threshold + 0.1), **sel_kw), context=ctx)
         dt_redo = time.perf_counter() - t
         row = {"name": name, "view": view, "pixel": list(xy), "seconds": dt, "context_built": cold,
                "redo_seconds": dt_redo, "vertices": int(len(sel.vertices)), "redo_vertices": int(len(redo.vertices)),
