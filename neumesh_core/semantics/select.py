@@ -191,29 +191,34 @@ class SelectionContext:
             self._graph = (a + a.T).tocsr()
         return self._graph
 
-    def similarity(self, mean_feature: np.ndarray, geo_feature: Optional[np.ndarray] = None,
+    def similarity(self, mean_feature: np.ndarray, geo_vertex: Optional[int] = None,
                    geometry: float = 0.0) -> np.ndarray:
         """(N,) combined similarity of every vertex: ``(1 - geometry)`` x cosine similarity of its
-        semantic feature with ``mean_feature`` + ``geometry`` x that of its geometric embedding with
-        ``geo_feature`` (the semantic term alone without ``geo_feature`` or geometric features)."""
+        semantic feature with ``mean_feature`` + ``geometry`` x its geometric similarity with vertex
+        ``geo_vertex`` (the dot product of their heat-embedding vectors, times
+        ``exp(-(difference of log shape diameter)^2 / (2 thickness_tolerance^2))`` when the features hold
+        the shape diameter).  The semantic term alone without ``geo_vertex`` or geometric features."""
         m = np.asarray(mean_feature, np.float32)
         m = m / max(float(np.linalg.norm(m)), 1e-12)
         sim = self.features @ m
-        emb = self.geo_embedding if geometry > 0 and geo_feature is not None else None
-        if emb is not None:
-            g = np.asarray(geo_feature, np.float32)
-            norm = float(np.linalg.norm(g))
-            if norm > 1e-6:
-                sim = (1.0 - geometry) * sim + geometry * (emb @ (g / norm))
+        emb = self.geo_embedding if geometry > 0 and geo_vertex is not None else None
+        if emb is not None and float(np.linalg.norm(emb[geo_vertex])) > 1e-6:
+            g = emb @ emb[geo_vertex]
+            ls = self.geometry.log_sdf
+            if ls is not None:
+                ls = ls[self.geometry.cluster]
+                tol = self.geometry.config.thickness_tolerance
+                g = g * np.exp(-((ls - ls[geo_vertex]) ** 2) / (2.0 * tol * tol))
+            sim = (1.0 - geometry) * sim + geometry * g
         return sim
 
     def grow(self, mean_feature: np.ndarray, seeds: np.ndarray, threshold: float,
-             geo_feature: Optional[np.ndarray] = None, geometry: float = 0.0, creases: bool = False) -> np.ndarray:
+             geo_vertex: Optional[int] = None, geometry: float = 0.0, creases: bool = False) -> np.ndarray:
         """Vertices reachable from ``seeds`` through vertices whose :meth:`similarity` is >= ``threshold``
         (seeds below it do not start a region); with ``creases``, never across a concave crease."""
         from scipy.sparse.csgraph import connected_components
 
-        ok = self.similarity(mean_feature, geo_feature, geometry) >= threshold
+        ok = self.similarity(mean_feature, geo_vertex, geometry) >= threshold
         seeds = np.unique(np.asarray(seeds, np.int64))
         seeds = seeds[ok[seeds]]
         if len(seeds) == 0:
@@ -350,18 +355,18 @@ def _select(ctx: SelectionContext, point: np.ndarray, extra: np.ndarray, cfg: Se
     members = seeds[labels == chosen] if chosen is not None else np.unique(click_seeds)
     mean = ctx.features[members].mean(0)
     mean = mean / max(float(np.linalg.norm(mean)), 1e-12)
-    geo_feature = None
+    geo_vertex = None
     if cfg.geometry > 0 or cfg.creases:
         t = time.perf_counter()
         emb = ctx.geo_embedding   # computes the geometric features on first use (once per scaffold)
         info["geometry_s"] = time.perf_counter() - t
         if emb is not None:
-            geo_feature = emb[click_seeds[0]]   # the vertex nearest to the click
+            geo_vertex = int(click_seeds[0])   # the vertex nearest to the click
         elif ctx.geometry_error:
             info["geometry"] = ctx.geometry_error
     # seeds that the 2D step drew from another part of the same colour fall below the threshold of the
     # combined similarity and start nothing
-    region = ctx.grow(mean, members, cfg.threshold, geo_feature, cfg.geometry, cfg.creases)
+    region = ctx.grow(mean, members, cfg.threshold, geo_vertex, cfg.geometry, cfg.creases)
     if len(region) == 0:
         raise SelectionError(f"no vertex near the click is within similarity {cfg.threshold:.2f} of the "
                              "region's mean feature; lower the similarity threshold")

@@ -147,13 +147,29 @@ def test_combined_growth_equals_the_step_by_step_fixed_point(mp_mesh):
     rng = np.random.default_rng(1)
     for t in (0.6, 0.8):
         i = int(rng.integers(field.num_vertices))
-        mean, g = ctx.features[i], ctx.geo_embedding[i]
+        mean = ctx.features[i]
         seeds = rng.integers(0, field.num_vertices, 20)
-        got = ctx.grow(mean, seeds, t, g, 0.5, creases=True)
-        ok = ctx.similarity(mean, g, 0.5) >= t
+        got = ctx.grow(mean, seeds, t, i, 0.5, creases=True)
+        ok = ctx.similarity(mean, i, 0.5) >= t
         assert np.array_equal(got, _grow_step_by_step(ctx.cut_graph, ok, seeds))
-        direct = 0.5 * ctx.features @ (mean / np.linalg.norm(mean)) + 0.5 * ctx.geo_embedding @ g
-        np.testing.assert_allclose(ctx.similarity(mean, g, 0.5), direct, atol=1e-5)
+        direct = 0.5 * ctx.features @ (mean / np.linalg.norm(mean)) + 0.5 * ctx.geo_embedding @ ctx.geo_embedding[i]
+        np.testing.assert_allclose(ctx.similarity(mean, i, 0.5), direct, atol=1e-5)
+
+
+def test_shape_diameter_tells_thick_from_thin(mp_mesh):
+    mesh, labels = mp_mesh
+    with one_thread():
+        f = geo.compute_geometric_features(mesh.vertices, mesh.faces, geo.GeometryConfig(sdf_rays=16))
+    ls = f.log_sdf[f.cluster]
+    med = [np.median(ls[labels == p]) for p in range(4)]
+    assert med[0] > med[1] + 0.2 and med[0] > med[2] + 0.2 and med[0] > med[3] + 0.2   # the body is thickest
+    field = _uniform_semantics_field(mesh)
+    ctx = SelectionContext(field, SelectConfig(geometry_config=geo.GeometryConfig(sdf_rays=16)))
+    body = int(np.nonzero(labels == 0)[0][np.argmax(ls[labels == 0])])
+    with_sdf = ctx.similarity(ctx.features[0], body, 1.0)
+    plain = ctx.geo_embedding @ ctx.geo_embedding[body]
+    thin = labels == 2
+    assert (with_sdf <= plain + 1e-6).all() and with_sdf[thin].mean() < plain[thin].mean()
 
 
 def test_config_errors():
