@@ -17,7 +17,9 @@
    field to --field (200 steps, as the tests) when they do not exist yet.
 5. The geometric features (neumesh_core.semantics.geometry): their time on the field's scaffold, and
    with --scaffold PLY [--subdivide N] on any mesh (e.g. lego's 200k-vertex scaffold); --scaffold
-   without --field times only that.
+   without --field times only that, and with --data and --click it selects on the bare scaffold with
+   shape alone (a field whose semantic features are the same everywhere; the click's surface point
+   from the scaffold's z-buffer), --pictures showing each selection on the shaded scaffold.
 
     nice -n 10 .venv/bin/python benchmarks/bench_semantics.py --field F --data DIR \\
         [--click bucket:0:120:200 ...] [--pictures docs/semantics_lego.png] [--save F_sem.neumesh]
@@ -128,6 +130,82 @@ def scaffold_features(path: str, times: int) -> dict:
             **feats.timings}
 
 
+def _face_buffer(V, F, K, c2w, w: int, h: int):
+    """(H*W,) index of the nearest face at each pixel centre (-1: none)."""
+    from neumesh_core.render.raster import _project, raster_triangles
+
+    z, pix, fi = _project(V, F, K, c2w, 1e-6)
+    best = np.full(w * h, np.inf)
+    face = np.full(w * h, -1, np.int64)
+    for ids, px, bary in raster_triangles(pix[F[fi]], w, h, eps=1e-9):
+        d = 1.0 / (bary / z[F[fi[ids]]]).sum(1)
+        order = np.lexsort((d, px))
+        px, d, ids = px[order], d[order], ids[order]
+        first = np.r_[True, px[1:] != px[:-1]]
+        px, d, ids = px[first], d[first], ids[first]
+        upd = d < best[px]
+        best[px[upd]] = d[upd]
+        face[px[upd]] = fi[ids[upd]]
+    return face
+
+
+def scaffold_clicks(path: str, data: str, split: str, clicks, threshold: float, pictures, size: int):
+    """Shape alone: one click per --click on the bare scaffold, through a field whose semantic features
+    are the same on every vertex (so only the geometric features and the creases separate parts)."""
+    import torch
+
+    import neumesh_core as nm
+    from neumesh_core.semantics import SelectConfig, SelectionContext, select_at_point
+
+    mesh = nm.load_mesh(path)
+    V, F = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+    cams = nm.load_scene(data).split(split).cameras
+    field = nm.create_field(mesh, nm.FieldConfig())
+    field.enable_semantics(8, 16)
+    with torch.no_grad():
+        field.sem_codes.copy_(field.sem_codes[:1].expand_as(field.sem_codes))
+    t = time.perf_counter()
+    ctx = SelectionContext(field).prepare()
+    out = {"context_s": time.perf_counter() - t, "clicks": []}
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
+    tiles = []
+    for name, view, xy in clicks:
+        K, c2w, w, h = cams.K[view], cams.c2w[view], cams.width, cams.height
+        face = _face_buffer(V, F, K, c2w, w, h)
+        x, y = int(xy[0]), int(xy[1])
+        if face[y * w + x] < 0:
+            print(f"  {name}: pixel {x},{y} misses the scaffold")
+            continue
+        p = V[F[face[y * w + x]]].mean(0)
+        t = time.perf_counter()
+        sel = select_at_point(field, p, SelectConfig(threshold=threshold), context=ctx)
+        dt = time.perf_counter() - t
+        out["clicks"].append({"name": name, "view": view, "pixel": [x, y], "vertices": int(len(sel.vertices)),
+                              "seconds": dt})
+        print(f"  shape alone, {name}: {len(sel.vertices)} vertices in {dt:.2f}s")
+        if pictures:
+            insel = np.zeros(len(V), bool)
+            insel[sel.vertices] = True
+            img = np.ones((h * w, 3))
+            ok = face >= 0
+            shade = 0.3 + 0.7 * np.abs(fn[face[ok]] @ c2w[:3, 2])
+            col = np.where(insel[F[face[ok]]].mean(1, keepdims=True) > 0.5, [1.0, 0.15, 1.0], [0.8, 0.8, 0.8])
+            img[ok] = col * shade[:, None]
+            tiles.append(_mark(img.reshape(h, w, 3).astype(np.float32), xy, r=6, colour=(0.0, 0.7, 0.0)))
+    if tiles:
+        from skimage.transform import resize
+
+        tiles = [resize(t, (size, size, 3), anti_aliasing=True) for t in tiles]
+        cols = 2 if len(tiles) > 2 else len(tiles)
+        tiles += [np.ones_like(tiles[0])] * (-len(tiles) % cols)
+        rows = [np.concatenate(tiles[i:i + cols], 1) for i in range(0, len(tiles), cols)]
+        nm.save_image(pictures, np.concatenate(rows, 0))
+        print(f"wrote {pictures}")
+        out["pictures"] = pictures
+    return out
+
+
 def tinted_render(field, K, c2w, w, h, vertices, tint=(1.0, 0.0, 1.0), amount=0.8, dim=0.35):
     """The field's render with the selected vertices' modification colours pulled towards ``tint`` and
     every other vertex darkened by ``dim`` (a temporary change, undone before returning)."""
@@ -147,14 +225,14 @@ def tinted_render(field, K, c2w, w, h, vertices, tint=(1.0, 0.0, 1.0), amount=0.
             field.mod_colors.copy_(old)
 
 
-def _mark(img, xy, r=4):
+def _mark(img, xy, r=4, colour=(1.0, 0.0, 1.0)):
     out = img.copy()
     h, w = img.shape[:2]
     x, y = int(xy[0]), int(xy[1])
     for dx in range(-r, r + 1):
         for px, py in ((x + dx, y), (x, y + dx)):
             if 0 <= px < w and 0 <= py < h:
-                out[py, px] = (1.0, 0.0, 1.0)
+                out[py, px] = colour
     return out
 
 
@@ -265,6 +343,9 @@ def main(argv=None) -> int:
     if not args.field:
         if not args.scaffold:
             ap.error("give --field and --data, or --scaffold")
+        if args.data and args.click:
+            result["scaffold_clicks"] = scaffold_clicks(args.scaffold, args.data, args.split, args.click,
+                                                        args.threshold, args.pictures, args.picture_size)
         write_results(result, args.name or "semantics_geometry_scaffold.json")
         return 0
     if not args.data:

@@ -53,6 +53,7 @@ class SelectConfig:
     min_opacity: float = 0.5       # a click whose ray is less opaque hit the background
     seed: int = 0
     geometry: float = 0.5          # weight of the geometric similarity (0: semantic features only)
+    semantic_tolerance: float = 1.0   # features closer than this (extractor units) are alike (0: cosine only)
     creases: bool = True           # never grow across a concave crease (bend beyond the crease angle)
     geometry_config: GeometryConfig = dc_field(default_factory=GeometryConfig)
 
@@ -90,6 +91,10 @@ class SelectionContext:
         self.vertices = np.asarray(field.vertices, np.float32)
         feats = field.vertex_semantics().float()
         self.features = torch.nn.functional.normalize(feats, dim=-1).cpu().numpy()
+        # the distilled features were centred and divided by this scale: times it they are in the
+        # extractor's own units again, where a distance means the same in every scene
+        scale = (getattr(field, "semantics_info", None) or {}).get("targets", {}).get("target_scale")
+        self.raw_features = feats.cpu().numpy() * float(scale) if scale else None
         self._graph = None
         self._cut_graph = None
         self._tree = None
@@ -191,16 +196,25 @@ class SelectionContext:
             self._graph = (a + a.T).tocsr()
         return self._graph
 
-    def similarity(self, mean_feature: np.ndarray, geo_vertex: Optional[int] = None,
-                   geometry: float = 0.0) -> np.ndarray:
-        """(N,) combined similarity of every vertex: ``(1 - geometry)`` x cosine similarity of its
-        semantic feature with ``mean_feature`` + ``geometry`` x its geometric similarity with vertex
+    def similarity(self, mean_feature: np.ndarray, geo_vertex: Optional[int] = None, geometry: float = 0.0,
+                   raw_mean: Optional[np.ndarray] = None, tolerance: float = 0.0) -> np.ndarray:
+        """(N,) combined similarity of every vertex: ``(1 - geometry)`` x semantic similarity +
+        ``geometry`` x geometric similarity.
+
+        The semantic similarity is the cosine similarity of the vertex's semantic feature with
+        ``mean_feature``, or, where larger, ``exp(-d^2 / (2 tolerance^2))``, d the distance of the
+        vertex's feature in the extractor's units from ``raw_mean`` (features that differ by less than
+        the tolerance are alike whatever their direction: on an object of one colour the centred
+        features are noise, and their directions mean nothing).  The geometric similarity with vertex
         ``geo_vertex`` (the dot product of their heat-embedding vectors, times
         ``exp(-(difference of log shape diameter)^2 / (2 thickness_tolerance^2))`` when the features hold
         the shape diameter).  The semantic term alone without ``geo_vertex`` or geometric features."""
         m = np.asarray(mean_feature, np.float32)
         m = m / max(float(np.linalg.norm(m)), 1e-12)
         sim = self.features @ m
+        if tolerance > 0 and raw_mean is not None and self.raw_features is not None:
+            d2 = ((self.raw_features - np.asarray(raw_mean, np.float32)) ** 2).sum(1)
+            sim = np.maximum(sim, np.exp(-d2 / (2.0 * tolerance * tolerance)))
         emb = self.geo_embedding if geometry > 0 and geo_vertex is not None else None
         if emb is not None and float(np.linalg.norm(emb[geo_vertex])) > 1e-6:
             g = emb @ emb[geo_vertex]
@@ -213,12 +227,13 @@ class SelectionContext:
         return sim
 
     def grow(self, mean_feature: np.ndarray, seeds: np.ndarray, threshold: float,
-             geo_vertex: Optional[int] = None, geometry: float = 0.0, creases: bool = False) -> np.ndarray:
+             geo_vertex: Optional[int] = None, geometry: float = 0.0, creases: bool = False,
+             raw_mean: Optional[np.ndarray] = None, tolerance: float = 0.0) -> np.ndarray:
         """Vertices reachable from ``seeds`` through vertices whose :meth:`similarity` is >= ``threshold``
         (seeds below it do not start a region); with ``creases``, never across a concave crease."""
         from scipy.sparse.csgraph import connected_components
 
-        ok = self.similarity(mean_feature, geo_vertex, geometry) >= threshold
+        ok = self.similarity(mean_feature, geo_vertex, geometry, raw_mean, tolerance) >= threshold
         seeds = np.unique(np.asarray(seeds, np.int64))
         seeds = seeds[ok[seeds]]
         if len(seeds) == 0:
@@ -366,7 +381,9 @@ def _select(ctx: SelectionContext, point: np.ndarray, extra: np.ndarray, cfg: Se
             info["geometry"] = ctx.geometry_error
     # seeds that the 2D step drew from another part of the same colour fall below the threshold of the
     # combined similarity and start nothing
-    region = ctx.grow(mean, members, cfg.threshold, geo_vertex, cfg.geometry, cfg.creases)
+    raw_mean = ctx.raw_features[members].mean(0) if ctx.raw_features is not None else None
+    region = ctx.grow(mean, members, cfg.threshold, geo_vertex, cfg.geometry, cfg.creases, raw_mean,
+                      cfg.semantic_tolerance)
     if len(region) == 0:
         raise SelectionError(f"no vertex near the click is within similarity {cfg.threshold:.2f} of the "
                              "region's mean feature; lower the similarity threshold")

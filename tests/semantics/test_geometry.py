@@ -179,3 +179,27 @@ def test_config_errors():
         geo.GeometryConfig(crease_angle=200)
     with pytest.raises(ValueError, match="no faces"):
         geo.compute_geometric_features(np.zeros((3, 3), np.float32), np.zeros((0, 3), np.int64))
+
+
+def test_semantic_tolerance_treats_close_features_as_alike(mp_mesh):
+    """On an object of one colour the distilled (centred) features are small noise whose directions mean
+    nothing: within the tolerance (extractor units) they count as alike; far apart, the cosine decides."""
+    mesh, labels = mp_mesh
+    field = _uniform_semantics_field(mesh)
+    ctx = SelectionContext(field)
+    rng = np.random.default_rng(0)
+    n = field.num_vertices
+    raw = rng.normal(size=(n, 16)).astype(np.float32) * 0.1      # noise, random directions
+    raw[labels == 2] += 3.0                                       # the arm: another colour, far away
+    ctx.raw_features = raw
+    ctx.features = raw / np.linalg.norm(raw, axis=1, keepdims=True)
+    body = np.nonzero(labels == 0)[0]
+    mean_raw = raw[body].mean(0)
+    mean = mean_raw / np.linalg.norm(mean_raw)
+    cos_only = ctx.similarity(mean, raw_mean=mean_raw, tolerance=0.0)
+    tol = ctx.similarity(mean, raw_mean=mean_raw, tolerance=1.0)
+    assert (cos_only[body] >= 0.75).mean() < 0.5          # noise directions: the cosine scatters
+    assert (tol[body] >= 0.75).mean() > 0.99 and (tol[labels == 2] < 0.5).all()
+    assert (tol >= cos_only - 1e-6).all()
+    d2 = ((raw - mean_raw) ** 2).sum(1)
+    np.testing.assert_allclose(tol, np.maximum(cos_only, np.exp(-d2 / 2.0)), atol=1e-5)
