@@ -127,7 +127,7 @@ def scaffold_features(path: str, times: int) -> dict:
     print(f"geometric features of {path} ({len(v)} vertices, {len(f)} faces): {dt:.2f}s "
           f"({', '.join(f'{k} {x:.2f}' for k, x in feats.timings.items() if k.endswith('_s'))})")
     return {"mesh": path, "subdivided": times, "vertices": int(len(v)), "faces": int(len(f)), "seconds": dt,
-            **feats.timings}
+            "load_average_after": list(os.getloadavg()), **feats.timings}
 
 
 def _face_buffer(V, F, K, c2w, w: int, h: int):
@@ -196,7 +196,14 @@ def scaffold_clicks(path: str, data: str, split: str, clicks, threshold: float, 
     if tiles:
         from skimage.transform import resize
 
-        tiles = [resize(t, (size, size, 3), anti_aliasing=True) for t in tiles]
+        ink = np.any(np.stack([(t < 0.99).any(-1) for t in tiles]), 0)   # crop to what any tile shows
+        ys, xs = np.nonzero(ink)
+        pad = 8
+        y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, ink.shape[0])
+        x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, ink.shape[1])
+        s = size / max(y1 - y0, x1 - x0)
+        tiles = [resize(t[y0:y1, x0:x1], (int((y1 - y0) * s), int((x1 - x0) * s), 3), anti_aliasing=True)
+                 for t in tiles]
         cols = 2 if len(tiles) > 2 else len(tiles)
         tiles += [np.ones_like(tiles[0])] * (-len(tiles) % cols)
         rows = [np.concatenate(tiles[i:i + cols], 1) for i in range(0, len(tiles), cols)]
@@ -337,7 +344,7 @@ def main(argv=None) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    result = {}
+    result = {"load_average_at_start": list(os.getloadavg())}
     if args.scaffold:
         result["scaffold_features"] = scaffold_features(args.scaffold, args.subdivide)
     if not args.field:

@@ -203,3 +203,16 @@ def test_semantic_tolerance_treats_close_features_as_alike(mp_mesh):
     assert (tol >= cos_only - 1e-6).all()
     d2 = ((raw - mean_raw) ** 2).sum(1)
     np.testing.assert_allclose(tol, np.maximum(cos_only, np.exp(-d2 / 2.0)), atol=1e-5)
+
+
+def test_without_robust_laplacian_selection_falls_back_to_semantics(mp_mesh, monkeypatch):
+    import sys
+
+    mesh, labels = mp_mesh
+    field = _uniform_semantics_field(mesh)
+    geo._MEMO.clear()
+    monkeypatch.setitem(sys.modules, "robust_laplacian", None)   # import fails
+    ctx = SelectionContext(field)
+    sel = select_at_point(field, field.vertices[0], context=ctx)
+    assert ctx.geometry is None and "pip install robust-laplacian" in ctx.geometry_error
+    assert "robust-laplacian" in sel.info["geometry"] and len(sel.vertices) > 0
