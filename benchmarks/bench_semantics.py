@@ -318,6 +318,8 @@ def main(argv=None) -> int:
     ap.add_argument("--geometry", type=float, default=None, help="weight of the geometric similarity (default: "
                     "SelectConfig's; 0: semantic features only)")
     ap.add_argument("--no-creases", action="store_true", help="let the growth cross concave creases")
+    ap.add_argument("--semantic-tolerance", type=float, default=None,
+                    help="feature distance counted as alike (default: SelectConfig's; 0: cosine only)")
     ap.add_argument("--scaffold", help="also time the geometric features on this mesh (.ply/.obj)")
     ap.add_argument("--subdivide", type=int, default=0, help="midpoint-subdivide --scaffold this many times first")
     ap.add_argument("--split", default="val", help="split whose cameras the clicks index (default val)")
@@ -393,8 +395,11 @@ def main(argv=None) -> int:
     sel_kw = {"creases": not args.no_creases}
     if args.geometry is not None:
         sel_kw["geometry"] = args.geometry
+    if args.semantic_tolerance is not None:
+        sel_kw["semantic_tolerance"] = args.semantic_tolerance
     cfg = SelectConfig(threshold=args.threshold, **sel_kw)
     result["select_config"] = {"threshold": cfg.threshold, "geometry": cfg.geometry, "creases": cfg.creases,
+                               "semantic_tolerance": cfg.semantic_tolerance,
                                "geometry_config": dataclasses.asdict(cfg.geometry_config)}
     from neumesh_core.semantics import geometry as geo_mod
 

@@ -13,9 +13,11 @@
    (mesh edges, and vertices within ``spatial_radius`` so that parts that touch without sharing edges
    join; never across a concave crease) whose combined similarity is >= ``threshold``, until nothing
    is added.  The combined similarity is ``(1 - geometry) * semantic + geometry * geometric``: the
-   cosine similarity of the vertex's semantic feature with the cluster's mean, and of its geometric
-   heat-embedding vector (:mod:`.geometry`: about 1 inside a part, 0 across a concave crease) with the
-   clicked vertex's.  ``geometry = 0`` is the semantic-only selection of earlier versions.
+   cosine similarity of the vertex's semantic feature with the cluster's mean (or, where larger, a
+   Gaussian of their distance in the extractor's units, ``semantic_tolerance``), and the similarity of
+   its geometric heat-embedding vector (:mod:`.geometry`: about 1 inside a part, 0 across a concave
+   crease) with the clicked vertex's.  ``geometry = 0, creases = False, semantic_tolerance = 0`` is the
+   semantic-only selection of earlier versions.
    That fixed point is the union of the connected components, in the graph restricted to similar
    vertices, that hold a seed; it is computed that way (scipy's connected components), which gives the
    same set as growing step by step, at once.
@@ -55,7 +57,8 @@ class SelectConfig:
     geometry: float = 0.5          # weight of the geometric similarity (0: semantic features only)
     semantic_tolerance: float = 1.0   # features closer than this (extractor units) are alike (0: cosine only)
     creases: bool = True           # never grow across a concave crease (bend beyond the crease angle)
-    geometry_config: GeometryConfig = dc_field(default_factory=GeometryConfig)
+    geometry_config: GeometryConfig = dc_field(default_factory=GeometryConfig)   # read from the
+    #                                  SelectionContext's config (the features are computed once for it)
 
     def __post_init__(self) -> None:
         if not -1.0 <= self.threshold <= 1.0:
@@ -64,6 +67,8 @@ class SelectConfig:
             raise ValueError("seed_vertices and dbscan_min_samples must be positive, spatial_k >= 0")
         if not 0.0 <= self.geometry <= 1.0:
             raise ValueError(f"geometry is a weight in [0, 1], not {self.geometry}")
+        if self.semantic_tolerance < 0:
+            raise ValueError(f"semantic_tolerance is a distance (>= 0), not {self.semantic_tolerance}")
 
 
 @dataclass
