@@ -117,7 +117,12 @@ def scaffold_features(path: str, times: int) -> dict:
     import neumesh_core as nm
     from neumesh_core.semantics.geometry import compute_geometric_features
 
-    mesh = nm.load_mesh(path)
+    if path.startswith("multipart:"):   # the built-in multi-part mesh at this marching-cubes grid
+        from neumesh_core.data.multipart import multipart_mesh
+
+        mesh, _ = multipart_mesh(int(path.split(":")[1]))
+    else:
+        mesh = nm.load_mesh(path)
     v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
     for _ in range(times):
         v, f = subdivide(v, f)
@@ -320,7 +325,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-creases", action="store_true", help="let the growth cross concave creases")
     ap.add_argument("--semantic-tolerance", type=float, default=None,
                     help="feature distance counted as alike (default: SelectConfig's; 0: cosine only)")
-    ap.add_argument("--scaffold", help="also time the geometric features on this mesh (.ply/.obj)")
+    ap.add_argument("--scaffold", help="also time the geometric features on this mesh (.ply/.obj; multipart:GRID: "
+                    "the built-in multi-part mesh)")
     ap.add_argument("--subdivide", type=int, default=0, help="midpoint-subdivide --scaffold this many times first")
     ap.add_argument("--split", default="val", help="split whose cameras the clicks index (default val)")
     ap.add_argument("--click", action="append", type=parse_click, default=[], metavar="NAME:VIEW:X:Y")

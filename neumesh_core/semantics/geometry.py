@@ -95,7 +95,8 @@ class GeometricFeatures:
 
 
 class GeometryUnavailable(NeuMeshError):
-    """A library the geometric features need is missing."""
+    """The geometric features cannot be computed: a library they need is missing, or the scaffold has
+    no faces (selection then goes on with the semantic features alone)."""
 
 
 def scaffold_key(vertices: np.ndarray, faces: np.ndarray, config: GeometryConfig) -> str:
@@ -344,7 +345,7 @@ def compute_geometric_features(vertices: np.ndarray, faces: np.ndarray, config: 
     if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
         raise ValueError(f"vertices must be a non-empty (N,3) array, got shape {v.shape}")
     if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-        raise ValueError("geometric features need a triangle mesh: the scaffold has no faces")
+        raise GeometryUnavailable("geometric features need a triangle mesh: the scaffold has no faces")
     timings = {}
     say = progress or (lambda s: None)
     t0 = time.perf_counter()

@@ -177,7 +177,7 @@ def test_config_errors():
         SelectConfig(geometry=1.5)
     with pytest.raises(ValueError, match="crease_angle"):
         geo.GeometryConfig(crease_angle=200)
-    with pytest.raises(ValueError, match="no faces"):
+    with pytest.raises(geo.GeometryUnavailable, match="no faces"):
         geo.compute_geometric_features(np.zeros((3, 3), np.float32), np.zeros((0, 3), np.int64))
 
 
