@@ -8,23 +8,25 @@ key and, with ``cache_dir``, in an ``.npz`` file; no pickle):
   **signed bend of any vertex pair** (:func:`signed_bend`): the angle between the two normals, negative
   where the surface folds inwards between them (concave: ``(n_j - n_i) . (p_j - p_i) < 0``). Region
   growing cuts every graph edge whose bend is below ``-crease_angle``.
-* **Crease-aware heat embedding**: the scaffold is decimated by vertex clustering to at most
-  ``max_vertices`` vertices, its Laplacian built with robust-laplacian (intrinsic Delaunay, so
-  non-manifold clusters are fine) and every off-diagonal weight scaled by
-  ``exp(-(concave bend / (crease_angle / 2))^2)``: heat barely crosses a concave crease. The lowest
+* **Crease-aware heat embedding** (:func:`crease_embedding`): the scaffold is decimated by vertex
+  clustering to at most ``max_vertices`` vertices; the band of vertices along concave creases
+  (:func:`vertex_concavity` above the crease angle) is taken out, so the parts it bounds fall apart;
+  the rest's Laplacian is built with robust-laplacian (intrinsic Delaunay, so non-manifold clusters
+  are fine), every off-diagonal weight also scaled by ``exp(-(concave bend / (crease_angle / 2))^2)``.
+  The lowest
   ``eigenvectors`` modes (scipy ``eigsh``, shift-invert) give each vertex the vector
   ``phi_i(v) exp(-lambda_i t)``, ``t = heat_time * area``; normalised to unit length, the dot product of two
   vertices is the normalised heat kernel ``K_t(u,v) / sqrt(K_t(u,u) K_t(v,v))``: about 1 inside a part
-  (heat has evened out there) and about 0 across a concave crease. Every full-resolution vertex takes its
-  cluster's vector.
+  (heat has evened out there) and about 0 across a concave crease. Vertices taken out copy a
+  neighbour's vector (:func:`attach`); every full-resolution vertex takes its cluster's vector.
 * **Shape diameter** (optional, ``sdf_rays`` > 0; libigl's embree ``shape_diameter_function``): the
   thickness of the part under each vertex, as ``log(sdf / median)``; selection then scales the
   geometric similarity by the agreement of thickness.  Off by default: on the built-in parts the
   heat embedding already separates them, and near a junction the shape diameter varies as much inside
   a part as between parts.
 
-The plain reference of the decimation is the identity (``max_vertices`` >= the vertex count), which the
-tests compare with the decimated path.
+The plain reference of the decimation is the identity (``max_vertices`` >= the vertex count); the tests
+run both paths and ask each to separate the built-in parts.
 """
 from __future__ import annotations
 
@@ -53,8 +55,8 @@ class GeometryConfig:
     crease_angle: float = 20.0    # degrees: a concave bend beyond this between two vertices is a crease
     normal_smoothing: int = 0     # one-ring averaging rounds of the vertex normals
     sdf_rays: int = 0             # shape-diameter rays per decimated vertex (0: no shape diameter)
-    thickness_tolerance: float = 0.5   # with the shape diameter: log-thickness difference that halves
-    #                                    the geometric similarity at ~1.2 (exp(-d^2 / (2 tol^2)))
+    thickness_tolerance: float = 0.5   # with the shape diameter: a log-thickness difference d scales
+    #                                    the geometric similarity by exp(-d^2 / (2 tol^2))
     min_component: float = 0.002  # components smaller than this fraction of the vertices get no embedding
 
     def __post_init__(self) -> None:
@@ -232,7 +234,8 @@ def crease_laplacian(positions: np.ndarray, faces: np.ndarray, normals: np.ndarr
 
 def heat_embedding(L, M, k: int, t: float) -> np.ndarray:
     """(n,k') unit rows phi_i exp(-lambda_i t) / norm of the k lowest modes of L phi = lambda M phi
-    (one connected mesh; k' = min(k, n - 2))."""
+    (k' = min(k, n - 2); a mesh of several components has one zero mode per component, so k must
+    exceed their number)."""
     import scipy.sparse.linalg as sla
 
     n = L.shape[0]
