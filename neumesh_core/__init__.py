@@ -2,7 +2,7 @@
 
 Public API (see README.md): load_scene, load_mesh, create_field, train, save_field, load_field,
 render_camera, evaluate, save_image, make_default_scene; edits: swap_texture, fill_texture,
-paint_texture (nm.edit); semantics: nm.semantics.
+paint_texture (nm.edit); semantics: nm.semantics; deformation: nm.deform (ArapSolver, arap).
 """
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from .data.synthetic import default_scene_dir, make_default_scene
 from . import edit  # noqa: E402  (nm.edit: EditRecord, save_edited, ...)
 from .edit import CornerUVs, fill_texture, paint_layer, paint_texture, swap_texture  # noqa: E402
 from . import semantics  # noqa: E402  (nm.semantics: distill_semantics, select_region, extractors)
+from . import deform  # noqa: E402  (nm.deform: ArapSolver, arap)
 
 __version__ = "0.1.0"
 
