@@ -11,7 +11,7 @@ these pieces; the swap alignment's non-rigid ICP (``edit/align.py``) builds its 
 
 :class:`ArapSolver` deforms a mesh: *anchors* stay at rest, *handles* go where they are told, every
 other vertex follows as rigidly as possible.  The Laplacian of the free vertices is factorised once per
-anchor/handle set (scipy's sparse LU with a symmetric ordering); every move then costs a few local-global
+anchor/handle set (scipy's sparse LU, COLAMD ordering); every move then costs a few local-global
 iterations (a batched 3x3 polar decomposition, three sparse products and one factorised solve),
 warm-started from the previous move's solution while a handle is dragged.  With
 ``ArapConfig.cage_vertices`` set, it solves on a decimated cage (:mod:`neumesh_core.deform.cage`) and
@@ -227,8 +227,9 @@ class ConstrainedArap:
         self.L_fc = Lf[:, self.fixed].tocsr()
         self.lu = None
         if len(self.free):
-            self.lu = splu(Lf[:, self.free].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                           options={"SymmetricMode": True})
+            # COLAMD ordering: on a 30k-unknown Laplacian it factorises in 4 s against 98 s for the
+            # symmetric-mode MMD ordering (with 1.4x the fill; solves 0.22 s vs 0.97 s, busy machine)
+            self.lu = splu(Lf[:, self.free].tocsc(), permc_spec="COLAMD")
         e = terms.edges
         self.unit = float(np.linalg.norm(terms.rest[e[:, 0]] - terms.rest[e[:, 1]], axis=1).mean()) \
             if len(e) else 1.0
