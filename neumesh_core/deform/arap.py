@@ -45,7 +45,8 @@ class ArapConfig:
     ``coarse_start``: a solve that starts from rest (no previous solve to warm-start from) first solves
     on a cage of this many vertices (``coarse_iterations`` iterations) and starts from its result:
     local-global iterations remove large-scale error slowly, so from rest a big bend of a fine mesh
-    needs hundreds of them, and the cage provides the large scale cheaply (0: start from rest)."""
+    needs hundreds of them, and the cage provides the large scale cheaply (0: start from rest).
+    ``energies``: record the energy after every iteration (``ArapResult.energies``; costs ~10%)."""
 
     weights: str = "cotangent"
     iterations: int = 8
@@ -54,6 +55,7 @@ class ArapConfig:
     cage_neighbours: int = 8
     coarse_start: int = 2000
     coarse_iterations: int = 100
+    energies: bool = False
 
     def __post_init__(self):
         if self.weights not in WEIGHTS:
@@ -235,18 +237,18 @@ class ConstrainedArap:
             if len(e) else 1.0
 
     def solve(self, targets: np.ndarray, x0: np.ndarray, R0: np.ndarray, iterations: int,
-              tolerance: float):
+              tolerance: float, energies: bool = True):
         """Constrained vertices at ``targets``; start from positions ``x0`` with rotations ``R0``.
         Returns (x, R, energies per iteration, iterations run)."""
         x = np.array(x0, np.float64)
         R = np.asarray(R0, np.float64)
         xc = np.concatenate([np.asarray(targets, np.float64).reshape(-1, 3), self.terms.rest[self.held]])
         x[self.fixed] = xc
-        energies = []
+        record = []
         it = 0
         if self.lu is None:   # everything constrained
             R = self.terms.rotations(x)
-            return x, R, [self.terms.energy(x, R)], 0
+            return x, R, [self.terms.energy(x, R)] if energies else [], 0
         bc = self.L_fc @ xc
         for it in range(1, iterations + 1):
             b = self.terms.rhs(R)[self.free] - bc
@@ -255,17 +257,19 @@ class ConstrainedArap:
             x[self.free] = xf
             S = self.terms.covariances(x)
             R = polar_rotations(S)
-            energies.append(self.terms.energy(x, R, S))
+            if energies:
+                record.append(self.terms.energy(x, R, S))
             if moved < tolerance * self.unit:
                 break
-        return x, R, energies, it
+        return x, R, record, it
 
 
 @dataclass
 class ArapResult:
     """One solve: ``vertices`` (N,3) float64, ``rotations`` (N,3,3) per-vertex rest -> deformed
     rotations (computed on first use in cage mode), ``energies`` after each iteration (of the system
-    solved: the cage's in cage mode), ``iterations`` run, ``seconds`` taken."""
+    solved: the cage's in cage mode; with ``ArapConfig.energies``, else empty), ``iterations`` run,
+    ``seconds`` taken."""
 
     vertices: np.ndarray
     energies: list
@@ -451,7 +455,7 @@ class ArapSolver:
                 x0, R0 = rc.vertices[self.cage.samples], rc.rotations[self.cage.samples]
         else:
             x0, R0 = pts, np.broadcast_to(np.eye(3), (len(pts), 3, 3))
-        x, R, energies, it = core.solve(targets, x0, R0, iters, self.config.tolerance)
+        x, R, energies, it = core.solve(targets, x0, R0, iters, self.config.tolerance, self.config.energies)
         self._x, self._R = x, R
         if self.cage is None:
             return ArapResult(x, energies, it, time.perf_counter() - t0, _rotations=R)

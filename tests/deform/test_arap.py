@@ -61,7 +61,7 @@ def test_polar_rotations_match_the_svd_reference_including_degenerate_inputs():
     rng = np.random.default_rng(1)
     full = rng.normal(size=(3000, 3, 3))
     planar = rng.normal(size=(500, 3, 2)) @ rng.normal(size=(500, 2, 3))     # flat 1-rings: rank 2
-    rank1 = rng.normal(size=(50, 3, 1)) @ rng.normal(size=(50, 1, 3))
+    rank1 = rng.normal(size=(2000, 3, 1)) @ rng.normal(size=(2000, 1, 3))   # double roots: the fallback
     S = np.concatenate([full, planar, rank1, np.zeros((2, 3, 3)), np.full((1, 3, 3), np.nan)])
     got, ref = polar_rotations(S), polar_rotations_reference(S[:-1])   # the SVD fails on NaN
     assert np.abs(got @ got.transpose(0, 2, 1) - np.eye(3)).max() < 1e-9
@@ -70,14 +70,14 @@ def test_polar_rotations_match_the_svd_reference_including_degenerate_inputs():
     np.testing.assert_allclose(got[ok], ref[ok], atol=1e-7)
     # rank 1: not unique, but as good a maximiser of tr(R^T S)
     tr = lambda R, M: np.einsum("nab,nab->n", R, M)   # noqa: E731
-    assert (tr(got[3500:3550], rank1) >= tr(ref[3500:3550], rank1) - 1e-9).all()
+    assert (tr(got[3500:5500], rank1) >= tr(ref[3500:5500], rank1) - 1e-9).all()
     assert np.array_equal(got[-3:], np.tile(np.eye(3), (3, 1, 1)))            # zero and NaN: identity
 
 
 def test_rigid_motion_of_the_handles_without_anchors_is_recovered(blob):
     v, f, _, handles = blob
     M = rigid(rot_y(50) @ rot_y(0), [0.3, -0.2, 0.5])
-    s = ArapSolver(v, f, [], handles, ArapConfig(iterations=5))
+    s = ArapSolver(v, f, [], handles, ArapConfig(iterations=5, energies=True))
     res = s.solve(s.targets_from_transforms(M), warm_start=False)
     want = v @ M[:3, :3].T + M[:3, 3]
     np.testing.assert_allclose(res.vertices, want, atol=1e-9)
@@ -109,7 +109,7 @@ def test_energy_decreases_over_the_iterations(blob):
     q = bend_targets(v, anchors, handles, 90)
     for weights in ("cotangent", "uniform"):
         s = ArapSolver(v, f, anchors, handles,
-                       ArapConfig(weights=weights, iterations=40, tolerance=0.0, coarse_start=0))
+                       ArapConfig(weights=weights, iterations=40, tolerance=0.0, coarse_start=0, energies=True))
         E = np.array(s.solve(q).energies)
         assert len(E) == 40
         assert (np.diff(E) <= 1e-9 * E[0]).all(), weights
