@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from .data.cameras import Cameras, intrinsics_from_fov, opencv_to_opengl, opengl_to_opencv, pixel_rays
 from .data.scene import ImageSet, Scene
-from .errors import (CheckpointError, DataError, EditError, NeuMeshError, NoSemanticsError, SelectionError,
-                     VertexMismatchError, WeightsUnavailableError)
+from .errors import (CheckpointError, DataError, DeformError, EditError, NeuMeshError, NoSemanticsError,
+                     SelectionError, VertexMismatchError, WeightsUnavailableError)
 from .mesh import Mesh, load_mesh, save_mesh
 from .field.field import FieldConfig, NeuMeshField
 from .render.renderer import Cancelled, RenderOutput, RenderSettings, render_camera, render_rays
@@ -33,7 +33,8 @@ def create_field(mesh: Mesh, config: FieldConfig | None = None, device="cpu") ->
 
 
 __all__ = [
-    "Cameras", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "EditError", "FieldConfig", "ImageSet",
+    "Cameras", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "DeformError", "EditError", "FieldConfig",
+    "ImageSet",
     "Mesh", "NeuMeshError", "NeuMeshField", "NoSemanticsError", "RenderOutput", "RenderSettings", "Scene",
     "SelectionError", "TrainConfig", "TrainProgress", "TrainResult", "VertexMismatchError",
     "WeightsUnavailableError", "create_field", "default_scene_dir", "evaluate", "fill_texture",
