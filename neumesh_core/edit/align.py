@@ -146,7 +146,7 @@ def _centred_icp(a: np.ndarray, dst: np.ndarray, cd: np.ndarray, scale: float, R
             Q = np.concatenate([dst[i1[k1]], dst[k2]]) - cd
             step = _kabsch(scale * P @ R.T, Q)
         R = step @ R
-        if np.abs(step - np.eye(3)).max() < 1e-10:
+        if np.abs(step - np.eye(3)).max() < 1e-12:   # converged (a copy's pose to float rounding)
             break
     x = scale * a @ R.T + cd
     d1, _ = _query(tree, x)
@@ -164,10 +164,11 @@ def initial_alignment(src: np.ndarray, dst: np.ndarray, icp_iterations: int = 10
     frame (a swap passes both fields' rest vertices).  Rotation candidates: the principal axes of the
     source mapped onto the target's in each of the 24 ways that send axes onto signed axes (the four
     sign flips alone when the spreads along the axes differ clearly; all 24 because near-equal
-    spreads leave the axes' order undetermined).  Each candidate gets a few iterations of ICP for the
-    rotation about the fixed centroids, matching both ways, on subsamples of ``max_points``; the best
-    three get ``icp_iterations`` more and the best of them is refined on 10x larger subsamples
-    (point-to-plane when both ``src_normals`` and ``dst_normals`` are given).
+    spreads leave the axes' order undetermined).  Each candidate gets 3 iterations of ICP for the
+    rotation about the fixed centroids, matching both ways, on subsamples of ``max_points / 4``; the
+    best three get ``icp_iterations`` more on subsamples of ``max_points`` and the best of them
+    ``3 * icp_iterations`` on 10x larger ones (point-to-plane when both ``src_normals`` and
+    ``dst_normals`` are given).
 
     Why fixed centroids: a free translation is not constrained when the regions differ in shape; ICP
     then slides the source along the target's surface and off it (measured: the multi-part scene's
@@ -183,13 +184,17 @@ def initial_alignment(src: np.ndarray, dst: np.ndarray, icp_iterations: int = 10
     As, Ad = As * np.sign(np.linalg.det(As)), Ad * np.sign(np.linalg.det(Ad))   # right-handed: Ad P As^T proper
     scale = rd / rs
     a = src - cs
-    ss, sd = _subsample(len(src), max_points), _subsample(len(dst), max_points)
-    tree = _nn(dst[sd])
+    # candidates told apart on small subsamples (wrong rotations put points off the surface, where
+    # nearest-neighbour queries are slowest), the best three refined on larger ones
+    hs, hd = _subsample(len(src), max(max_points // 4, 50)), _subsample(len(dst), max(max_points // 4, 50))
+    tree = _nn(dst[hd])
     scored = []
     for P in _proper_signed_permutations():
-        R, err = _centred_icp(a[ss], dst[sd], cd, scale, Ad @ P @ As.T, 3, tree)
+        R, err = _centred_icp(a[hs], dst[hd], cd, scale, Ad @ P @ As.T, 3, tree)
         scored.append((err, R))
     scored.sort(key=lambda e: e[0])
+    ss, sd = _subsample(len(src), max_points), _subsample(len(dst), max_points)
+    tree = _nn(dst[sd])
     best = [_centred_icp(a[ss], dst[sd], cd, scale, R, icp_iterations, tree) for _, R in scored[:3]]
     R = min(best, key=lambda e: e[1])[0]
     fs, fd = _subsample(len(src), 10 * max_points), _subsample(len(dst), 10 * max_points)
