@@ -4,7 +4,7 @@
     python benchmarks/bench_swap_align.py                                          # the built-in blob
 
 1. **Similar copy.** A copy of the field moved by a known similarity (scale 1.7, a rotation of
-   ~120 degrees, a shift of 5 scene units; texture frames so that it looks as before) gives its region
+   114 degrees, a shift of 5 scene units; texture frames so that it looks as before) gives its region
    back to the same region of the original: the automatic alignment must recover the similarity, and
    the swapped field must render like the untouched one.  Figures: the similarity's errors (rotation
    in degrees, relative scale, translation in mean edge lengths), the fit figures, the times, and the
