@@ -1,6 +1,7 @@
 """Issue 47: the automatic swap alignment, measured (no point pairs anywhere).
 
     python benchmarks/bench_swap_align.py --field /work/runs/lego/field.neumesh   # a trained field
+    python benchmarks/bench_swap_align.py --mesh /work/runs/lego/scaffold.ply     # untrained, on a mesh
     python benchmarks/bench_swap_align.py                                          # the built-in blob
 
 1. **Similar copy.** A copy of the field moved by a known similarity (scale 1.7, a rotation of
@@ -17,8 +18,8 @@
 3. **Refusal.** The alignment #47 reported (scale 0.67, translation (-9.95, -8.79, -5.73)) injected:
    the fit figures and whether the swap is refused.
 
-Without ``--field`` the field is an untrained one on the built-in blob (subdivision ``--subdiv``) with
-random texture codes and per-vertex modification colours (the swap moves codes; they need not be
+Without ``--field`` the field is an untrained one on ``--mesh`` or on the built-in blob (subdivision
+``--subdiv``) with random texture codes and per-vertex modification colours (the swap moves codes; they need not be
 trained for the figures).  Writes benchmarks/results/swap_align_<name>.json.
 """
 from __future__ import annotations
@@ -191,6 +192,7 @@ def cross_field_figures() -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--field", help="trained field file (.neumesh); default: an untrained field on the blob")
+    ap.add_argument("--mesh", help="a mesh for an untrained field with random codes (instead of --field)")
     ap.add_argument("--subdiv", type=int, default=5, help="blob subdivision without --field (default 5)")
     ap.add_argument("--region-size", type=int, default=50_000, help="vertices in the swapped region")
     ap.add_argument("--views", type=int, default=2, help="turntable views rendered (default 2)")
@@ -205,6 +207,9 @@ def main(argv=None) -> int:
         field = nm.load_field(args.field)
         field.eval()
         name = args.name or os.path.basename(os.path.dirname(os.path.abspath(args.field)))
+    elif args.mesh:
+        field = textured(nm.load_mesh(args.mesh))
+        name = args.name or os.path.splitext(os.path.basename(args.mesh))[0] + "_untrained"
     else:
         field = textured(default_mesh(subdiv=args.subdiv))
         name = args.name or f"blob{args.subdiv}"
@@ -212,7 +217,8 @@ def main(argv=None) -> int:
     n = min(args.region_size, field.num_vertices // 3)
     region = _region_near(V, (1.0, 0.3, 0.2), n)
     print(f"{name}: {field.num_vertices:,} vertices; interpolation {field.config.interpolation}")
-    result = {"input": args.field or f"untrained field on the blob, subdiv {args.subdiv}",
+    result = {"input": args.field or (f"untrained field on {args.mesh}" if args.mesh else
+                                      f"untrained field on the blob, subdiv {args.subdiv}"),
               "vertices": field.num_vertices, "interpolation": field.config.interpolation,
               "similar_copy": similar_copy_figures(field, region, args.views, args.resolution),
               "targets": {"psnr_frame": 40.0, "centroid_offset_edges": 1.0},

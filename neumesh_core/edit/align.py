@@ -134,7 +134,7 @@ def _centred_icp(a: np.ndarray, dst: np.ndarray, cd: np.ndarray, scale: float, R
         d2, i2 = _query(_nn(x), dst)
         k1, k2 = _trimmed(d1), _trimmed(d2)
         if plane:
-            # rows n . ((x - cd) x w) ... linearised about the current pose: x' = x + w x (x - cd)
+            # one row per match: n . (x + w x (x - cd) - q) = 0, linear in the small rotation w
             xs = np.concatenate([x[k1], x[i2[k2]]])
             q = np.concatenate([dst[i1[k1]], dst[k2]])
             n = np.concatenate([dst_normals[i1[k1]], a_normals[i2[k2]] @ R.T])
@@ -156,15 +156,15 @@ def _centred_icp(a: np.ndarray, dst: np.ndarray, cd: np.ndarray, scale: float, R
 
 def initial_alignment(src: np.ndarray, dst: np.ndarray, icp_iterations: int = 10,
                       dst_normals: Optional[np.ndarray] = None, max_points: int = 2000,
-                      refine_scale: bool = False, src_normals: Optional[np.ndarray] = None) -> Similarity:
+                      src_normals: Optional[np.ndarray] = None) -> Similarity:
     """An automatic similarity from ``src`` onto ``dst`` (no correspondences needed).
 
     The centroid of ``src`` goes onto the centroid of ``dst`` and its rms radius (extent) onto the
     target's: both are fixed, only the rotation is searched.  Both point sets must be in one coordinate
     frame (a swap passes both fields' rest vertices).  Rotation candidates: the principal axes of the
-    source mapped onto the target's in each of the 24 ways that send axes onto signed axes (the four
-    sign flips alone when the spreads along the axes differ clearly; all 24 because near-equal
-    spreads leave the axes' order undetermined).  Each candidate gets 3 iterations of ICP for the
+    source mapped onto the target's in each of the 24 ways that send axes onto signed axes (the signs
+    of principal axes are arbitrary, and near-equal spreads leave their order undetermined too; regions
+    of different shapes may fit best with axes of different rank).  Each candidate gets 3 iterations of ICP for the
     rotation about the fixed centroids, matching both ways, on subsamples of ``max_points / 4``; the
     best three get ``icp_iterations`` more on subsamples of ``max_points`` and the best of them
     ``3 * icp_iterations`` on 10x larger ones (point-to-plane when both ``src_normals`` and
@@ -173,9 +173,8 @@ def initial_alignment(src: np.ndarray, dst: np.ndarray, icp_iterations: int = 10
     Why fixed centroids: a free translation is not constrained when the regions differ in shape; ICP
     then slides the source along the target's surface and off it (measured: the multi-part scene's
     body onto an 835-vertex cap of the blob ended 222 target radii away).  A free scale likewise
-    collapses onto a patch of the target (lego's bucket <- a cap of another object went to scale 4e-19).
-    ``refine_scale`` is kept for callers of the old signature and ignored (the scale is the extents'
-    ratio).  Use point pairs (:func:`umeyama`) where the regions correspond only in part.
+    collapses onto a patch of the target (lego's bucket <- a cap of another object went to scale 4e-19),
+    so the scale is the extents' ratio.  Use point pairs (:func:`umeyama`) where the regions correspond only in part.
     """
     src = np.asarray(src, np.float64)
     dst = np.asarray(dst, np.float64)

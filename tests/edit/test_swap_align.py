@@ -209,3 +209,24 @@ def test_the_alignment_preview_writes_nothing_and_matches_the_swap(blob_mesh, mu
     info = al.info()
     for k in ("scale", "residual", "overlap", "target_residual", "centroid_offset"):
         assert rec.info[k] == pytest.approx(info[k], rel=1e-9, abs=1e-12), k
+
+
+def test_automatic_alignment_of_a_differently_sampled_copy_with_near_equal_spreads():
+    """The whole blob (spreads 0.342, 0.344, 0.399 along its principal axes: their order is not
+    determined by the shape) at subdivision 4 onto a rotated, scaled, shifted copy at subdivision 5
+    (other vertices): the rotation search and point-to-plane ICP about the fixed centroids find the
+    pose.  Measured: 0.007 degrees off, scale within 4e-6."""
+    from neumesh_core.data.synthetic import default_mesh
+    from neumesh_core.edit.align import initial_alignment
+    from neumesh_core.mesh import vertex_normals
+
+    m4, m5 = default_mesh(subdiv=4), default_mesh(subdiv=5)
+    v4, v5 = m4.vertices.astype(np.float64), m5.vertices.astype(np.float64)
+    n4 = vertex_normals(m4.vertices, m4.faces).astype(np.float64)
+    n5 = vertex_normals(m5.vertices, m5.faces).astype(np.float64)
+    for deg_z, deg_x in ((70.0, 25.0), (-150.0, 80.0)):
+        R = _rotation(deg_z, deg_x)
+        T = Similarity(0.6, R, np.array([3.0, -1.0, 2.0]))
+        A = initial_alignment(v4, T.apply(v5), dst_normals=n5 @ R.T, src_normals=n4)
+        angle = np.degrees(np.arccos(np.clip((np.trace(A.R.T @ R) - 1) / 2, -1, 1)))
+        assert angle < 0.1 and A.scale == pytest.approx(0.6, rel=1e-3), (deg_z, deg_x, angle)
