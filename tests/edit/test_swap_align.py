@@ -114,6 +114,11 @@ def test_the_issues_failed_alignment_is_refused_and_no_file_is_written(blob_mesh
     assert sorted(os.listdir(tmp_path)) == files          # no edited file
     g = nm.load_field(tpath)
     assert torch.equal(g.tex_codes, f.tex_codes)
+    # --no-check applies it anyway (the artist's call), and the saved history keeps the failed fit
+    assert main(["edit", "swap", "--field", tpath, "--region", str(tmp_path / "cap.txt"), "--source", spath,
+                 "--source-region", str(tmp_path / "body.txt"), "--no-check", "--rigid"]) == 0
+    out = str(tmp_path / "blob.edit-001.neumesh")
+    assert nm.edit.edit_info(out)["history"][-1]["info"]["fit_ok"] is False
 
 
 @pytest.mark.parametrize("direction", [(0, 0, 1), (0.6, -0.8, 0.0)])
