@@ -231,7 +231,8 @@ def swap_alignment(target, target_vertices, source=None, source_vertices=None, p
 
 def swap_texture(target, target_vertices, source=None, source_vertices=None, pairs=None,
                  config: Optional[SwapConfig] = None,
-                 progress: Optional[Callable[[float], bool]] = None) -> EditRecord:
+                 progress: Optional[Callable[[float], bool]] = None,
+                 alignment: Optional[SwapAlignment] = None) -> EditRecord:
     """Give ``target``'s region ``target_vertices`` the texture of ``source``'s region ``source_vertices``.
 
     ``source`` defaults to ``target`` (a swap within one field).  Regions are vertex index arrays or
@@ -242,7 +243,8 @@ def swap_texture(target, target_vertices, source=None, source_vertices=None, pai
     When the aligned source does not cover the target (``config.fit`` thresholds; docs/editing.md) the
     swap is refused: :class:`EditError` with the figures and what to do, and the field is unchanged
     (``config.check_fit=False`` applies it anyway).  :func:`swap_alignment` gives the alignment and its
-    figures without writing, for a preview.
+    figures without writing, for a preview; pass it back as ``alignment`` to apply exactly what was
+    shown (the regions must be the ones it was made for; ``pairs`` are then not used).
 
     Returns the :class:`EditRecord` (undo with ``record.undo(target)``); ``record.info`` holds the
     similarity (``transform``, 4x4, source rest -> target rest), the ``residual`` (mean distance of the
@@ -254,8 +256,17 @@ def swap_texture(target, target_vertices, source=None, source_vertices=None, pai
     cfg = config or SwapConfig()
     source = target if source is None else source
     t0 = time.perf_counter()
-    al = swap_alignment(target, target_vertices, source, source_vertices, pairs=pairs, config=cfg,
-                        progress=progress)
+    if alignment is None:
+        al = swap_alignment(target, target_vertices, source, source_vertices, pairs=pairs, config=cfg,
+                            progress=progress)
+    else:
+        al = alignment
+        check_compatible(target, source)
+        tv = as_vertex_ids(target_vertices, target.num_vertices, "target region")
+        sv = as_vertex_ids(source_vertices, source.num_vertices, "source region")
+        if not (np.array_equal(tv, al.target_vertices) and np.array_equal(sv, al.source_vertices)):
+            raise EditError("the alignment was made for other regions; run swap_alignment again with these "
+                             "regions (or leave alignment out)")
     if cfg.check_fit and not al.ok:
         raise EditError(al.message)
 

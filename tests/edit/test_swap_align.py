@@ -210,10 +210,16 @@ def test_the_alignment_preview_writes_nothing_and_matches_the_swap(blob_mesh, mu
     assert al.points.shape == al.rigid_points.shape == (len(body), 3) and al.message == ""
     assert len(al.faces) > 0 and al.faces.max() < len(body)       # the wireframe of the source region
     assert np.allclose(al.transform.apply(src.rest_vertices.numpy()[body]), al.rigid_points)
+    g = copy.deepcopy(f)
     rec = swap_texture(f, region, src, body)
     info = al.info()
     for k in ("scale", "residual", "overlap", "target_residual", "centroid_offset"):
         assert rec.info[k] == pytest.approx(info[k], rel=1e-9, abs=1e-12), k
+    # accepting the preview applies exactly what it showed, without aligning again
+    accepted = swap_texture(g, region, src, body, alignment=al)
+    assert torch.equal(g.tex_codes, f.tex_codes) and accepted.info["overlap"] == info["overlap"]
+    with pytest.raises(EditError, match="other regions"):
+        swap_texture(g, region[1:], src, body, alignment=al)
 
 
 def test_automatic_alignment_of_a_differently_sampled_copy_with_near_equal_spreads():
