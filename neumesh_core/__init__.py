@@ -3,7 +3,8 @@
 Public API (see README.md): load_scene, load_mesh, create_field, train, save_field, load_field,
 render_camera, evaluate, save_image, make_default_scene; edits: swap_texture, fill_texture,
 paint_texture (nm.edit); semantics: nm.semantics; baking: bake_texture (nm.bake: decimate, save_bake);
-scaffold building: build_scaffold, ScaffoldConfig. The add-on reaches the core only through these names.
+scaffold building: build_scaffold, ScaffoldConfig; real captures: read_capture, undistorted_images,
+estimate_poses, frames_from_video. The add-on reaches the core only through these names.
 """
 from __future__ import annotations
 
@@ -29,6 +30,10 @@ from . import semantics  # noqa: E402  (nm.semantics: distill_semantics, select_
 from . import bake  # noqa: E402  (nm.bake: bake_texture, decimate, save_bake)
 from .bake import bake_texture  # noqa: E402
 from .reconstruct import ScaffoldConfig, build_scaffold  # noqa: E402
+from .data.capture import Capture, undistorted_images  # noqa: E402
+from .data.loader import read_capture  # noqa: E402
+from .reconstruct.poses import PosesConfig, PosesError, PosesProgress, PosesReport, estimate_poses  # noqa: E402
+from .reconstruct.video import frames_from_video  # noqa: E402
 
 __version__ = "0.1.0"
 
@@ -42,4 +47,6 @@ __all__ = [
     "intrinsics_from_fov", "load_field", "load_mesh", "load_scene", "make_default_scene", "opencv_to_opengl",
     "opengl_to_opencv", "paint_layer", "paint_texture", "pixel_rays", "read_image", "render_camera", "render_rays",
     "save_field", "save_image", "save_mesh", "swap_texture", "train",
+    "Capture", "PosesConfig", "PosesError", "PosesProgress", "PosesReport", "estimate_poses", "frames_from_video",
+    "read_capture", "undistorted_images",
 ]

@@ -5,6 +5,10 @@ class NeuMeshError(Exception):
     """Base class for all errors raised deliberately by neumesh_core."""
 
 
+class Cancelled(NeuMeshError):
+    """Raised when a progress callback asked to stop (rendering, edits, undistortion, pose recovery ...)."""
+
+
 class DataError(NeuMeshError):
     """A dataset is missing files, has mismatched counts or unreadable images."""
 
