@@ -138,7 +138,7 @@ def main(argv=None) -> int:
     v = lego.rest_vertices.numpy()
     rec = nm.fill_texture(filled, reg["bucket"], planar_uvs(v[reg["bucket"]]), filled, reg["tracks"],
                           planar_uvs(v[reg["tracks"]]), scale=2.0)
-    figures["fill"] = {"target_vertices": rec.num_changed, "template_vertices": len(reg["tracks"]),
+    figures["fill"] = {"target_vertices": int(len(rec.vertices)), "template_vertices": len(reg["tracks"]),
                        "seconds": rec.info["seconds"], "views": [int(i) for i in views]}
     sheet([[render(lego, cams, i) for i in views], [render(filled, cams, i) for i in views]],
           os.path.join(args.out, "edit_fill.png"), ["before", "fill: bucket <- tracks (UV, scale 2)"])
@@ -161,7 +161,7 @@ def main(argv=None) -> int:
             bad.decoder_id.zero_()
         figures["swap"] = {k: srec.info[k] for k in ("residual_rigid", "residual", "scale", "align_s",
                                                        "nonrigid_s", "transfer_s", "seconds")}
-        figures["swap"].update(target_vertices=srec.num_changed, source=args.source, decoders=swapped.num_decoders)
+        figures["swap"].update(target_vertices=int(len(srec.vertices)), source=args.source, decoders=swapped.num_decoders)
         sheet([[render(lego, cams, i) for i in views], [render(swapped, cams, i) for i in views],
                [render(bad, cams, i) for i in views]],
               os.path.join(args.out, "edit_swap.png"),

@@ -53,7 +53,8 @@ def cmd_swap(args) -> int:
     src_region = read_region(args.source_region, source.num_vertices) if args.source_region else region
     pairs = read_pairs(args.pairs) if args.pairs else None
     cfg = SwapConfig(nonrigid=not args.rigid, nonrigid_iterations=args.iterations,
-                     match_orientation=not args.no_frames, with_scale=not args.no_scale)
+                     match_orientation=not args.no_frames, with_scale=not args.no_scale,
+                     check_fit=not args.no_check)
     rec = swap_texture(target, region, source, src_region, pairs=pairs, config=cfg,
                        progress=_progress("swap"))
     out = _save(target, args.field, rec, args.out)
@@ -176,6 +177,8 @@ def add_commands(sub) -> None:
     q.add_argument("--rigid", action="store_true", help="skip the non-rigid refinement")
     q.add_argument("--iterations", type=int, default=12, help="non-rigid ICP iterations (default 12)")
     q.add_argument("--no-scale", action="store_true", help="rigid alignment without scaling")
+    q.add_argument("--no-check", action="store_true", help="apply the swap even when the aligned source "
+                   "does not cover the target (docs/editing.md: when the alignment fails)")
     q.add_argument("--no-frames", action="store_true",
                    help="do not rotate normals/view directions into the source's orientation")
     q.set_defaults(func=cmd_swap)

@@ -3,7 +3,9 @@
 Each edit returns an :class:`EditRecord` with the rows it changed, so callers can undo it exactly;
 edited fields are saved beside the file they came from (:func:`save_edited`), never over it.
 
-- :func:`swap_texture`: a target region takes a source region's texture (alignment + code transfer).
+- :func:`swap_texture`: a target region takes a source region's texture (alignment + code transfer);
+  refused when the aligned source does not cover the target.  :func:`swap_alignment`: the same
+  alignment and its fit figures without writing anything (a preview).
 - :func:`fill_texture`: a template region's texture tiled over a target region through UV maps.
 - :func:`paint_texture`: paint on one rendered view becomes surface paint (modification colours).
 """
@@ -12,10 +14,11 @@ from .files import edit_info, next_edit_path, parent_of, root_of, save_edited
 from .fill import CornerUVs, FillConfig, fill_texture, planar_uvs
 from .paint import PaintConfig, paint_fields, paint_layer, paint_texture
 from .record import EditRecord, as_vertex_ids
-from .swap import SwapConfig, swap_texture
+from .fit_check import FitFigures, FitThresholds
+from .swap import SwapAlignment, SwapConfig, swap_alignment, swap_texture
 from .transfer import idw_neighbours
 
-__all__ = ["CornerUVs", "EditRecord", "FillConfig", "PaintConfig", "Similarity", "SwapConfig", "arap_icp",
+__all__ = ["CornerUVs", "EditRecord", "FillConfig", "FitFigures", "FitThresholds", "PaintConfig", "Similarity", "SwapConfig", "arap_icp",
            "as_vertex_ids", "edit_info", "fill_texture", "idw_neighbours", "initial_alignment", "next_edit_path",
            "paint_fields", "paint_layer", "paint_texture", "parent_of", "planar_uvs", "rigid_icp", "root_of", "save_edited",
-           "swap_texture", "umeyama"]
+           "SwapAlignment", "swap_alignment", "swap_texture", "umeyama"]

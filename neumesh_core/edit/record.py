@@ -7,7 +7,7 @@ undo and redo are row writes, never re-training.  Records undo in the reverse or
 from __future__ import annotations
 
 from dataclasses import dataclass, field as dc_field
-from typing import Dict, Iterable
+from typing import Dict, Iterable, Optional
 
 import numpy as np
 import torch
@@ -53,13 +53,26 @@ def as_vertex_ids(vertices, num_vertices: int, what: str = "vertex indices") -> 
     return v
 
 
+def _rows_differ(old: Dict[str, torch.Tensor], new: Dict[str, torch.Tensor], n: int) -> np.ndarray:
+    """(n,) bool: rows where any table's new value differs from its old one (exact comparison: any
+    change, even a rounding one, is a change)."""
+    out = torch.zeros(n, dtype=torch.bool)
+    for t, a in old.items():
+        b = new[t]
+        if a.numel():
+            out |= (a != b).reshape(n, -1).any(1)
+    return out.numpy()
+
+
 @dataclass
 class EditRecord:
     """The rows one edit changed.
 
-    ``vertices`` (int64, sorted) are the changed rows; ``old``/``new`` map a table name to the rows'
-    values before/after (CPU tensors); ``decoders_before`` is how many radiance decoders the field had
-    before the edit (undo drops the ones it added); ``info`` holds what the edit reports (alignment
+    ``vertices`` (int64, sorted) are the rows the edit wrote; ``old``/``new`` map a table name to the
+    rows' values before/after (CPU tensors); ``changed`` (int64, sorted, set by :meth:`finish`) are the
+    rows among them whose values differ afterwards (a region swapped onto itself writes every row and
+    changes none; :attr:`num_changed` counts these); ``decoders_before`` is how many radiance decoders
+    the field had before the edit (undo drops the ones it added); ``info`` holds what the edit reports (alignment
     transform, residual, timings...), JSON-friendly.
     """
 
@@ -71,6 +84,7 @@ class EditRecord:
     decoders_after: int = 1
     added_decoders: list = dc_field(default_factory=list)   # the decoder modules the edit appended
     info: dict = dc_field(default_factory=dict)
+    changed: Optional[np.ndarray] = None   # rows whose values the edit changed (None before finish)
 
     @classmethod
     def begin(cls, op: str, field, vertices, tables: Iterable[str]) -> "EditRecord":
@@ -86,6 +100,7 @@ class EditRecord:
         :attr:`info`."""
         idx = torch.as_tensor(self.vertices, device=field.geo_codes.device)
         self.new = {t: _table(field, t).detach()[idx].cpu().clone() for t in self.old}
+        self.changed = self.vertices[_rows_differ(self.old, self.new, len(self.vertices))]
         self.decoders_after = field.num_decoders
         self.added_decoders = list(field.rad_decoders)[self.decoders_before:]
         self.info.update(info)
@@ -94,7 +109,8 @@ class EditRecord:
 
     @property
     def num_changed(self) -> int:
-        return int(len(self.vertices))
+        """How many rows the edit changed (rows written with the values they held do not count)."""
+        return int(len(self.vertices if self.changed is None else self.changed))
 
     def _write(self, field, values: Dict[str, torch.Tensor]) -> None:
         idx = torch.as_tensor(self.vertices, device=field.geo_codes.device)

@@ -1,10 +1,15 @@
 """Texture swap: give a target region the appearance of a source region (of the same field or another).
 
 1. Rigid alignment with uniform scale of the source region onto the target region: Umeyama from
-   point pairs, or without pairs an automatic guess (centroids, principal axes and extents; the axis
-   signs chosen by the best nearest-neighbour fit after a few rigid ICP iterations).
+   point pairs, or without pairs an automatic guess (the source's centroid onto the target's, its
+   extent scaled to the target's, the rotation searched by ICP about the fixed centroids:
+   :func:`~neumesh_core.edit.align.initial_alignment`).
 2. Non-rigid refinement: ARAP-regularised non-rigid ICP over the source region's mesh edges.
-3. Transfer: each target vertex takes the inverse-distance-weighted mean of the texture codes and
+3. Fit check: the aligned source must cover the target (:mod:`~neumesh_core.edit.fit_check`); a swap
+   whose alignment failed is refused with an :class:`EditError` that says what to do, and nothing is
+   written.  :func:`swap_alignment` runs steps 1-3 alone (no write): the aligned source region and the
+   fit figures, for a preview before the swap.
+4. Transfer: each target vertex takes the inverse-distance-weighted mean of the texture codes and
    modification colours of its k=4 nearest aligned source vertices, and the source's decoder binding
    (the source decoder is added to the target field once).  The texture frame of each written vertex
    rotates its normal and view directions into the source's frame (the alignment's rotation, then the
@@ -17,7 +22,7 @@ works in the rest (training) pose of both fields.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field as dc_field
 from typing import Callable, Optional
 
 import numpy as np
@@ -25,6 +30,7 @@ import numpy as np
 from ..errors import EditError
 from ..mesh import unique_edges
 from .align import Similarity, arap_icp, initial_alignment, region_edges, rigid_icp, umeyama
+from .fit_check import FitFigures, FitThresholds, fit_figures, refusal_message
 from .record import EditRecord, as_vertex_ids
 from .transfer import TransferPlan, apply_transfer, check_compatible, idw_neighbours, minimal_rotations
 
@@ -41,6 +47,8 @@ class SwapConfig:
     refine_pairs: bool = False          # with pairs: also refine the similarity by rigid ICP
     with_scale: bool = True             # the similarity may scale (Umeyama with scale)
     match_orientation: bool = True      # texture frames: the source decoder sees its own orientation
+    check_fit: bool = True              # refuse a swap whose aligned source does not cover the target
+    fit: FitThresholds = dc_field(default_factory=FitThresholds)   # the check's thresholds
 
     def __post_init__(self) -> None:
         if self.k < 1:
@@ -96,20 +104,64 @@ def _cancelled(progress, fraction: float) -> None:
         raise Cancelled("texture swap cancelled; the field is unchanged")
 
 
-def swap_texture(target, target_vertices, source=None, source_vertices=None, pairs=None,
-                 config: Optional[SwapConfig] = None,
-                 progress: Optional[Callable[[float], bool]] = None) -> EditRecord:
-    """Give ``target``'s region ``target_vertices`` the texture of ``source``'s region ``source_vertices``.
+@dataclass
+class SwapAlignment:
+    """Where a swap's source region lands on the target, and how well it fits (nothing written).
 
-    ``source`` defaults to ``target`` (a swap within one field).  Regions are vertex index arrays or
-    boolean masks.  ``pairs`` (optional, >= 3): (P,2) (source vertex, target vertex) index pairs, (P,6)
-    point pairs or a tuple (source points, target points), rest pose.  ``progress(fraction)`` returning
-    False cancels (raises ``nm.Cancelled``; the field is unchanged).
+    Points are in the target field's rest frame (the frame of ``target.rest_vertices``): draw them with
+    the target object's transform, e.g. as a temporary wireframe with ``faces`` before accepting.
+    """
 
-    Returns the :class:`EditRecord` (undo with ``record.undo(target)``); ``record.info`` holds the
-    similarity (``transform``, 4x4, source rest -> target rest), the ``residual`` (mean distance of the
-    aligned source vertices to the target region's nearest vertex, in mean edge lengths of the target
-    region) before (``residual_rigid``) and after the non-rigid step, and the timings.
+    transform: Similarity          # source rest -> target rest (the similarity of step 1)
+    target_vertices: np.ndarray    # (T,) the target region's vertex ids
+    source_vertices: np.ndarray    # (S,) the source region's vertex ids
+    rigid_points: np.ndarray       # (S,3) the source region after the similarity
+    points: np.ndarray             # (S,3) ... and after the non-rigid step (what the transfer uses)
+    faces: np.ndarray              # (F,3) the source region's triangles, indices into ``points``
+    figures: FitFigures            # overlap and residuals of ``points`` against the target region
+    residual: float                # mean source -> target distance / target mean edge (after non-rigid)
+    residual_rigid: float          # the same after the similarity alone
+    mean_edge: float               # the target region's mean edge length
+    pairs: int                     # point pairs used (0: the automatic alignment)
+    problems: list                 # what fails the fit check, in words (empty: it fits)
+    message: str                   # the refusal message when ``problems`` ("" otherwise)
+    align_s: float = 0.0
+    nonrigid_s: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def info(self) -> dict:
+        """The figures a swap records (``record.info``), JSON-friendly."""
+        return {"transform": self.transform.matrix(), "scale": self.transform.scale, "residual": self.residual,
+                "residual_rigid": self.residual_rigid, "mean_edge": self.mean_edge,
+                "target_vertices": int(len(self.target_vertices)), "source_vertices": int(len(self.source_vertices)),
+                "pairs": self.pairs, "align_s": self.align_s, "nonrigid_s": self.nonrigid_s,
+                "fit_ok": self.ok, **self.figures.as_dict()}
+
+
+def _region_faces(faces: np.ndarray, region: np.ndarray) -> np.ndarray:
+    """Triangles with all three corners in ``region`` (sorted ids), as indices into ``region``."""
+    faces = np.asarray(faces, np.int64)
+    if len(faces) == 0:
+        return np.zeros((0, 3), np.int64)
+    pos = np.full(int(max(faces.max(), region.max())) + 1, -1, np.int64)
+    pos[region] = np.arange(len(region))
+    f = pos[faces]
+    return f[(f >= 0).all(1)]
+
+
+def swap_alignment(target, target_vertices, source=None, source_vertices=None, pairs=None,
+                   config: Optional[SwapConfig] = None,
+                   progress: Optional[Callable[[float], bool]] = None) -> SwapAlignment:
+    """The alignment :func:`swap_texture` would use, and its fit figures, without writing anything.
+
+    Arguments as for :func:`swap_texture`.  Returns a :class:`SwapAlignment`: the similarity, the
+    source region's vertices after it and after the non-rigid step (target rest frame), the region's
+    triangles (for a wireframe preview), the fit figures and, when the fit check fails, the message a
+    swap would refuse with.  Raises :class:`EditError` for bad input (never for a poor fit);
+    ``progress(fraction)`` returning False cancels (``nm.Cancelled``).
     """
     cfg = config or SwapConfig()
     source = target if source is None else source
@@ -128,7 +180,7 @@ def swap_texture(target, target_vertices, source=None, source_vertices=None, pai
     unit = _mean_edge(t_rest, t_faces, tv)
     _cancelled(progress, 0.0)
 
-    # 1. similarity
+    # 1. similarity: both regions in their fields' rest frames (one frame: the fields' world space)
     from pykdtree.kdtree import KDTree
 
     tree = KDTree(np.ascontiguousarray(T_pts), leafsize=16)
@@ -143,48 +195,96 @@ def swap_texture(target, target_vertices, source=None, source_vertices=None, pai
         raise EditError("automatic alignment needs at least 4 vertices in each region; select larger "
                          "regions or give 3 or more point pairs")
     else:
-        sim = initial_alignment(S_pts, T_pts, dst_normals=T_nrm)
+        S_nrm = source.rest_normals.detach().cpu().numpy().astype(np.float64)[sv]
+        sim = initial_alignment(S_pts, T_pts, dst_normals=T_nrm, src_normals=S_nrm)
     if not np.isfinite(sim.matrix()).all() or not sim.scale > 0:
         raise EditError(f"the alignment failed (scale {sim.scale:g}); give 3 or more point pairs")
-    x = sim.apply(S_pts)
-    d_rigid = float(np.asarray(tree.query(np.ascontiguousarray(x), k=1)[0]).mean())
+    rigid = sim.apply(S_pts)
+    d_rigid = float(np.asarray(tree.query(np.ascontiguousarray(rigid), k=1)[0]).mean())
     t_sim = time.perf_counter() - t0
     _cancelled(progress, 0.2)
 
     # 2. non-rigid refinement over the source region's edges
     t1 = time.perf_counter()
+    x, residual = rigid, d_rigid
     if cfg.nonrigid and cfg.nonrigid_iterations > 0:
         edges = region_edges(s_faces, sv)
 
         def nr_progress(f):
             return None if progress is None else progress(0.2 + 0.6 * f)
 
-        nr = arap_icp(x, edges, T_pts, iterations=cfg.nonrigid_iterations, stiffness=cfg.stiffness,
+        nr = arap_icp(rigid, edges, T_pts, iterations=cfg.nonrigid_iterations, stiffness=cfg.stiffness,
                       max_distance=cfg.max_match_edges * unit, tree=tree, progress=nr_progress)
-        x = nr.points
-        residual = nr.residual
-    else:
-        residual = d_rigid
+        x, residual = nr.points, nr.residual
     t_nr = time.perf_counter() - t1
     _cancelled(progress, 0.8)
 
-    # 3. transfer
+    # 3. the fit of the aligned source to the target
+    s_edge = sim.scale * _mean_edge(s_rest, s_faces, sv)
+    fig = fit_figures(x, T_pts, unit, s_edge, overlap_edges=cfg.fit.overlap_edges)
+    problems = fig.problems(cfg.fit)
+    message = refusal_message(fig, cfg.fit, automatic=n_pairs == 0,
+                              nonrigid=cfg.nonrigid and cfg.nonrigid_iterations > 0) if problems else ""
+    return SwapAlignment(sim, tv, sv, rigid, x, _region_faces(s_faces, sv), fig, residual / unit, d_rigid / unit,
+                         unit, n_pairs, problems, message, t_sim, t_nr)
+
+
+def swap_texture(target, target_vertices, source=None, source_vertices=None, pairs=None,
+                 config: Optional[SwapConfig] = None,
+                 progress: Optional[Callable[[float], bool]] = None,
+                 alignment: Optional[SwapAlignment] = None) -> EditRecord:
+    """Give ``target``'s region ``target_vertices`` the texture of ``source``'s region ``source_vertices``.
+
+    ``source`` defaults to ``target`` (a swap within one field).  Regions are vertex index arrays or
+    boolean masks.  ``pairs`` (optional, >= 3): (P,2) (source vertex, target vertex) index pairs, (P,6)
+    point pairs or a tuple (source points, target points), rest pose.  ``progress(fraction)`` returning
+    False cancels (raises ``nm.Cancelled``; the field is unchanged).
+
+    When the aligned source does not cover the target (``config.fit`` thresholds; docs/editing.md) the
+    swap is refused: :class:`EditError` with the figures and what to do, and the field is unchanged
+    (``config.check_fit=False`` applies it anyway).  :func:`swap_alignment` gives the alignment and its
+    figures without writing, for a preview; pass it back as ``alignment`` to apply exactly what was
+    shown (the regions must be the ones it was made for; ``pairs`` are then not used).
+
+    Returns the :class:`EditRecord` (undo with ``record.undo(target)``); ``record.info`` holds the
+    similarity (``transform``, 4x4, source rest -> target rest), the ``residual`` (mean distance of the
+    aligned source vertices to the target region's nearest vertex, in mean edge lengths of the target
+    region) before (``residual_rigid``) and after the non-rigid step, the fit figures (``overlap``,
+    ``target_residual``, ``centroid_offset``: :class:`~neumesh_core.edit.fit_check.FitFigures`) and the
+    timings.
+    """
+    cfg = config or SwapConfig()
+    source = target if source is None else source
+    t0 = time.perf_counter()
+    if alignment is None:
+        al = swap_alignment(target, target_vertices, source, source_vertices, pairs=pairs, config=cfg,
+                            progress=progress)
+    else:
+        al = alignment
+        check_compatible(target, source)
+        tv = as_vertex_ids(target_vertices, target.num_vertices, "target region")
+        sv = as_vertex_ids(source_vertices, source.num_vertices, "source region")
+        if not (np.array_equal(tv, al.target_vertices) and np.array_equal(sv, al.source_vertices)):
+            raise EditError("the alignment was made for other regions; run swap_alignment again with these "
+                             "regions (or leave alignment out)")
+    if cfg.check_fit and not al.ok:
+        raise EditError(al.message)
+
+    # 4. transfer
     t2 = time.perf_counter()
-    idx, w = idw_neighbours(T_pts, x, cfg.k)
+    tv, sv, sim = al.target_vertices, al.source_vertices, al.transform
+    idx, w = idw_neighbours(target.rest_vertices.detach().cpu().numpy().astype(np.float64)[tv], al.points, cfg.k)
     frames = None
     if cfg.match_orientation:
         # target rest normal -> source rest frame: undo the alignment's rotation, then the smallest
         # rotation onto the (weighted) source normal
-        n_t = T_nrm
+        n_t = target.rest_normals.detach().cpu().numpy().astype(np.float64)[tv]
         n_s = source.rest_normals.detach().cpu().numpy().astype(np.float64)[sv][idx]
         n_s = (n_s * w[..., None]).sum(1)
         back = n_t @ sim.R            # = R^T n_t
         frames = minimal_rotations(back, n_s) @ sim.R.T[None]
     plan = TransferPlan(tv, sv[idx], w)
-    info = {"transform": sim.matrix(), "scale": sim.scale, "residual": residual / unit,
-            "residual_rigid": d_rigid / unit, "mean_edge": unit, "target_vertices": int(len(tv)),
-            "source_vertices": int(len(sv)), "pairs": n_pairs, "align_s": t_sim, "nonrigid_s": t_nr}
-    record = apply_transfer("swap_texture", target, plan, source, frames=frames, **info)
+    record = apply_transfer("swap_texture", target, plan, source, frames=frames, **al.info())
     record.info["transfer_s"] = time.perf_counter() - t2
     record.info["seconds"] = time.perf_counter() - t0
     if progress is not None:
@@ -192,4 +292,4 @@ def swap_texture(target, target_vertices, source=None, source_vertices=None, pai
     return record
 
 
-__all__ = ["SwapConfig", "Similarity", "swap_texture"]
+__all__ = ["SwapAlignment", "SwapConfig", "Similarity", "swap_alignment", "swap_texture"]
