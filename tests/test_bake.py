@@ -121,10 +121,25 @@ def test_bake_follows_the_current_pose(trained, baked):
     shift = np.array([0.4, -0.2, 0.3], np.float32)
     moved.set_vertices(np.asarray(field.vertices) + shift)
     with one_thread():
-        res = bake_texture(moved, resolution=64, padding=2)
+        res = bake_texture(moved, resolution=64, padding=2, fit=False)
     np.testing.assert_allclose(res.vertices, np.asarray(moved.vertices)[res.vertex_index], atol=1e-6)
     diff = np.abs(res.vertex_colors - baked.vertex_colors)
     assert np.percentile(diff, 95) < 0.03, float(np.percentile(diff, 95))
+    # fitted onto the field's surface (one level, no calibration): the moved bake's mesh is the
+    # original's moved by the same shift
+    from neumesh_core.bake import SurfaceFitConfig
+
+    cfg = SurfaceFitConfig(level=0.1)
+    with one_thread():
+        a = bake_texture(field, resolution=32, padding=2, fit=cfg, vertex_colors=False, measure_texels=0)
+        b = bake_texture(moved, resolution=32, padding=2, fit=cfg, vertex_colors=False, measure_texels=0)
+    moved_by = np.zeros((field.num_vertices, 3))
+    moved_by[b.vertex_index] = b.vertices
+    ref = np.zeros((field.num_vertices, 3))
+    ref[a.vertex_index] = a.vertices
+    err = np.linalg.norm(moved_by - ref - shift, axis=1)
+    assert np.percentile(err, 99) < 0.02 * field.radius, float(np.percentile(err, 99))
+    assert np.abs(ref - np.asarray(field.vertices)).max() > 0.02 * field.radius   # the fit did move it
 
 
 def test_bake_cancel(trained):
@@ -222,7 +237,7 @@ def test_bake_onto_a_coarser_target_mesh(trained):
     field, scene = trained
     target = default_mesh(subdiv=3)
     with one_thread():
-        b = bake_texture(field, resolution=128, mesh=target)
+        b = bake_texture(field, resolution=128, mesh=target, fit=False)
     assert b.info["mesh"] == "target" and b.info["missed_texels"] == 0
     assert b.info["mesh_vertices"] == 642 and b.info["mesh_faces"] == len(b.faces) == 1280
     np.testing.assert_array_equal(b.vertex_index[b.faces], target.faces)
