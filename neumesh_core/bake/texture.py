@@ -186,6 +186,11 @@ def surface_colours(field, points, normals, offset: float = 1.0, directions: int
             _, rgb, _ = field.decode(smp.aux, dd[smp.ray_indices], with_rgb=True, with_sigma=False)
             c = composite(smp.ray_indices, smp.t_starts, smp.t_ends, smp.sigmas, {"rgb": rgb}, len(o))
             op = c["opacity"].cpu()
+            atlas = getattr(field, "paint_atlas", None)
+            if atlas is not None and not atlas.is_empty:   # texel paint bakes with the field's colour
+                depth = torch.where(c["opacity"] > 1e-6, c["depth"] / c["opacity"].clamp_min(1e-6),
+                                    torch.full_like(c["depth"], float("inf")))
+                c["rgb"] = atlas.composite(field, o, dd, c["rgb"], c["opacity"], depth)
             acc += c["rgb"].cpu()
             wsum += op
         ok = wsum > 1e-3
