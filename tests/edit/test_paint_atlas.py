@@ -24,9 +24,9 @@ def blob4():
     return default_mesh(subdiv=4)
 
 
-def _field(mesh):
+def _field(mesh, method="xatlas"):
     f = textured_field(mesh, interpolation="early")
-    create_paint_atlas(f, resolution=512)     # xatlas of the 2,562-vertex blob
+    create_paint_atlas(f, resolution=512, method=method)     # xatlas / grid of the 2,562-vertex blob
     return f
 
 
@@ -36,8 +36,10 @@ def _far_from(mask, r):
     return ~binary_dilation(mask, iterations=r)
 
 
-def test_a_thin_line_and_a_block_paint_as_sharp_as_painted(blob4):
-    f = _field(blob4)
+@pytest.mark.parametrize("method", ["xatlas", "grid"])
+def test_a_thin_line_and_a_block_paint_as_sharp_as_painted(blob4, method):
+    f = _field(blob4, method)
+    assert f.paint_atlas.source == method
     K, c2w = camera(10.0, size=S)
     before = nm.render_camera(f, K, c2w, S, S)
     mask = np.zeros((S, S), bool)
