@@ -106,3 +106,15 @@ def test_fit_config_rejects_bad_values():
         SurfaceFitConfig(face_samples=2)
     with pytest.raises(ValueError):
         SurfaceFitConfig(step=0)
+
+
+def test_a_big_mesh_fits_a_subset_of_its_faces(shell):
+    r = shell.radius
+    m = default_mesh(subdiv=3)
+    n = np.asarray(vertex_normals(m.vertices, m.faces), np.float32)
+    V = m.vertices + 0.6 * r * n
+    cap = len(V) + 3 * 100                         # the vertices and 100 of the 1,280 faces
+    with one_thread():
+        _, info = fit_to_field(shell, V, m.faces, SurfaceFitConfig(level=0.5, max_samples=cap))
+    assert info["samples"] == cap
+    assert info["after"]["median_radii"] < 0.05

@@ -48,6 +48,7 @@ class SurfaceFitConfig:
     smoothness: float = 0.3      # weight of (d_i - d_j)^2 over the edges (displacements in radii)
     damping: float = 1e-3        # weight of d_i^2 (keeps vertices that see no surface where they are)
     iterations: int = 2          # fits, each with the normals of the previous one
+    max_samples: int = 262144    # vertices + face points per fit; beyond, a fixed random subset of the faces
     chunk: int = 8192            # search rays per batch
 
     def __post_init__(self) -> None:
@@ -151,8 +152,8 @@ def offset_stats(offsets: np.ndarray, radius: float) -> dict:
 
 
 def _sample_points(V, F, N, bary):
-    """Vertices, then ``bary`` points in every face: positions, normals, and the (rows, cols, weights)
-    of the sparse map from vertex values to sample values."""
+    """Vertices, then ``bary`` points in every face of ``F`` (the faces sampled): positions, normals,
+    and the sparse map B from vertex values to sample values."""
     import scipy.sparse as sp
 
     nv, nf, nb = len(V), len(F), len(bary)
@@ -265,6 +266,10 @@ def fit_to_field(field, vertices, faces, config: Optional[SurfaceFitConfig] = No
                        (np.concatenate([np.arange(len(E))] * 2), np.concatenate([E[:, 0], E[:, 1]]))),
                       shape=(len(E), nv))
     reg = cfg.smoothness * (D.T @ D) + cfg.damping * sp.identity(nv)
+    Fs = F       # the faces that carry sample points: all, or a fixed random subset of a big mesh
+    room = max(0, int(cfg.max_samples) - nv) // max(1, len(bary))
+    if len(bary) and len(F) > room:
+        Fs = F[np.sort(np.random.default_rng(0).permutation(len(F))[:room])]
 
     def solve(V, N, Ns, B, off):
         ok = np.isfinite(off)
@@ -281,7 +286,7 @@ def fit_to_field(field, vertices, faces, config: Optional[SurfaceFitConfig] = No
     calibrate = level is None
     for it in range(n_iter):
         N = np.asarray(vertex_normals(V.astype(np.float32), F), np.float64)
-        P, Ns, B = _sample_points(V, F, N, bary)
+        P, Ns, B = _sample_points(V, Fs, N, bary)
         lo, hi = it / (n_iter + 2), (it + 1) / (n_iter + 2)
         if it == 0 and calibrate:
             levels = [float(x) for x in cfg.levels]
@@ -315,11 +320,12 @@ def fit_to_field(field, vertices, faces, config: Optional[SurfaceFitConfig] = No
         info["iterations"].append({"found": found, "mean_abs_move_radii": float(np.abs(d).mean()),
                                    "max_abs_move_radii": float(np.abs(d).max())})
     N = np.asarray(vertex_normals(V.astype(np.float32), F), np.float64)
-    P, Ns, _ = _sample_points(V, F, N, bary)
+    P, Ns, _ = _sample_points(V, Fs, N, bary)
     off = surface_offsets(field, P, Ns, cfg.search, level, cfg.step, cfg.chunk, progress,
                           ((n_iter + 1) / (n_iter + 2), 1.0))
     info["level"] = float(level)
     info["after"] = offset_stats(off, r)
+    info["samples"] = int(len(P))
     info["seconds"] = time.perf_counter() - t0
     info["config"] = {k: (list(v) if isinstance(v, tuple) else v)
                       for k, v in ((k, getattr(cfg, k)) for k in cfg.__dataclass_fields__)}
