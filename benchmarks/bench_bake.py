@@ -123,6 +123,8 @@ def main(argv=None) -> int:
     ap.add_argument("--level", type=float, default=None,
                     help="opacity level of the field's surface for the fit (default: calibrated per field)")
     ap.add_argument("--offset", type=float, default=None, help="texel ray start, field radii (default: the bake's)")
+    ap.add_argument("--fit-search", type=float, default=1.5, help="fit: field radii searched each side (default 1.5)")
+    ap.add_argument("--fit-smoothness", type=float, default=0.3, help="fit: edge smoothness weight (default 0.3)")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--results-dir", help="folder for the JSON (default benchmarks/results)")
     ap.add_argument("--figure", help="write field | baked pictures here (PNG)")
@@ -170,7 +172,8 @@ def main(argv=None) -> int:
     best = None
     for res in [int(r) for r in args.resolutions.split(",")]:
         for dirs in [int(d) for d in args.directions.split(",")]:
-            fit = False if args.no_fit else SurfaceFitConfig(level=args.level)
+            fit = False if args.no_fit else SurfaceFitConfig(level=args.level, search=args.fit_search,
+                                                             smoothness=args.fit_smoothness)
             b = bake_texture(field, resolution=res, directions=dirs, mesh=mesh, fit=fit, offset=args.offset)
             imgs = []
             t1 = time.perf_counter()
@@ -209,6 +212,8 @@ def main(argv=None) -> int:
               "image_size": [int(cams.width), int(cams.height)], "vertices": int(field.num_vertices),
               "faces": int(len(field.faces)), "field_vs_photos": field_vs_photo,
               "mesh": args.mesh, "decimate": args.decimate, "decimate_s": round(decimate_s, 2),
+              "fit": None if args.no_fit else {"level": args.level, "search": args.fit_search,
+                                               "smoothness": args.fit_smoothness},
               "downscale": args.downscale,
               "field_render_s_per_view": round(field_render_s, 3), "runs": runs,
               "best": {k: v for k, v in best[0].items() if k not in ("psnr_vs_field_views", "fit")},

@@ -461,11 +461,13 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     F = field.faces.cpu().numpy().astype(np.int64)
     fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
-    near = hd <= 1.5 * field.radius
+    near = hd <= 2.5 * field.radius
     hi = np.nonzero(hit)[0]
     face[hi[near]] = hf[near]
     cpt = (hb[near, :, None] * V[F[hf[near]]]).sum(1)
     delta[hi[near]] = ((pts[hi[near]] - cpt) * fn[hf[near]]).sum(1)
+    cbox = np.full((len(box), 3), np.nan)      # each box pixel's nearest scaffold point
+    cbox[hi[near]] = cpt
     timing["surface_s"] = time.perf_counter() - t
 
     # 2. the texels of the touched faces and their one-ring, on the field's surface, seen from the view
@@ -482,7 +484,9 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
                                    h_img)
     tf = cand[tf]
     ps = (tb[:, :, None] * V[F[tf]]).sum(1)
-    nrm = fn[tf]
+    # the face normal turned towards the camera: the render's nearest-face lookup does not care how a
+    # face is wound, so neither does this (a scaffold may hold flipped faces)
+    nrm = fn[tf] * np.where((fn[tf] * (cam[None] - ps)).sum(1) >= 0, 1.0, -1.0)[:, None]
     w2c = np.linalg.inv(c2w)
 
     def project(x):
@@ -496,39 +500,34 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
         inside = (xi >= 0) & (xi < bw) & (yi >= 0) & (yi < bh)
         return np.where(inside, yi * bw + np.clip(xi, 0, bw - 1), -1), inside
 
-    dmap = delta.reshape(bh, bw)
-
-    def offset_at(q):
-        """The offset map at image positions q: bilinear between pixel centres where all four are
-        known, else the pixel q lies in (NaN where unknown)."""
-        gx_, gy_ = q[:, 0] - 0.5 - x0, q[:, 1] - 0.5 - y0
-        ix, iy = np.floor(gx_).astype(np.int64), np.floor(gy_).astype(np.int64)
-        fx, fy = gx_ - ix, gy_ - iy
-
-        def at(yy, xx):
-            inside = (xx >= 0) & (xx < bw) & (yy >= 0) & (yy < bh)
-            return np.where(inside, dmap[np.clip(yy, 0, bh - 1), np.clip(xx, 0, bw - 1)], np.nan)
-
-        bil = ((1 - fx) * (1 - fy) * at(iy, ix) + fx * (1 - fy) * at(iy, ix + 1) +
-               (1 - fx) * fy * at(iy + 1, ix) + fx * fy * at(iy + 1, ix + 1))
-        near_ = at(np.floor(q[:, 1]).astype(np.int64) - y0, np.floor(q[:, 0]).astype(np.int64) - x0)
-        return np.where(np.isfinite(bil), bil, near_)
-
-    p = ps.copy()
-    ok = np.ones(len(p), bool)
-    for _ in range(4):
-        q, _ = project(p)
-        dl = offset_at(q)
-        ok = np.isfinite(dl)
-        p = ps + np.where(ok, dl, 0.0)[:, None] * nrm
+    # each texel's line along its face normal: where it meets the surface this view renders (the
+    # first crossing from outside of ray distance - rendered depth), found on 41 points over +-2.5 radii
+    # (the render paints surface points within 2.5 radii of the scaffold)
+    zmap = np.where(hit, depth.numpy().astype(np.float64), np.nan)
+    steps = np.linspace(2.5, -2.5, 41) * float(field.radius)
+    res_prev, s_prev = None, None
+    s_hit = np.full(len(ps), np.nan)
+    for sk in steps:
+        pk = ps + sk * nrm
+        qk, _ = project(pk)
+        bi, inside = box_index(qk)
+        dist_k = np.linalg.norm(pk - cam[None], axis=1)
+        res = np.where(inside, dist_k - zmap[np.maximum(bi, 0)], np.nan)
+        if res_prev is not None:
+            cross = np.isnan(s_hit) & (res_prev <= 0) & (res > 0)
+            frac = res_prev / np.where(res - res_prev != 0, res_prev - res, -1e-30)
+            s_hit = np.where(cross, s_prev + np.clip(frac, 0, 1) * (sk - s_prev), s_hit)
+        res_prev, s_prev = res, sk
+    ok = np.isfinite(s_hit)
+    p = ps + np.where(ok, s_hit, 0.0)[:, None] * nrm
     q, z = project(p)
     bi, inside = box_index(q)
-    ok &= inside & (z > 0) & ((nrm * (cam[None] - p)).sum(1) > 0)
+    ok &= inside & (z > 0)
     bi_ok = np.maximum(bi, 0)
-    # the texel is the surface this pixel's ray reaches (not a surface behind it)
+    # the render looks this texel up from that pixel: the pixel's surface point has its nearest
+    # scaffold point within a pixel footprint or so of the texel's scaffold point
     pix_foot = z / max(float(K[0, 0]), 1e-9)
-    dist = np.linalg.norm(pts[bi_ok] - p, axis=1)
-    ok &= hit[bi_ok] & (dist <= np.maximum(0.5 * field.radius, 2.0 * pix_foot))
+    ok &= hit[bi_ok] & (np.linalg.norm(cbox[bi_ok] - ps, axis=1) <= 2.0 * pix_foot + 0.05 * field.radius)
     timing["texels_s"] = time.perf_counter() - t
 
     # 3. paint: the painted pixel each texel lies in, over the atlas's paint

@@ -267,9 +267,9 @@ class PaintAtlas:
 
     def paint_at(self, field, points, max_distance: Optional[float] = None):
         """(n,4) premultiplied paint at surface points: zero where the nearest scaffold face is farther
-        than ``max_distance`` (default 1.5 field radii: the point belongs to another object)."""
+        than ``max_distance`` (default 2.5 field radii: the point belongs to another object)."""
         face, bary, dist = self.closest_faces(field, points)
-        lim = 1.5 * float(field.radius) if max_distance is None else float(max_distance)
+        lim = 2.5 * float(field.radius) if max_distance is None else float(max_distance)
         out = self.sample(self.uv_at(face, bary))
         out[dist > lim] = 0.0
         return out
