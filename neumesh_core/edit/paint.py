@@ -391,13 +391,14 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
                           progress: Optional[Callable[[float], bool]] = None) -> AtlasRecord:
     """Write a painted layer seen from one view into the field's paint atlas, texel by texel.
 
-    1. The rays of the painted pixels' box (and a margin) find their expected surface points; each
-       point's nearest scaffold face gives its signed offset along that face's normal (the field's
-       surface lies off the scaffold by up to a radius).
-    2. The texels of the faces those points touch (and their neighbours) are placed on the field's
-       surface: scaffold point + offset along the face normal, the offset read at the pixel the point
-       projects to (twice, so the offset and the pixel agree).  A texel is painted when its point faces
-       the camera and is the surface that pixel's ray reaches (within half a radius).
+    1. The rays of the painted pixels' box (and a margin of 3 pixels) find their expected surface
+       points and each point's nearest scaffold point (the render's lookup).
+    2. The texels of the faces those points touch (and their one-ring) each search the line through
+       their scaffold point along the face normal (turned towards the camera) for where it meets the
+       surface this view renders (the first crossing, from the camera's side, of ray distance minus
+       rendered depth, over +-2.5 radii).  A texel is painted when it finds one and the pixel it
+       projects to has its nearest scaffold point within about a pixel of the texel's: the render
+       looks this texel up from that pixel.
     3. Each painted texel takes the painted pixel it projects into (nearest: the paint is as sharp as
        the painted image), composited over the atlas's paint with the layer's alpha.
 
@@ -405,7 +406,6 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     lookup, so re-rendering the painted view shows the painted pixels.  Raises :class:`EditError`
     (nothing changed) when nothing is painted or the paint covers only background.
     """
-    from ..field.paint_atlas import closest_points_on_triangles  # noqa: F401  (same lookup as the render)
     from ..render.renderer import RenderSettings
     from ..bake.texture import texel_coverage
 
@@ -455,7 +455,6 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     pts = (o + d * torch.where(torch.as_tensor(hit), depth, torch.zeros_like(depth))[:, None]).cpu().numpy()
     pts = pts.astype(np.float64)
     face = np.full(len(box), -1, np.int64)
-    delta = np.full(len(box), np.nan)
     hf, hb, hd = atlas.closest_faces(field, pts[hit])
     V = np.asarray(field.vertices, np.float64)
     F = field.faces.cpu().numpy().astype(np.int64)
@@ -465,7 +464,6 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     hi = np.nonzero(hit)[0]
     face[hi[near]] = hf[near]
     cpt = (hb[near, :, None] * V[F[hf[near]]]).sum(1)
-    delta[hi[near]] = ((pts[hi[near]] - cpt) * fn[hf[near]]).sum(1)
     cbox = np.full((len(box), 3), np.nan)      # each box pixel's nearest scaffold point
     cbox[hi[near]] = cpt
     timing["surface_s"] = time.perf_counter() - t
