@@ -378,6 +378,54 @@ def _grow_into_gutter(idx: np.ndarray, rgba: np.ndarray, covered: np.ndarray, si
     return idx, rgba
 
 
+def _forward_texels(atlas, field, layer, pts, hit, face, bary, box, bx, by, x0, y0, bw, bh, sub: int):
+    """Texels the render looks up from the painted pixels, with their pixel's paint: the bilinear
+    footprint (4 texels) of each painted pixel centre's lookup first, then the nearest texel of
+    ``sub`` x ``sub`` sub-pixel points per painted pixel (surface points interpolated between the four
+    pixel centres around them when all four hit one surface, else the pixel's own)."""
+    size = atlas.size[0]
+    a = layer[by, bx, 3]
+    live = np.nonzero(hit & (a > 0) & (face >= 0))[0]
+    out_i, out_c = [], []
+    if len(live) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 4), np.float32)
+    col = layer[by[live], bx[live]]
+    xy = atlas.texel_coords(atlas.uv_at(face[live], bary[live])) - 0.5
+    tx, ty = np.floor(xy[:, 0]).astype(np.int64), np.floor(xy[:, 1]).astype(np.int64)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            out_i.append(np.clip(ty + dy, 0, size - 1) * size + np.clip(tx + dx, 0, size - 1))
+            out_c.append(col)
+    P = pts.reshape(bh, bw, 3)
+    H = hit.reshape(bh, bw)
+    depth_span = 0.5 * float(field.radius)
+    gx, gy = bx[live] - x0, by[live] - y0
+    for j in range(sub):
+        for i in range(sub):
+            fx, fy = (i + 0.5) / sub - 0.5, (j + 0.5) / sub - 0.5          # from the pixel centre
+            ix0 = gx + (fx < 0) * -1
+            iy0 = gy + (fy < 0) * -1
+            wx, wy = fx - (ix0 - gx), fy - (iy0 - gy)
+            ix1, iy1 = ix0 + 1, iy0 + 1
+            inb = (ix0 >= 0) & (iy0 >= 0) & (ix1 < bw) & (iy1 < bh)
+            c = [np.clip(v, 0, m - 1) for v, m in ((ix0, bw), (iy0, bh), (ix1, bw), (iy1, bh))]
+            p00, p10 = P[c[1], c[0]], P[c[1], c[2]]
+            p01, p11 = P[c[3], c[0]], P[c[3], c[2]]
+            four = inb & H[c[1], c[0]] & H[c[1], c[2]] & H[c[3], c[0]] & H[c[3], c[2]]
+            stack = np.stack([p00, p10, p01, p11])
+            spread = np.linalg.norm(stack - stack.mean(0), axis=2).max(0)
+            four &= spread <= depth_span
+            interp = ((1 - wx)[:, None] * (1 - wy)[:, None] * p00 + wx[:, None] * (1 - wy)[:, None] * p10 +
+                      (1 - wx)[:, None] * wy[:, None] * p01 + wx[:, None] * wy[:, None] * p11)
+            q = np.where(four[:, None], interp, pts[live])
+            f_, b_, d_ = atlas.closest_faces(field, q)
+            keep = d_ <= 2.5 * float(field.radius)
+            t = np.floor(atlas.texel_coords(atlas.uv_at(f_[keep], b_[keep]))).astype(np.int64)
+            out_i.append(np.clip(t[:, 1], 0, size - 1) * size + np.clip(t[:, 0], 0, size - 1))
+            out_c.append(col[keep])
+    return np.concatenate(out_i), np.concatenate(out_c).astype(np.float32)
+
+
 def _sample_nearest(layer: np.ndarray, q: np.ndarray) -> np.ndarray:
     """(n,4) the painted pixel (nearest: the pixel square) containing each image position q (x, y)."""
     h, w = layer.shape[:2]
@@ -466,6 +514,8 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     cpt = (hb[near, :, None] * V[F[hf[near]]]).sum(1)
     cbox = np.full((len(box), 3), np.nan)      # each box pixel's nearest scaffold point
     cbox[hi[near]] = cpt
+    bbox_bary = np.zeros((len(box), 3))
+    bbox_bary[hi[near]] = hb[near]
     timing["surface_s"] = time.perf_counter() - t
 
     # 2. the texels of the touched faces and their one-ring, on the field's surface, seen from the view
@@ -528,11 +578,16 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     ok &= hit[bi_ok] & (np.linalg.norm(cbox[bi_ok] - ps, axis=1) <= 2.0 * pix_foot + 0.05 * field.radius)
     timing["texels_s"] = time.perf_counter() - t
 
-    # 3. paint: the painted pixel each texel lies in, over the atlas's paint
+    # 3. paint: the painted pixel each texel lies in, over the atlas's paint.  Forward too (the render's
+    # own lookup): the texels around each painted pixel's lookup (its bilinear footprint) and those
+    # that 4 x 4 sub-pixel surface points (interpolated between pixel centres on one surface) look up
     t = time.perf_counter()
-    rgba = _sample_nearest(layer, q[ok])
+    fwd_idx, fwd_rgba = _forward_texels(atlas, field, layer, pts, hit, face, bbox_bary, box, gx.reshape(-1),
+                                        gy.reshape(-1), x0, y0, bw, bh, 4)
+    rgba = np.concatenate([fwd_rgba, _sample_nearest(layer, q[ok])])
+    idx = np.concatenate([fwd_idx, texel[ok]])
     sel = rgba[:, 3] > 0
-    idx = texel[ok][sel]
+    idx = idx[sel]
     rgba = rgba[sel]
     if len(idx) == 0:
         raise EditError("no texel of the paint atlas lies under the paint; paint over the object")
