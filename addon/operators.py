@@ -187,11 +187,11 @@ class NEUMESH_OT_build_scaffold(bpy.types.Operator):
         try:
             import importlib
 
-            scaffold = importlib.import_module(nm.__name__ + ".scaffold")
+            scaffold = importlib.import_module(nm.__name__ + ".reconstruct")
             build, cfg_cls = scaffold.build_scaffold, scaffold.ScaffoldConfig
         except (ImportError, AttributeError) as exc:
             self.report({"ERROR"}, "NeuMesh: this neumesh_core has no scaffold builder "
-                                   f"(neumesh_core.scaffold.build_scaffold: {exc}); import a mesh instead")
+                                   f"(neumesh_core.reconstruct.build_scaffold: {exc}); import a mesh instead")
             return {"CANCELLED"}
         wm = context.window_manager
         wm.progress_begin(0, 100)

@@ -111,7 +111,7 @@ def save_field(field, path: str, optimizer: Optional[torch.optim.Optimizer] = No
                 for k, v in st.items():
                     if torch.is_tensor(v):
                         tensors[f"optim/{names[id(p)]}/{k}"] = v.detach().cpu().reshape(v.shape).contiguous()
-    atlas = getattr(field, "paint_atlas", None)   # texel paint (field/paint_atlas.py), saved when present
+    atlas = getattr(field, "paint_atlas", None)   # texel paint (paint_atlas.py), saved when present
     atlas_meta = None
     if atlas is not None:
         atlas_tensors, atlas_meta = atlas.to_tensors()
@@ -195,7 +195,7 @@ def _num_decoders(tensors: dict) -> int:
 
 def load_field(path: str, device="cpu"):
     """Load a field saved by :func:`save_field` (no code is unpickled)."""
-    from ..field.field import FieldConfig, NeuMeshField
+    from .field import FieldConfig, NeuMeshField
 
     meta, t = read_checkpoint(path)
     try:
@@ -234,7 +234,7 @@ def load_field(path: str, device="cpu"):
                     prm.requires_grad_(False)
             field.grid.load_state({k[5:]: t[k] for k in t if k.startswith("grid/")})
         if "paint_atlas" in meta:   # texel paint; files without it (all older ones) have none
-            from ..field.paint_atlas import PaintAtlas
+            from .paint_atlas import PaintAtlas
 
             field.paint_atlas = PaintAtlas.from_tensors(meta["paint_atlas"], t, len(mesh.faces), path)
     except KeyError as exc:
