@@ -260,7 +260,8 @@ def paint_texture(field, K, c2w, width: int, height: int, paint_rgba: np.ndarray
 
 # --- texel paint: the paint atlas (neumesh_core/field/paint_atlas.py) ------------------------------------
 
-def create_paint_atlas(field, resolution: int = 2048, uvs=None, padding: int = 4, method: str = "auto"):
+def create_paint_atlas(field, resolution: int = 2048, uvs=None, padding: int = 4, method: str = "auto",
+                       on_surface: bool = True):
     """Give ``field`` an empty paint atlas (``field.paint_atlas``) and return it.
 
     ``uvs``: the scaffold's UV map, per face corner (F,3,2) or per vertex (N,2), v up (Blender's and
@@ -269,8 +270,12 @@ def create_paint_atlas(field, resolution: int = 2048, uvs=None, padding: int = 4
     "grid" lays the faces out in pairs on a regular grid in well under a second
     (:func:`~neumesh_core.field.paint_atlas.grid_atlas`: more seams, even texel density for a scaffold's
     even faces), "auto" (default) xatlas up to 50,000 faces, else the grid.  ``resolution``: the paint
-    image's width and height in texels.  A field that has an atlas keeps its paint: remove it first
-    (``field.paint_atlas = None``) to start over."""
+    image's width and height in texels.  ``on_surface``: look surface points up on the scaffold moved
+    onto the field's surface (per-vertex offsets along the normals from
+    :func:`~neumesh_core.bake.surface.fit_to_field`, vertices only, one iteration; they follow
+    deformations with the normals), so that nearby surface points map to nearby texels even where the
+    scaffold lies a radius or more off the surface; False: on the scaffold itself.  A field that has
+    an atlas keeps its paint: remove it first (``field.paint_atlas = None``) to start over."""
     from ..field.paint_atlas import PaintAtlas
 
     if getattr(field, "paint_atlas", None) is not None:
@@ -307,7 +312,15 @@ def create_paint_atlas(field, resolution: int = 2048, uvs=None, padding: int = 4
         if not np.isfinite(corner).all():
             raise EditError("the UV map holds NaN/inf values")
         source, cell = "given", None
-    field.paint_atlas = PaintAtlas(corner, np.zeros((resolution, resolution, 4), np.float32), source, cell)
+    offsets = None
+    if on_surface:
+        from ..bake.surface import SurfaceFitConfig, fit_to_field
+
+        V = np.asarray(field.vertices, np.float64)
+        moved, _ = fit_to_field(field, V, F, SurfaceFitConfig(face_samples=0, iterations=1))
+        n = field.scaffold.normals.detach().cpu().numpy().astype(np.float64)
+        offsets = ((moved - V) * n).sum(1)
+    field.paint_atlas = PaintAtlas(corner, np.zeros((resolution, resolution, 4), np.float32), source, cell, offsets)
     return field.paint_atlas
 
 
@@ -504,7 +517,7 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     pts = pts.astype(np.float64)
     face = np.full(len(box), -1, np.int64)
     hf, hb, hd = atlas.closest_faces(field, pts[hit])
-    V = np.asarray(field.vertices, np.float64)
+    V = atlas.lookup_vertices(field)             # the surface the lookups are made on
     F = field.faces.cpu().numpy().astype(np.int64)
     fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)

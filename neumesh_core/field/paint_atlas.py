@@ -149,7 +149,7 @@ def grid_atlas(faces: np.ndarray, resolution: int, gutter: float = 1.0) -> tuple
 class PaintAtlas:
     """UVs per scaffold face corner and an RGBA paint image in that atlas (see the module's doc)."""
 
-    def __init__(self, uv, image, source: str = "xatlas", cell: Optional[float] = None):
+    def __init__(self, uv, image, source: str = "xatlas", cell: Optional[float] = None, offsets=None):
         uv = torch.as_tensor(np.asarray(uv, np.float32))
         image = torch.as_tensor(np.asarray(image, np.float32))
         if uv.ndim != 3 or uv.shape[1:] != (3, 2):
@@ -162,6 +162,11 @@ class PaintAtlas:
         self.image = image.clamp(0, 1).contiguous()
         self.source = str(source)
         self.cell = None if cell is None else float(cell)   # grid atlases: the cell size in texels
+        # (N,) per scaffold vertex: how far along its normal the field's surface lies (world units);
+        # lookups use the scaffold moved by them (the surface the field renders), None: the scaffold
+        self.offsets = None if offsets is None else torch.as_tensor(np.asarray(offsets, np.float32)).reshape(-1)
+        if self.offsets is not None and not torch.isfinite(self.offsets).all():
+            raise NeuMeshError("the paint atlas's surface offsets hold NaN/inf values")
         self._cache = None
         self._premultiplied = None
 
@@ -192,7 +197,8 @@ class PaintAtlas:
         return not self._premultiplied[1]
 
     def copy(self) -> "PaintAtlas":
-        return PaintAtlas(self.uv.clone(), self.image.clone(), self.source, self.cell)
+        return PaintAtlas(self.uv.clone(), self.image.clone(), self.source, self.cell,
+                          None if self.offsets is None else self.offsets.clone())
 
     def check(self, field) -> None:
         if self.num_faces != len(field.faces):
@@ -201,6 +207,18 @@ class PaintAtlas:
                                "make a new paint atlas")
 
     # -- surface points -> faces -> UVs -> paint ------------------------------------------------------
+    def lookup_vertices(self, field) -> np.ndarray:
+        """(N,3) the surface lookups are made on: the scaffold in its current pose, each vertex moved
+        by its offset along its current normal (the field's surface) when the atlas has offsets."""
+        v = field.scaffold.vertices_.detach().cpu().numpy().astype(np.float64)
+        if self.offsets is None:
+            return v
+        if len(self.offsets) != len(v):
+            raise NeuMeshError(f"the paint atlas has surface offsets for {len(self.offsets)} vertices but the "
+                               f"scaffold has {len(v)}; make a new paint atlas")
+        n = field.scaffold.normals.detach().cpu().numpy().astype(np.float64)
+        return v + self.offsets.numpy().astype(np.float64)[:, None] * n
+
     def _tree(self, field):
         """KD-tree of the face centroids in the current pose, rebuilt when the scaffold's vertex buffer
         was written (its version counter) or is another tensor."""
@@ -211,7 +229,7 @@ class PaintAtlas:
             return self._cache[1:]
         from pykdtree.kdtree import KDTree
 
-        Vn = v.detach().cpu().numpy().astype(np.float64)
+        Vn = self.lookup_vertices(field)
         F = f.cpu().numpy().astype(np.int64)
         cen = Vn[F].mean(1)
         tree = KDTree(cen)
@@ -299,6 +317,9 @@ class PaintAtlas:
         meta = {"version": ATLAS_VERSION, "resolution": list(self.size), "source": self.source}
         if self.cell is not None:
             meta["cell"] = self.cell
+        if self.offsets is not None:
+            return ({"paint/uv": self.uv.contiguous(), "paint/image": img.contiguous(),
+                     "paint/offsets": self.offsets.contiguous()}, meta)
         return {"paint/uv": self.uv.contiguous(), "paint/image": img.contiguous()}, meta
 
     @classmethod
@@ -318,7 +339,9 @@ class PaintAtlas:
                                   "corrupt")
         image = img.float() / 255.0 if img.dtype == torch.uint8 else img.float()
         try:
-            return cls(uv, image, meta.get("source", "xatlas"), meta.get("cell"))
+            off = tensors.get("paint/offsets")
+            return cls(uv, image, meta.get("source", "xatlas"), meta.get("cell"),
+                       None if off is None else off.float())
         except NeuMeshError as exc:
             raise CheckpointError(f"{path}: {exc}") from exc
 

@@ -179,3 +179,22 @@ def test_grid_atlas_lays_faces_out_without_overlap(blob3):
         np.testing.assert_allclose(uv[f1][list(F[f1]).index(v)], uv[f2][list(F[f2]).index(v)], atol=0)
     with pytest.raises(NeuMeshError, match="larger resolution"):
         grid_atlas(F, 16)
+
+
+def test_surface_offsets_move_the_lookup_surface_and_are_saved(blob3, tmp_path):
+    field = textured_field(blob3, interpolation="early")
+    base = _atlas(field)
+    off = np.full(field.num_vertices, 0.5 * field.radius, np.float32)
+    atlas = PaintAtlas(base.uv, base.image, "given", None, off)
+    n = field.scaffold.normals.numpy()
+    np.testing.assert_allclose(atlas.lookup_vertices(field), field.vertices + 0.5 * field.radius * n, atol=1e-6)
+    # a point on the moved surface is at distance ~0 from it, but half a radius from the scaffold
+    p = (field.vertices + 0.5 * field.radius * n)[:20]
+    assert atlas.closest_faces(field, p)[2].max() < 1e-6
+    assert base.closest_faces(field, p)[2].min() > 0.3 * field.radius
+    field.paint_atlas = atlas
+    nm.save_field(field, str(tmp_path / "f.neumesh"))
+    back = nm.load_field(str(tmp_path / "f.neumesh")).paint_atlas
+    np.testing.assert_allclose(back.offsets.numpy(), off, atol=0)
+    with pytest.raises(NeuMeshError, match="offsets"):
+        PaintAtlas(base.uv, base.image, "given", None, off[:5]).lookup_vertices(field)
