@@ -35,6 +35,8 @@ DEPENDENCIES = (
     ("sklearn", "scikit-learn", False, "scikit-learn"),    # semantic selection (DBSCAN)
     ("skimage", "scikit-image", False, "scikit-image"),    # semantic distillation (superpixels)
     ("xatlas", "xatlas", False, "xatlas"),                 # Bake to material (UV atlas)
+    ("pycolmap", "pycolmap", False, "pycolmap>=4"),        # COLMAP folders, Poses from Photos
+    ("cv2", "opencv-python-headless", False, "opencv-python-headless<4.12"),  # lens undistortion, video frames
 )
 PIP_REQUIREMENTS = tuple(d[3] for d in DEPENDENCIES)
 

@@ -8,13 +8,9 @@ import numpy as np
 import torch
 
 from ..data.cameras import pixel_rays
-from ..errors import NeuMeshError
+from ..errors import Cancelled, NeuMeshError  # noqa: F401  (Cancelled: nm.Cancelled, lives in errors)
 from ..sampling.marcher import march_rays
 from .volume import composite, render_weights
-
-
-class Cancelled(NeuMeshError):
-    """Raised when a progress callback asked to stop."""
 
 
 @dataclass
