@@ -25,7 +25,7 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import neumesh_core as nm  # noqa: E402
-from neumesh_core.bake import bake_texture  # noqa: E402
+from neumesh_core.bake import SurfaceFitConfig, bake_texture  # noqa: E402
 from neumesh_core.metrics import psnr  # noqa: E402
 from neumesh_core.render.raster import render_textured_mesh  # noqa: E402
 from _results import write_results  # noqa: E402
@@ -78,6 +78,33 @@ def cycles_renders(args, best, cams, views, refs, bg) -> dict:
     return out
 
 
+def depth_vs_field(b, cams, views, field_depths, radius) -> dict:
+    """How far the baked mesh lies from the field's depth on the views: over the pixels both cover,
+    |mesh depth - field depth| (ray distances; the field's where its opacity >= 0.5) median / mean /
+    90th percentile in world units and field radii; and the share of pixels where they show another
+    surface (one empty, or depths more than a radius apart)."""
+    from neumesh_core.data.cameras import axis_to_ray_depth
+    from neumesh_core.render.raster import depth_buffer
+
+    diffs, wrong, total = [], 0, 0
+    for k, i in enumerate(views):
+        z = axis_to_ray_depth(depth_buffer(b.vertices, b.faces, cams.K[i], cams.c2w[i], cams.width, cams.height),
+                              cams.K[i])
+        ref = field_depths[k]
+        a, f = np.isfinite(z), np.isfinite(ref)
+        both = a & f
+        d = np.abs(z[both] - ref[both])
+        diffs.append(d)
+        wrong += int((a ^ f).sum() + (d > radius).sum())
+        total += z.size
+    d = np.concatenate(diffs)
+    out = {"pixels_both": int(d.size), "other_surface_share": wrong / max(1, total)}
+    for key, val in (("median", np.median(d)), ("mean", d.mean()), ("p90", np.percentile(d, 90))):
+        out[key] = float(val)
+        out[f"{key}_radii"] = float(val / radius)
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--field", required=True)
@@ -91,6 +118,13 @@ def main(argv=None) -> int:
     ap.add_argument("--mesh", help="bake onto this mesh instead of the scaffold (world space, near the surface)")
     ap.add_argument("--decimate", type=float, default=1.0,
                     help="bake onto a decimated copy with about this fraction of the faces (default 1: none)")
+    ap.add_argument("--no-fit", action="store_true",
+                    help="bake onto the mesh where it is (default: first move it onto the field's surface)")
+    ap.add_argument("--level", type=float, default=None,
+                    help="opacity level of the field's surface for the fit (default: calibrated per field)")
+    ap.add_argument("--offset", type=float, default=None, help="texel ray start, field radii (default: the bake's)")
+    ap.add_argument("--fit-search", type=float, default=1.5, help="fit: field radii searched each side (default 1.5)")
+    ap.add_argument("--fit-smoothness", type=float, default=0.3, help="fit: edge smoothness weight (default 0.3)")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--results-dir", help="folder for the JSON (default benchmarks/results)")
     ap.add_argument("--figure", help="write field | baked pictures here (PNG)")
@@ -127,8 +161,10 @@ def main(argv=None) -> int:
         decimate_s = time.perf_counter() - t0
         print(f"decimated {len(src.faces)} -> {len(mesh.faces)} faces in {decimate_s:.1f} s")
     t0 = time.perf_counter()
-    refs = [np.clip(nm.render_camera(field, cams.K[i], cams.c2w[i], cams.width, cams.height,
-                                     background=tuple(bg)).rgb, 0, 1) for i in views]
+    outs = [nm.render_camera(field, cams.K[i], cams.c2w[i], cams.width, cams.height, background=tuple(bg))
+            for i in views]
+    refs = [np.clip(o.rgb, 0, 1) for o in outs]
+    field_depths = [np.where(o.opacity >= 0.5, o.depth, np.inf) for o in outs]
     field_render_s = (time.perf_counter() - t0) / len(views)
     field_vs_photo = float(np.mean([psnr(refs[k], split.images[i]) for k, i in enumerate(views)]))
     print(f"field vs photos: {field_vs_photo:.2f} dB ({field_render_s:.2f} s per view)")
@@ -136,7 +172,9 @@ def main(argv=None) -> int:
     best = None
     for res in [int(r) for r in args.resolutions.split(",")]:
         for dirs in [int(d) for d in args.directions.split(",")]:
-            b = bake_texture(field, resolution=res, directions=dirs, mesh=mesh)
+            fit = False if args.no_fit else SurfaceFitConfig(level=args.level, search=args.fit_search,
+                                                             smoothness=args.fit_smoothness)
+            b = bake_texture(field, resolution=res, directions=dirs, mesh=mesh, fit=fit, offset=args.offset)
             imgs = []
             t1 = time.perf_counter()
             for k, i in enumerate(views):
@@ -152,8 +190,15 @@ def main(argv=None) -> int:
                    "missed_texels": b.info["missed_texels"],
                    "psnr_vs_field": float(np.mean(per_view)), "psnr_vs_field_views": per_view,
                    "psnr_vs_photos": float(np.mean([psnr(imgs[k], split.images[i]) for k, i in enumerate(views)])),
-                   "raster_s_per_view": round(raster_s, 3)}
-            print({k: v for k, v in row.items() if k != "psnr_vs_field_views"}, flush=True)
+                   "raster_s_per_view": round(raster_s, 3),
+                   "fit_s": round(b.info.get("fit_s", 0.0), 2),
+                   "fit_level": b.info["fit"]["level"] if "fit" in b.info else None,
+                   "surface_offset": b.info.get("surface_offset"),
+                   "depth_vs_field": depth_vs_field(b, cams, views, field_depths, field.radius)}
+            if "fit" in b.info:
+                row["fit"] = {k: b.info["fit"][k] for k in ("before", "after", "level_scores", "iterations",
+                                                            "before_render_disagreement") if k in b.info["fit"]}
+            print({k: v for k, v in row.items() if k not in ("psnr_vs_field_views", "fit")}, flush=True)
             runs.append(row)
             if best is None or row["psnr_vs_field"] > best[0]["psnr_vs_field"]:
                 best = (row, imgs, b)
@@ -167,9 +212,11 @@ def main(argv=None) -> int:
               "image_size": [int(cams.width), int(cams.height)], "vertices": int(field.num_vertices),
               "faces": int(len(field.faces)), "field_vs_photos": field_vs_photo,
               "mesh": args.mesh, "decimate": args.decimate, "decimate_s": round(decimate_s, 2),
+              "fit": None if args.no_fit else {"level": args.level, "search": args.fit_search,
+                                               "smoothness": args.fit_smoothness},
               "downscale": args.downscale,
               "field_render_s_per_view": round(field_render_s, 3), "runs": runs,
-              "best": {k: v for k, v in best[0].items() if k != "psnr_vs_field_views"},
+              "best": {k: v for k, v in best[0].items() if k not in ("psnr_vs_field_views", "fit")},
               "machine": {"cpu_threads": torch.get_num_threads(), "platform": platform.platform()}}
     if args.cycles:
         result["cycles"] = cycles_renders(args, best, cams, views, refs, bg)

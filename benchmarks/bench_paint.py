@@ -7,8 +7,11 @@ The stroke is a band of rows through the middle of the object in the chosen view
 pixels (opacity > 0.95) and to ``--pixels`` pixels, painted in a saturated colour.  Prints the apply
 time and its split (render: the painted pixels and the box around them; surface: the affected
 vertices; weights: how the box's rays depend on their modification colours; solve), the PSNR inside
-the stroke afterwards, how many pixels outside the stroke changed, and writes
-benchmarks/results/paint_<name>.json.
+the stroke afterwards, how many pixels outside the stroke changed, how wide the stroke's edge is, and
+writes benchmarks/results/paint_<name>_atlas.json (``--target atlas``, the default: texel paint in a
+paint atlas, made first and timed apart) or paint_<name>.json (``--target colours``: the per-vertex
+modification colours).  ``--figure``: the stroke before/after/another view, and a thin line with
+lettering painted both ways.
 """
 from __future__ import annotations
 
@@ -49,6 +52,83 @@ def stroke_mask(opacity: np.ndarray, pixels: int) -> np.ndarray:
     return out
 
 
+def edge_width(before: np.ndarray, after: np.ndarray, mask: np.ndarray, colour: np.ndarray) -> dict:
+    """How sharp the stroke's edge is: each pixel's painted fraction f (the change along the
+    render -> paint colour direction), the pixels with 0.1 < f < 0.9 within 3 px of the stroke's
+    boundary, per boundary pixel (a stroke pixel with a 4-neighbour outside): ~0 for an edge as sharp
+    as the painted pixels, ~the blur radius for a soft one."""
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    target = np.broadcast_to(colour, before.shape)
+    d = target - before
+    f = ((after - before) * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-6)
+    boundary = mask & ~binary_erosion(mask)
+    band = binary_dilation(boundary, iterations=3)
+    partial = band & (f > 0.1) & (f < 0.9) & ((d * d).sum(-1) > 0.01)
+    nb = int(boundary.sum())
+    return {"boundary_pixels": nb, "partial_pixels": int(partial.sum()),
+            "width_px": float(partial.sum()) / max(1, nb)}
+
+
+def lettering_layer(W: int, H: int, opacity: np.ndarray, colour) -> np.ndarray:
+    """A thin one-pixel line and the word NeuMesh (OpenCV's Hershey font, 1-2 px strokes) over the
+    object's middle, as an RGBA layer."""
+    import cv2
+
+    solid = opacity > 0.95
+    ys, xs = np.nonzero(solid)
+    cy, cx = int(np.median(ys)), int(np.median(xs))
+    m = np.zeros((H, W), np.uint8)
+    cv2.line(m, (cx - W // 6, cy - H // 12), (cx + W // 6, cy - H // 12), 255, 1)
+    scale = W / 600.0
+    (tw, th), _ = cv2.getTextSize("NeuMesh", cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    cv2.putText(m, "NeuMesh", (cx - tw // 2, cy + th // 2 + H // 40), cv2.FONT_HERSHEY_SIMPLEX, scale, 255, 1,
+                cv2.LINE_8)
+    mask = (m > 0) & solid
+    layer = np.zeros((H, W, 4), np.float32)
+    layer[mask, :3] = colour
+    layer[mask, 3] = 1.0
+    return layer
+
+
+def figure(args, field, edited, K, c2w, W, H, before, after, cams) -> dict:
+    """Row 1: before | the stroke painted | another view.  Row 2: a thin line and lettering painted on a
+    copy of the field into a paint atlas: the painted view | another view | the painted view zoomed 3x;
+    row 3: the same painted into the per-vertex colours."""
+    n = len(cams.c2w)
+    painted = next(k for k in range(n) if np.allclose(cams.c2w[k], c2w))
+    other = (painted + 1) % n
+    K2, c22 = cams.K[other], cams.c2w[other]
+    row1 = [before.rgb, after.rgb, nm.render_camera(edited, K2, c22, W, H).rgb]
+    colour = np.array([0.05, 0.05, 0.05], np.float32)
+    layer = lettering_layer(W, H, before.opacity, colour)
+    out = {"lettering_pixels": int((layer[..., 3] > 0).sum())}
+    rows = [np.concatenate(row1, 1)]
+    for target in ("atlas", "colours"):
+        f = copy.deepcopy(field)
+        if target == "atlas":
+            from neumesh_core.edit.paint import create_paint_atlas
+
+            create_paint_atlas(f, resolution=args.atlas_resolution or (4096 if len(f.faces) > 50_000 else 2048),
+                               method=args.atlas_method)
+        t = time.perf_counter()
+        nm.paint_texture(f, K, c2w, W, H, layer, target=target)
+        out[f"lettering_{target}_s"] = time.perf_counter() - t
+        a = nm.render_camera(f, K, c2w, W, H).rgb
+        m = layer[..., 3] > 0
+        out[f"lettering_{target}_psnr_db"] = float(psnr(np.clip(a[m], 0, 1), np.broadcast_to(colour, (int(m.sum()), 3))))
+        m_ys, m_xs = np.nonzero(m)
+        cy, cx = int(np.median(m_ys)), int(np.median(m_xs))
+        y0, x0 = max(0, min(H - H // 3, cy - H // 6)), max(0, min(W - W // 3, cx - W // 6))
+        zoom = np.repeat(np.repeat(a[y0:y0 + H // 3, x0:x0 + W // 3], 3, 0), 3, 1)[:H, :W]
+        zoom = np.pad(zoom, ((0, H - zoom.shape[0]), (0, W - zoom.shape[1]), (0, 0)), constant_values=1.0)
+        rows.append(np.concatenate([a, nm.render_camera(f, K2, c22, W, H).rgb, zoom], 1))
+    nm.save_image(args.figure, np.clip(np.concatenate(rows, 0), 0, 1))
+    print(f"wrote {args.figure}: row 1 stroke (before | after | other view); rows 2-3 line + lettering "
+          f"(atlas {out['lettering_atlas_psnr_db']:.1f} dB, vertex colours {out['lettering_colours_psnr_db']:.1f} dB)")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--field", help="trained field (.neumesh); default: the built-in scene trained 1500 steps")
@@ -58,6 +138,12 @@ def main(argv=None) -> int:
     ap.add_argument("--resolution", type=int, default=400, help="view size without --data (square)")
     ap.add_argument("--pixels", type=int, default=5000, help="stroke size in pixels (default 5,000)")
     ap.add_argument("--colour", default="1,0,0.8", help="paint colour r,g,b in [0,1] (default magenta)")
+    ap.add_argument("--target", choices=("atlas", "colours"), default="atlas",
+                    help="paint into the texel paint atlas (default) or the per-vertex modification colours")
+    ap.add_argument("--atlas-resolution", type=int, default=None,
+                    help="paint atlas size (default 2048; 4096 for a grid atlas of a big scaffold)")
+    ap.add_argument("--atlas-method", default="auto", choices=("auto", "xatlas", "grid"))
+    ap.add_argument("--figure", help="write before | after | another view, and a thin line + lettering, here (PNG)")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--name", default=None)
     ap.add_argument("--results-dir", default=None)
@@ -90,8 +176,19 @@ def main(argv=None) -> int:
     layer[mask, :3] = colour
     layer[mask, 3] = 1.0
     edited = copy.deepcopy(field)
+    atlas_s, atlas_info = 0.0, None
+    if args.target == "atlas":
+        from neumesh_core.edit.paint import create_paint_atlas
+
+        res = args.atlas_resolution or (4096 if args.atlas_method == "grid" or
+                                        (args.atlas_method == "auto" and len(field.faces) > 50_000) else 2048)
+        t = time.perf_counter()
+        atlas = create_paint_atlas(edited, resolution=res, method=args.atlas_method)
+        atlas_s = time.perf_counter() - t
+        atlas_info = {"source": atlas.source, "resolution": res, "cell_texels": atlas.cell, "seconds": atlas_s}
+        print(f"paint atlas: {atlas.source}, {res}^2 texels, {atlas_s:.2f} s")
     t = time.perf_counter()
-    rec = nm.paint_texture(edited, K, c2w, W, H, layer)
+    rec = nm.paint_texture(edited, K, c2w, W, H, layer, target=args.target)
     apply_s = time.perf_counter() - t
     after = nm.render_camera(edited, K, c2w, W, H)
     p_in = float(psnr(np.clip(after.rgb[mask], 0, 1), np.broadcast_to(colour, (int(mask.sum()), 3))))
@@ -100,21 +197,35 @@ def main(argv=None) -> int:
 
     outside = ~binary_dilation(mask, iterations=2)
     i = rec.info
+    edge = edge_width(before.rgb, after.rgb, mask, colour)
     print(f"{name}: {field.num_vertices:,} vertices, {W}x{H} view, stroke {int(mask.sum())} px")
-    print(f"apply {apply_s:.2f} s: render {i['render_s']:.2f}, surface {i['surface_s']:.2f}, weights "
-          f"{i['weights_s']:.2f}, solve {i['solve_s']:.2f} ({i['affected_vertices']:,} vertices, "
-          f"{i['ring_pixels']:,} ring pixels, {i['box_pixels']:,} box pixels)")
+    if args.target == "atlas":
+        split = {k: i[k] for k in ("render_s", "surface_s", "texels_s", "write_s")}
+        print(f"apply {apply_s:.2f} s: " + ", ".join(f"{k[:-2]} {v:.2f}" for k, v in split.items()) +
+              f" ({i['painted_texels']:,} texels, {i['candidate_faces']:,} faces, {i['box_pixels']:,} box pixels)")
+    else:
+        split = {k: i[k] for k in ("render_s", "surface_s", "weights_s", "solve_s")}
+        print(f"apply {apply_s:.2f} s: render {i['render_s']:.2f}, surface {i['surface_s']:.2f}, weights "
+              f"{i['weights_s']:.2f}, solve {i['solve_s']:.2f} ({i['affected_vertices']:,} vertices, "
+              f"{i['ring_pixels']:,} ring pixels, {i['box_pixels']:,} box pixels)")
+    print(f"stroke edge: {edge['partial_pixels']} pixels between 10% and 90% painted along "
+          f"{edge['boundary_pixels']} boundary pixels: {edge['width_px']:.2f} px wide")
     print(f"stroke PSNR {p_in:.2f} dB; pixels changed > 1/255 farther than 2 px from the stroke: "
           f"{int((delta[outside] > 1 / 255).sum())} (max {delta[outside].max():.4f})")
     result = {"field": args.field or "default scene (1500 steps)", "vertices": field.num_vertices,
               "view": {"data": args.data, "split": args.split, "index": args.view, "width": W, "height": H},
               "stroke_pixels": int(mask.sum()), "colour": colour.tolist(), "apply_s": apply_s,
-              "split_s": {k: i[k] for k in ("render_s", "surface_s", "weights_s", "solve_s")},
-              "affected_vertices": i["affected_vertices"], "ring_pixels": i["ring_pixels"],
+              "target": args.target, "atlas": atlas_info, "split_s": split,
+              "affected_vertices": i.get("affected_vertices"), "ring_pixels": i.get("ring_pixels"),
+              "painted_texels": i.get("painted_texels"), "edge": edge,
               "stroke_psnr_db": p_in, "changed_outside_2px": int((delta[outside] > 1 / 255).sum()),
-              "max_change_outside_2px": float(delta[outside].max()), "target_apply_s": 10.0,
+              "max_change_outside_2px": float(delta[outside].max()), "target_apply_s": 2.0,
+              "target_stroke_psnr_db": 30.0,
               "machine": {"cpu": platform.processor() or platform.machine(), "threads": torch.get_num_threads()}}
-    write_results(result, f"paint_{name}.json", args.results_dir)
+    if args.figure:
+        result["figure"] = figure(args, field, edited, K, c2w, W, H, before, after, cams)
+    # the per-vertex colours keep their file name (paint_<name>.json); texel paint: paint_<name>_atlas.json
+    write_results(result, f"paint_{name}{'_atlas' if args.target == 'atlas' else ''}.json", args.results_dir)
     return 0
 
 

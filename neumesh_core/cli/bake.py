@@ -11,7 +11,7 @@ from .common import _add_device_option, _device
 
 def cmd_bake(args) -> int:
     import neumesh_core as nm
-    from ..bake import bake_texture, save_bake
+    from ..bake import SurfaceFitConfig, bake_texture, save_bake
 
     field = nm.load_field(args.field, device=_device(args))
     name = args.name or os.path.splitext(os.path.basename(args.field))[0]
@@ -30,8 +30,14 @@ def cmd_bake(args) -> int:
         mesh = nm.Mesh(*decimate(src.vertices, src.faces, args.decimate))
         print(f"decimated {len(src.faces)} -> {len(mesh.faces)} faces", file=sys.stderr)
     res = bake_texture(field, resolution=args.resolution, padding=args.padding, directions=args.directions,
-                       offset=args.offset, progress=progress, mesh=mesh)
+                       offset=args.offset, progress=progress, mesh=mesh,
+                       fit=False if args.no_fit else SurfaceFitConfig(level=args.level))
     print(file=sys.stderr)
+    if "surface_offset" in res.info and "median_radii" in res.info["surface_offset"]:
+        so = res.info["surface_offset"]
+        print(f"the baked mesh lies {so['median_radii']:.3f} field radii (median; 90%: {so['p90_radii']:.3f}) "
+              "from the field's surface" + (f" (moved onto it, opacity level {res.info['fit']['level']:g})"
+                                            if "fit" in res.info else ""), file=sys.stderr)
     paths = save_bake(res, args.out, name, glb=args.glb, protect=(args.field,))
     if res.info.get("missed_texels"):
         print(f"warning: {res.info['missed_texels']} texels lie farther than the field radius from the field's "
@@ -64,9 +70,16 @@ def add_commands(sub) -> None:
                    help="bake onto a quadric-decimated copy of the scaffold (or of --mesh) with about this "
                         "fraction of its faces, e.g. 0.1 (needs the fast-simplification package; "
                         "default 1 = no decimation)")
-    p.add_argument("--offset", type=float, default=1.0,
+    p.add_argument("--offset", type=float, default=None,
                    help="texel rays start this many field radii out along the mesh's normal and look back "
-                        "through twice that (default 1; raise it for a --mesh farther from the field's surface)")
+                        "through twice that (default 0.5 after the fit, 1 with --no-fit; raise it for a --mesh "
+                        "farther from the field's surface)")
+    p.add_argument("--no-fit", action="store_true",
+                   help="bake onto the mesh where it is (default: first move its vertices onto the surface the "
+                        "field renders, within 1.5 field radii)")
+    p.add_argument("--level", type=float, default=None,
+                   help="opacity (0-1) along the normal at which the field's surface lies, for the fit "
+                        "(default: calibrated against the field's own renders)")
     p.add_argument("--no-glb", dest="glb", action="store_false", help="skip the .glb (trimesh)")
     _add_device_option(p)
     p.set_defaults(func=cmd_bake)

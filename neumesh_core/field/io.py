@@ -111,6 +111,11 @@ def save_field(field, path: str, optimizer: Optional[torch.optim.Optimizer] = No
                 for k, v in st.items():
                     if torch.is_tensor(v):
                         tensors[f"optim/{names[id(p)]}/{k}"] = v.detach().cpu().reshape(v.shape).contiguous()
+    atlas = getattr(field, "paint_atlas", None)   # texel paint (paint_atlas.py), saved when present
+    atlas_meta = None
+    if atlas is not None:
+        atlas_tensors, atlas_meta = atlas.to_tensors()
+        tensors.update(atlas_tensors)
     for k, v in tensors.items():
         if v.dtype.is_floating_point and not torch.isfinite(v).all():
             raise CheckpointError(f"refusing to save: tensor {k} holds NaN/inf (training diverged); "
@@ -124,6 +129,8 @@ def save_field(field, path: str, optimizer: Optional[torch.optim.Optimizer] = No
             "num_decoders": field.num_decoders}
     if edit:
         meta["edit"] = edit
+    if atlas_meta is not None:
+        meta["paint_atlas"] = atlas_meta
     if getattr(field, "has_semantics", False) and getattr(field, "semantics_info", None):
         meta["semantics"] = field.semantics_info
     _atomic_write(path, lambda tmp: save_file(tensors, tmp, metadata={"neumesh": json.dumps(meta)}))
@@ -226,6 +233,10 @@ def load_field(path: str, device="cpu"):
                 for prm in dec.parameters():
                     prm.requires_grad_(False)
             field.grid.load_state({k[5:]: t[k] for k in t if k.startswith("grid/")})
+        if "paint_atlas" in meta:   # texel paint; files without it (all older ones) have none
+            from .paint_atlas import PaintAtlas
+
+            field.paint_atlas = PaintAtlas.from_tensors(meta["paint_atlas"], t, len(mesh.faces), path)
     except KeyError as exc:
         raise CheckpointError(f"{path}: missing entry {exc}; the file is incomplete") from exc
     field._checkpoint_meta = meta

@@ -149,6 +149,10 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
             out["sem"] = c["sem"]
     if vertex_ids:
         out["vertex_ids"] = touched
+    if not train:   # texel paint (field.paint_atlas) over the colour at each ray's expected surface point
+        from ..field.paint_atlas import composite_paint
+
+        out = composite_paint(fl, origins, dirs, out)
     if background is not None:
         bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)
         out["rgb"] = out["rgb"] + (1.0 - out["opacity"])[:, None] * bg

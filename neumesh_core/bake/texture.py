@@ -23,8 +23,8 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from .errors import NeuMeshError
-from .render.raster import raster_triangles
+from ..errors import NeuMeshError
+from ..render.raster import raster_triangles
 
 
 @dataclass
@@ -49,7 +49,7 @@ class BakeResult:
 
 def _cancel(progress, fraction):
     if progress is not None and progress(float(fraction)) is False:
-        from .render.renderer import Cancelled
+        from ..render.renderer import Cancelled
 
         raise Cancelled("baking cancelled; nothing was written")
 
@@ -157,9 +157,9 @@ def surface_colours(field, points, normals, offset: float = 1.0, directions: int
 
     With ``return_found`` also (n,) bool: False where no ray met density and the point itself has no
     scaffold vertex within the field radius (its colour is then 0: the field is empty there)."""
-    from .render.renderer import RenderSettings, default_step
-    from .render.volume import composite
-    from .sampling.marcher import march_rays
+    from ..render.renderer import RenderSettings, default_step
+    from ..render.volume import composite
+    from ..sampling.marcher import march_rays
 
     settings = RenderSettings()
     p = torch.as_tensor(np.asarray(points, np.float32))
@@ -186,6 +186,11 @@ def surface_colours(field, points, normals, offset: float = 1.0, directions: int
             _, rgb, _ = field.decode(smp.aux, dd[smp.ray_indices], with_rgb=True, with_sigma=False)
             c = composite(smp.ray_indices, smp.t_starts, smp.t_ends, smp.sigmas, {"rgb": rgb}, len(o))
             op = c["opacity"].cpu()
+            atlas = getattr(field, "paint_atlas", None)
+            if atlas is not None and not atlas.is_empty:   # texel paint bakes with the field's colour
+                depth = torch.where(c["opacity"] > 1e-6, c["depth"] / c["opacity"].clamp_min(1e-6),
+                                    torch.full_like(c["depth"], float("inf")))
+                c["rgb"] = atlas.composite(field, o, dd, c["rgb"], c["opacity"], depth)
             acc += c["rgb"].cpu()
             wsum += op
         ok = wsum > 1e-3
@@ -232,7 +237,7 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, ratio: float) -> tuple:
 def _target_mesh(field, mesh):
     """(vertices, faces, normals, label) of the mesh to bake onto: the scaffold in its current pose when
     ``mesh`` is None, else ``mesh`` (an ``nm.Mesh`` or a (vertices, faces) pair, world space)."""
-    from .mesh import vertex_normals
+    from ..mesh import vertex_normals
 
     if mesh is None:
         V = np.asarray(field.vertices, np.float32)
@@ -253,9 +258,10 @@ def _target_mesh(field, mesh):
     return V, F, N, "target"
 
 
-def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: float = 1.0, directions: int = 1,
-                 cone_deg: float = 30.0, vertex_colors: bool = True, chunk: int = 32768,
-                 progress: Optional[Callable[[float], bool]] = None, mesh=None) -> BakeResult:
+def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Optional[float] = None,
+                 directions: int = 1, cone_deg: float = 30.0, vertex_colors: bool = True, chunk: int = 32768,
+                 progress: Optional[Callable[[float], bool]] = None, mesh=None, fit=True,
+                 measure_texels: int = 65536) -> BakeResult:
     """Bake the field's view-independent appearance into a UV texture of a mesh.
 
     ``mesh``: the mesh to bake onto: None = the field's scaffold in its current pose (edited,
@@ -269,16 +275,41 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: float 
     ``resolution``: texture size (square); ``padding``: texels between charts and dilation of their
     borders; ``offset``: ray start outside the surface, in field radii; ``directions``/``cone_deg``: rays
     averaged per texel (1 = straight along -normal); ``vertex_colors``: also a colour per mesh vertex.
+    ``fit``: first move the mesh's vertices along their normals onto the surface the field renders
+    (:func:`~neumesh_core.bake.surface.fit_to_field`; True = the default :class:`SurfaceFitConfig`, a
+    config, or False to bake onto the mesh where it is).  The result's vertices are the moved ones.
+    ``offset`` None: 0.5 radii with ``fit`` (the rays stay short around the surface the mesh now lies
+    on), else 1.
+    ``measure_texels``: how many texels (a fixed random subset; 0 = none) measure how far the baked
+    mesh lies from the field's surface along their normal: ``info["surface_offset"]``
+    (:func:`~neumesh_core.bake.surface.offset_stats`: mean / median / p90 in world units and radii; the
+    surface at the fit's opacity level, else 0.5).
     ``progress(fraction) -> False`` cancels (raises ``nm.Cancelled``).  Nothing in the field changes.
     """
+    from .surface import SurfaceFitConfig, fit_to_field, offset_stats, surface_offsets
+
     t0 = time.perf_counter()
     resolution = int(resolution)
     if resolution < 16:
         raise ValueError(f"resolution must be at least 16, got {resolution}")
     _cancel(progress, 0.0)
     V, F, N, label = _target_mesh(field, mesh)
+    fit_info = None
+    if fit is not False and fit is not None:
+        cfg = fit if isinstance(fit, SurfaceFitConfig) else SurfaceFitConfig()
+        V, fit_info = fit_to_field(field, V, F, cfg, progress=None if progress is None else
+                                   (lambda f: progress(0.1 * f)))
+        from ..mesh import vertex_normals
+
+        N = np.asarray(vertex_normals(V, F), np.float32)
+    if offset is None:
+        offset = 0.5 if fit_info is not None else 1.0
+    t_unwrap = time.perf_counter()
     vmap, faces, uvs, info = unwrap(V, F, resolution, padding)
-    info["unwrap_s"] = time.perf_counter() - t0
+    info["unwrap_s"] = time.perf_counter() - t_unwrap
+    if fit_info is not None:
+        info["fit"] = fit_info
+        info["fit_s"] = fit_info["seconds"]
     info["mesh"] = label
     info["mesh_vertices"] = int(len(V))
     info["mesh_faces"] = int(len(F))
@@ -292,6 +323,11 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: float 
         fv = V[corner[bad]]
         nrm[bad] = np.cross(fv[:, 1] - fv[:, 0], fv[:, 2] - fv[:, 0])
     info["texels"] = int(len(texel))
+    if measure_texels and len(texel):
+        pick = np.random.default_rng(0).permutation(len(texel))[:int(measure_texels)]
+        level = fit_info["level"] if fit_info is not None else 0.5
+        off = surface_offsets(field, pts[pick], nrm[pick], search=max(1.5, 1.5 * float(offset)), level=level)
+        info["surface_offset"] = offset_stats(off, float(field.radius))
     _cancel(progress, 0.15)
     vspan = 0.1 if vertex_colors else 0.0
     cols, found = surface_colours(field, pts, nrm, offset, directions, cone_deg, chunk, progress,
@@ -337,7 +373,7 @@ def save_bake(result: BakeResult, out_dir: str, name: str, glb: bool = True, pro
     """Write ``<name>.obj`` + ``<name>.mtl`` + ``<name>.png`` (+ ``<name>.glb`` with trimesh) in
     ``out_dir``.  Every file is written to a temporary name beside it and renamed, so a reader never
     sees half a file; paths in ``protect`` (e.g. the field file) are never written.  Returns the paths."""
-    from .imageio import save_image
+    from ..imageio import save_image
 
     os.makedirs(out_dir, exist_ok=True)
     paths = {ext: os.path.join(out_dir, f"{name}.{ext}") for ext in ("obj", "mtl", "png")}

@@ -1,0 +1,12 @@
+"""Bake a field into a plain UV-textured mesh (docs/baking.md).
+
+``texture``: the atlas, the texels and their colours (:func:`bake_texture`, :func:`save_bake`,
+:func:`decimate`); ``surface``: where the field's surface is seen from a mesh, and moving the mesh onto
+it before baking (:func:`fit_to_field`, :func:`surface_offsets`).
+"""
+from .surface import SurfaceFitConfig, fit_to_field, offset_stats, surface_offsets
+from .texture import (BakeResult, bake_texture, decimate, dilate, save_bake, surface_colours, texel_coverage,
+                      unwrap, uv_pixels)
+
+__all__ = ["BakeResult", "SurfaceFitConfig", "bake_texture", "decimate", "dilate", "fit_to_field", "offset_stats",
+           "save_bake", "surface_colours", "surface_offsets", "texel_coverage", "unwrap", "uv_pixels"]
