@@ -22,6 +22,14 @@ from .data.synthetic import default_scene_dir, make_default_scene
 from . import edit  # noqa: E402  (nm.edit: EditRecord, save_edited, ...)
 from .edit import CornerUVs, fill_texture, paint_layer, paint_texture, swap_texture  # noqa: E402
 from . import semantics  # noqa: E402  (nm.semantics: distill_semantics, select_region, extractors)
+# --- public names the Blender add-on uses (issue 46; the lead merges this block with the core's) ---
+from . import bake  # noqa: E402  (nm.bake: bake_texture, decimate, save_bake)
+from .bake import bake_texture  # noqa: E402
+from .field.remap import field_key, remap_field, resolve_ids  # noqa: E402
+from .render.raster import depth_buffer  # noqa: E402
+from .data.cameras import axis_to_ray_depth, ray_to_axis_depth  # noqa: E402
+from .scaffold.build import ScaffoldConfig, build_scaffold  # noqa: E402
+# --- end of the add-on's public names ---
 
 __version__ = "0.1.0"
 
@@ -39,4 +47,7 @@ __all__ = [
     "intrinsics_from_fov", "load_field", "load_mesh", "load_scene", "make_default_scene", "opencv_to_opengl",
     "opengl_to_opencv", "paint_layer", "paint_texture", "pixel_rays", "read_image", "render_camera", "render_rays",
     "save_field", "save_image", "save_mesh", "swap_texture", "train",
+    # the add-on's public names (issue 46)
+    "ScaffoldConfig", "axis_to_ray_depth", "bake", "bake_texture", "build_scaffold", "depth_buffer", "field_key",
+    "ray_to_axis_depth", "remap_field", "resolve_ids",
 ]

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import bpy
 
-from . import props
+from ..runtime.errors import UserError
+from ..scene import props
 
 FIELDS_COLLECTION = "NeuMesh Fields"
 NODE_SCENE = "NeuMesh Scene Layer"
@@ -25,10 +26,6 @@ NODE_OUTPUT = "NeuMesh Output"
 _COPIED = ("resolution_x", "resolution_y", "resolution_percentage", "pixel_aspect_x", "pixel_aspect_y",
            "use_border", "use_crop_to_border", "border_min_x", "border_max_x", "border_min_y", "border_max_y",
            "fps", "fps_base")
-
-
-class CompositeError(RuntimeError):
-    pass
 
 
 def compositor_tree(scene, create: bool = True):
@@ -175,7 +172,7 @@ def sync_companion(scene, companion):
 def set_up(scene) -> dict:
     """Make (or update) the companion scene and the main scene's compositor tree; what was done."""
     if scene.camera is None:
-        raise CompositeError("the scene has no camera: set one (Scene properties > Camera) first")
+        raise UserError("the scene has no camera: set one (Scene properties > Camera) first")
     objects = field_objects(scene)
     companion = scene.neumesh.composite_scene
     if companion is not None and companion is scene:
@@ -183,7 +180,7 @@ def set_up(scene) -> dict:
     if not objects and companion is not None:
         objects = field_objects(companion)
     if not objects:
-        raise CompositeError("no object with a NeuMesh field in the scene: load one first (Load Field)")
+        raise UserError("no object with a NeuMesh field in the scene: load one first (Load Field)")
     switched = ""
     if scene.render.engine == "NEUMESH":
         scene.render.engine = "CYCLES"
@@ -212,6 +209,7 @@ def set_up(scene) -> dict:
     tree.links.new(image, out)
     scene.render.use_compositing = True
     return {"companion": companion.name, "objects": [o.name for o in objects], "engine": scene.render.engine,
+
             "switched": switched}
 
 
@@ -227,7 +225,7 @@ class NEUMESH_OT_composite_with_scene(bpy.types.Operator):
     def execute(self, context):
         try:
             done = set_up(context.scene)
-        except CompositeError as exc:
+        except UserError as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
         msg = (f"NeuMesh: {len(done['objects'])} field object(s) render in scene '{done['companion']}', "
