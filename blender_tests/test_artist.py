@@ -39,6 +39,26 @@ def test_choosing_neumesh_sets_photo_colours_once(addon):
     assert colour._load_post in bpy.app.handlers.load_post
 
 
+def test_a_render_chosen_by_script_or_command_line_uses_photo_colours(addon, tmp_path):
+    """Issue 47: `-E NEUMESH` (or a script setting the engine) never reached the message bus, so a file
+    saved with Filmic rendered flat and grey. The render_pre handler sets the photographic view before
+    the first NeuMesh render, once per scene, as the interface does."""
+    scene = bpy.context.scene
+    default = scene.view_settings.view_transform
+    assert default != "Standard" and not scene.neumesh.photo_colour_set
+    colour = addon.render.colour
+    assert colour._render_pre in bpy.app.handlers.render_pre
+    scene.render.engine = "NEUMESH"          # no message-bus event in background mode
+    add_camera((0.0, -4.0, 0.0), lens=35.0)
+    scene.render.resolution_x, scene.render.resolution_y = 16, 12
+    scene.render.filepath = str(tmp_path / "r.png")
+    bpy.ops.render.render(write_still=True)   # Blender calls render_pre: the view switches first
+    assert scene.view_settings.view_transform == "Standard" and scene.neumesh.photo_colour_set
+    scene.view_settings.view_transform = default   # the user's later choice is kept
+    bpy.ops.render.render(write_still=True)
+    assert scene.view_settings.view_transform == default
+
+
 def test_render_panel_note_is_wrapped_to_the_panel(addon):
     """The Render properties note used to be one label cut off mid-word; every line now fits."""
     ui = addon.runtime.text

@@ -71,6 +71,20 @@ def test_real_blender_renders_animation_with_neumesh_engine(addon_zip, trained_f
     assert f1.shape == f2.shape == (40, 48, 3)
     assert f1.std() > 0.02  # the field is in the picture
 
+    # issue 47: the same file saved with Filmic and another engine; `-E NEUMESH` on the command line never
+    # reached the interface's engine-change message, and the frame came out flat and grey. Now the first
+    # NeuMesh render of a scene sets the photographic view (as choosing the engine in the interface
+    # does): the batch frame has the pixels of the Standard-view file, and the log says why.
+    filmic = str(out / "filmic.blend")
+    expr = ("import bpy; s = bpy.context.scene; s.view_settings.view_transform = 'Filmic'; "
+            "s.render.engine = 'CYCLES'; s.neumesh.photo_colour_set = False; "
+            f"bpy.ops.wm.save_as_mainfile(filepath={filmic!r})")
+    _run([BLENDER, "-b", str(out / "scene.blend"), "--python-expr", expr], env)
+    log = _run([BLENDER, "-b", filmic, "-E", "NEUMESH", "-o", str(out / "filmic_####"), "-f", "1"], env)
+    assert "View Transform set to 'Standard'" in log, log[-3000:]
+    g1 = np.asarray(Image.open(out / "filmic_0001.png").convert("RGB"), np.float32) / 255
+    assert np.abs(g1 - f1).max() <= 1.0 / 255
+
     # where the mesh is (image-space footprint of each part), from the vertices Blender evaluated
     import neumesh_core as nm  # noqa: F401  (same conventions as the add-on)
 

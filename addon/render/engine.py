@@ -8,7 +8,7 @@ import bpy
 from ..runtime._np import np
 from ..runtime import settings, text
 from ..scene import camera
-from . import fields, frame
+from . import colour, fields, frame
 from .preview import PreviewRenderer
 
 LAST_ERROR = {"message": ""}
@@ -52,6 +52,12 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
         transparent = bool(scene.render.film_transparent)
         LAST_ERROR["message"] = ""
         LAST_RENDER.clear()
+        issues = colour.photo_colour_issues(scene)
+        if issues:   # the pixels are right, but what Blender shows and saves is tone-mapped
+            note = (f"NeuMesh: scene '{scene.name}': {', '.join(issues)}: the field's photo colours come out "
+                    "flat with a grey background; Render properties > NeuMesh > Use Photo Colours")
+            print(note)
+            self.report({"WARNING"}, note)
         try:
             cam = scene.camera
             K, c2w, W, H = camera.camera_K_c2w(cam, scene, depsgraph, W, H)
