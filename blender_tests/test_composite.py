@@ -248,3 +248,20 @@ def test_composite_with_scene_keeps_eevee_and_says_what_is_missing(addon, traine
     assert {addon.render.composite.NODE_SCENE, addon.render.composite.NODE_FIELDS, addon.render.composite.NODE_ZCOMBINE} <= names
     assert all(vl.use_pass_z for vl in scene.view_layers)
 
+
+def test_cycles_without_a_denoiser_gets_denoising_switched_off(addon):
+    """Issue 47: Debian's Blender 3.4 Cycles has no denoiser (its `denoiser` enum is empty) and stopped
+    the first composite F12 with "Build without OpenImageDenoiser". Composite with Scene switches
+    denoising off there, and says so; a build with a denoiser keeps it."""
+    from types import SimpleNamespace as NS
+
+    check = addon.render.composite.cycles_denoising_check
+    without = NS(render=NS(engine="CYCLES"), cycles=NS(use_denoising=True, denoiser=""))
+    assert "no denoiser" in check(without) and without.cycles.use_denoising is False
+    assert check(without) == ""   # already off: nothing more to do
+    scene = bpy.context.scene
+    scene.render.engine = "CYCLES"
+    assert scene.cycles.denoiser == "OPENIMAGEDENOISE" and scene.cycles.use_denoising
+    assert check(scene) == "" and scene.cycles.use_denoising   # this build has OpenImageDenoise
+    eevee = NS(render=NS(engine="BLENDER_EEVEE"), cycles=NS(use_denoising=True, denoiser=""))
+    assert check(eevee) == "" and eevee.cycles.use_denoising
