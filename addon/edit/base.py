@@ -24,6 +24,7 @@ import bpy
 
 from ..runtime import core
 from ..runtime.errors import UserError
+from ..runtime import jobs
 from ..runtime.jobs import Job, JobModal, redraw
 from ..runtime.text import text_width, wrapped_label
 from ..scene import identity, props, sync
@@ -186,7 +187,7 @@ class EditOperator(JobModal):
                 self.report({"ERROR"}, f"NeuMesh: could not save the edited field of '{name}': {exc}")
                 return {"CANCELLED"} if not saved else {"FINISHED"}
             changed += n
-        redraw(context)
+        redraw(context, whole=True)
         done = [r for r in job.result if r is not None]
         if not saved:
             why = f" ('{', '.join(unchanged)}' already looked like that)" if unchanged else ""
@@ -257,10 +258,18 @@ class _FieldPanel:
     bl_region_type = "UI"
     bl_category = "NeuMesh"
     bl_options = {"DEFAULT_CLOSED"}
+    job_label = ""   # the edit_label of the operator whose running job the panel shows
 
     def draw(self, context):
         obj = context.active_object
         col = self.layout.column()
+        job = jobs.active(self.job_label) if self.job_label else None
+        if job is not None:   # the modal operator redraws the sidebar on every progress step
+            text = f"{self.job_label.capitalize()} {100 * job.fraction:.0f}% (Esc cancels)"
+            if hasattr(col, "progress"):
+                col.progress(factor=job.fraction, text=text)
+            else:
+                col.label(text=text, icon="SORTTIME")
         if obj is None or obj.type != "MESH" or not props.field_abspath(obj):
             col.label(text="Select an object with a field", icon="INFO")
             return

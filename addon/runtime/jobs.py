@@ -118,16 +118,32 @@ def set_status(context, text) -> None:
         pass
 
 
-def redraw(context, area_types=("VIEW_3D", "PROPERTIES", "PREFERENCES")) -> None:
-    """Tag every area of those types in every window for redraw (their panels draw anew at once,
-    without waiting for the mouse to move over them)."""
+def redraw(context, area_types=("VIEW_3D", "PROPERTIES", "PREFERENCES"), whole: bool = False) -> None:
+    """Tag the panel regions of every area of those types in every window for redraw, so their panels
+    are laid out anew at once (not drawn over each other until the mouse moves over them). In a 3D
+    view only the sidebar and the header (``whole``: the viewport too, after an edit changed the field)."""
     try:
         for win in context.window_manager.windows:
             for area in win.screen.areas:
-                if area.type in area_types:
+                if area.type not in area_types:
+                    continue
+                if area.type != "VIEW_3D" or whole:
                     area.tag_redraw()
+                    continue
+                for region in area.regions:
+                    if region.type in ("UI", "HEADER", "TOOL_HEADER"):
+                        region.tag_redraw()
     except Exception:  # noqa: BLE001 - no window manager in background mode
         pass
+
+
+_ACTIVE: dict = {}   # edit_label -> the job a JobModal operator runs modally
+
+
+def active(label: str):
+    """The job a modal operator with ``edit_label`` runs now, or None (panels draw its progress)."""
+    job = _ACTIVE.get(label)
+    return job if job is not None and job.running else None
 
 
 class JobModal:
@@ -149,7 +165,7 @@ class JobModal:
         job = self._start(context)
         if job is None:
             return {"CANCELLED"}
-        self._job = job.start()
+        self._job = _ACTIVE[self.edit_label] = job.start()
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.1, window=context.window)
         wm.progress_begin(0, 100)
