@@ -115,14 +115,14 @@ def test_scaffold_is_explained_where_it_is_seen(addon):
 def test_training_status_lines_are_short(addon):
     job = addon.train.worker.TrainJob(dataset_path="", field_path="/tmp/x.neumesh", steps=2000)
     job.state, job.step, job.loss, job.psnr, job.rays_per_sec, job.eta_s = "TRAINING", 120, 0.0123, 23.4, 40100, 4000
-    assert job.status_lines() == ["Step 120/2000", "Loss 0.0123, PSNR 23.40 dB", "40.1k rays/s, ETA 1 h 06 min"]
+    assert job.status_lines() == ["Step 120/2000 (6%)", "Loss 0.0123, PSNR 23.40 dB", "40.1k rays/s, ETA 1 h 06 min"]
     assert max(len(l) for l in job.status_lines()) <= 30
 
 
 # ------------------------------------------------------------------------------------ wording (7)
 def test_missing_dependency_message_has_one_neumesh(addon, monkeypatch):
-    monkeypatch.setattr(addon.deps, "missing_required", lambda statuses=None: ["torch"])
-    monkeypatch.setattr(addon.core, "_nm", None)
+    monkeypatch.setattr(addon.runtime.deps, "missing_required", lambda statuses=None: ["torch"])
+    monkeypatch.setattr(addon.runtime.core, "_nm", None)
     with pytest.raises(RuntimeError) as exc:
         bpy.ops.neumesh.import_mesh(filepath="/nonexistent.ply")
     msg = str(exc.value)
@@ -195,7 +195,7 @@ def test_save_copy_leaves_the_open_file_pointing_at_its_field(addon, tmp_path):
 def test_save_as_when_blender_does_not_say_where(addon, tmp_path, monkeypatch):
     """Blender 3.x calls save_pre with (None, None): the add-on keeps the path relative to the old
     folder, records where the file is, and repairs the path after the save and on opening."""
-    props = addon.props
+    props = addon.scene.props
     handlers = bpy.app.handlers.save_pre
     i = handlers.index(props._save_pre)
 

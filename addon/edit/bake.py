@@ -234,7 +234,6 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
 
 class NEUMESH_PT_bake(EditSubPanel, bpy.types.Panel):
     bl_label = "Bake to material"
-    job_label = NEUMESH_OT_bake_material.edit_label
 
     def draw_edit(self, context, col, obj):
         s = context.window_manager

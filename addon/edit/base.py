@@ -258,14 +258,13 @@ class _FieldPanel:
     bl_region_type = "UI"
     bl_category = "NeuMesh"
     bl_options = {"DEFAULT_CLOSED"}
-    job_label = ""   # the edit_label of the operator whose running job the panel shows
 
     def draw(self, context):
         obj = context.active_object
         col = self.layout.column()
-        job = jobs.active(self.job_label) if self.job_label else None
+        job = jobs.active(self.bl_label)   # the running job of the operator with the panel's label
         if job is not None:   # the modal operator redraws the sidebar on every progress step
-            text = f"{self.job_label.capitalize()} {100 * job.fraction:.0f}% (Esc cancels)"
+            text = f"{self.bl_label} {100 * job.fraction:.0f}% (Esc cancels)"
             if hasattr(col, "progress"):
                 col.progress(factor=job.fraction, text=text)
             else:

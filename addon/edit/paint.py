@@ -237,7 +237,6 @@ def _onto_source(nm, record, shown, source, ids):
 
 class NEUMESH_PT_paint(EditSubPanel, bpy.types.Panel):
     bl_label = "Paint texture"
-    job_label = NEUMESH_OT_apply_paint.edit_label
 
     def draw(self, context):   # painting covers every field in view: no active object needed
         self.draw_edit(context, self.layout.column(), context.active_object)

@@ -229,7 +229,6 @@ class NEUMESH_OT_fill_texture(_FromPanel, bpy.types.Operator):
 
 class NEUMESH_PT_swap(EditSubPanel, bpy.types.Panel):
     bl_label = "Swap texture"
-    job_label = NEUMESH_OT_swap_texture.edit_label
 
     def draw_edit(self, context, col, obj):
         s = context.scene.neumesh_edit
@@ -243,7 +242,6 @@ class NEUMESH_PT_swap(EditSubPanel, bpy.types.Panel):
 
 class NEUMESH_PT_fill(EditSubPanel, bpy.types.Panel):
     bl_label = "Fill texture"
-    job_label = NEUMESH_OT_fill_texture.edit_label
 
     def draw_edit(self, context, col, obj):
         s = context.scene.neumesh_edit

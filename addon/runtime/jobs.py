@@ -137,11 +137,12 @@ def redraw(context, area_types=("VIEW_3D", "PROPERTIES", "PREFERENCES"), whole: 
         pass
 
 
-_ACTIVE: dict = {}   # edit_label -> the job a JobModal operator runs modally
+_ACTIVE: dict = {}   # bl_label -> the job a JobModal operator runs modally
 
 
 def active(label: str):
-    """The job a modal operator with ``edit_label`` runs now, or None (panels draw its progress)."""
+    """The job the modal operator labelled ``label`` runs now, or None (the panel of the same label
+    draws its progress)."""
     job = _ACTIVE.get(label)
     return job if job is not None and job.running else None
 
@@ -165,7 +166,7 @@ class JobModal:
         job = self._start(context)
         if job is None:
             return {"CANCELLED"}
-        self._job = _ACTIVE[self.edit_label] = job.start()
+        self._job = _ACTIVE[self.bl_label] = job.start()
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.1, window=context.window)
         wm.progress_begin(0, 100)
