@@ -17,14 +17,12 @@ committed.
 """
 from __future__ import annotations
 
-import copy
 import os
 
 import bpy
 
-from ..runtime import core
+from ..runtime import core, jobs
 from ..runtime.errors import UserError
-from ..runtime import jobs
 from ..runtime.jobs import Job, JobModal, redraw
 from ..runtime.text import text_width, wrapped_label
 from ..scene import identity, props, sync
@@ -116,11 +114,7 @@ def _read_chain(edit, path):
     return chain[::-1]
 
 
-def edit_copy(field):
-    """A private copy of a cached field for a background edit (taken under the render lock, so no
-    render or deformation is half-way through it)."""
-    with fields._LOCK:
-        return copy.deepcopy(field)
+edit_copy = fields.private_copy   # a private copy of a cached field for a background edit
 
 
 def region_of(obj, group: str, field, what: str):

@@ -175,14 +175,12 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
         for it in items:
             obj = bpy.data.objects.get(it.key.split("#")[0])
             if it.field is None:                     # the object's own field, vertex by vertex
-                field = edit_copy(fields.get_field(it.key, it.path))
-                field.set_vertices(it.vertices)      # paint lands on the surface as it is posed now
+                field = fields.posed_copy(it)        # paint lands on the surface as it is posed now
                 targets.append((obj, field, it.path))
                 plans.append(None)
                 posed.append(field)
                 continue
-            shown = edit_copy(it.field)              # a field remapped onto the object's mesh
-            shown.set_vertices(it.vertices)
+            shown = fields.posed_copy(it)            # a field remapped onto the object's mesh
             posed.append(shown)
             own = props.field_abspath(obj)
             if it.path != own:                       # joined in from another field: shown, not edited

@@ -287,3 +287,23 @@ def _apply_vertices(item: Item):
     STATS["set_vertices"] += 1
     e.last_vertices = item.vertices.copy()
     return e.field
+
+
+def private_copy(field):
+    """A private copy of a cached field for work in another thread (taken under the cache's lock, so
+    no render or deformation is half-way through it)."""
+    import copy
+
+    with _LOCK:
+        return copy.deepcopy(field)
+
+
+def posed_copy(item: Item):
+    """A private copy of ``item``'s field posed at ``item.vertices``: posed in the cache under its lock,
+    as a render poses it (nothing is recomputed when the render already posed it there), then copied."""
+    import copy
+
+    with _LOCK:
+        if item.field is None:
+            get_field(item.key, item.path)
+        return copy.deepcopy(_apply_vertices(item))
