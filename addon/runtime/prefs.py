@@ -66,7 +66,7 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
         for s in statuses:
             row = box.row()
             icon = "CHECKMARK" if s.found else ("ERROR" if s.required else "INFO")
-            what = s.version if s.found else (s.error + ("" if s.required else " (optional)"))
+            what = s.version if s.found else (s.error + ("" if s.required else f" (for {used_by(s.dist)})"))
             row.label(text=f"{s.dist}", icon=icon)
             row.label(text=what)
         miss = [s.dist for s in statuses if s.required and not s.found]
@@ -90,7 +90,8 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
         box.prop(self, "env_path")
         if job is not None:
             icon = {"RUNNING": "SORTTIME", "DONE": "CHECKMARK", "ERROR": "ERROR"}.get(job.state, "INFO")
-            box.label(text=f"pip: {job.state.lower()} {job.message}", icon=icon)
+            text.wrapped_label(box, f"pip: {job.state.lower()} {job.message}", text.text_width(context), icon=icon,
+                               context=context)
             box.prop(self, "show_log")
             if self.show_log:
                 col = box.column(align=True)
@@ -119,6 +120,12 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
         text.wrapped_label(box, "Start Blender with torch's BLAS preloaded (see docs/addon.md, 'Speed'):", width)
         text.wrapped_label(box, st["remedy"], width, icon="CONSOLE")
         box.operator("neumesh.copy_launcher", icon="COPYDOWN")
+
+
+def used_by(dist: str) -> str:
+    """The features that need distribution ``dist``, for the preferences' list ('optional' if none)."""
+    feats = next((d[4] for d in deps.DEPENDENCIES if d[1] == dist), ())
+    return ", ".join(deps.FEATURES.get(f, f) for f in feats) or "optional"
 
 
 def draw_missing(layout, feature: str, context) -> bool:
