@@ -119,7 +119,8 @@ def test_a_feature_names_its_missing_packages_in_full(addon, monkeypatch):
         addon.runtime.core.require("semantics")
     msg = str(exc.value)
     assert "Distil semantics needs the Python packages scikit-image, scikit-learn" in msg
-    assert "Install scikit-image, scikit-learn" in msg
+    assert "'Install these 2'" in msg and "Install dependencies" in msg
+    assert addon.runtime.deps.install_label(["xatlas"]) == "Install xatlas"
 
 
 def test_install_button_of_a_feature_installs_nothing_when_present(addon):

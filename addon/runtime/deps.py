@@ -204,9 +204,16 @@ def missing_message(feature: str, missing: list[str]) -> str:
     """What to tell the artist when ``feature`` cannot start for want of ``missing``."""
     what = FEATURES.get(feature, feature)
     pkgs = ", ".join(missing)
+    it = "them" if len(missing) > 1 else "it"
     return (f"{what} needs the Python package{'s' if len(missing) > 1 else ''} {pkgs}, which Blender's Python "
-            f"cannot import. Press 'Install {pkgs}' (or Install dependencies in Edit > Preferences > Add-ons > "
-            f"NeuMesh), or add {'them' if len(missing) > 1 else 'it'} to the 'Existing environment' folder")
+            f"cannot import. Install {it} with the button in the NeuMesh panel ('{install_label(missing)}'), with "
+            f"Install dependencies in Edit > Preferences > Add-ons > NeuMesh, or add {it} to the 'Existing "
+            "environment' folder")
+
+
+def install_label(missing: list[str]) -> str:
+    """The text of the button that installs ``missing`` (short enough for the sidebar)."""
+    return f"Install {missing[0]}" if len(missing) == 1 else f"Install these {len(missing)}"
 
 
 def own_numpy_version(statuses=None) -> str | None:

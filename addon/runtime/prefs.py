@@ -140,7 +140,7 @@ def draw_missing(layout, feature: str, context) -> bool:
     job = install.current_install()
     row = box.row()
     row.enabled = job is None or not job.running
-    op = row.operator("neumesh.install_dependencies", text=f"Install {', '.join(missing)}", icon="IMPORT")
+    op = row.operator("neumesh.install_dependencies", text=deps.install_label(missing), icon="IMPORT")
     op.packages = " ".join(missing)
     return True
 
