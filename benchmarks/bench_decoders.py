@@ -55,7 +55,7 @@ def write_v1(field, path: str) -> None:
     import neumesh_core as nm
     from safetensors.torch import load_file, save_file
 
-    from neumesh_core.train.checkpoint import _V1_RENAMES, read_header
+    from neumesh_core.field.io import _V1_RENAMES, read_header
 
     if field.num_decoders != 1 or field.tex_frame is not None:
         raise SystemExit("only a one-decoder field without texture frames has a format-1 form")

@@ -26,7 +26,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.field.knn import KNN_BACKENDS  # noqa: E402
-from neumesh_core.scaffold import ScaffoldConfig, build_scaffold  # noqa: E402
+from neumesh_core.reconstruct import ScaffoldConfig, build_scaffold  # noqa: E402
 from _results import write_results  # noqa: E402
 
 

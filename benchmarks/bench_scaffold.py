@@ -40,8 +40,8 @@ def main(argv=None) -> int:
         torch.set_num_threads(args.threads)
     from neumesh_core.data.loader import load_scene
     from neumesh_core.mesh import save_mesh
-    from neumesh_core.scaffold import ScaffoldConfig, build_scaffold
-    from neumesh_core.scaffold.cli import StageProgress
+    from neumesh_core.reconstruct import ScaffoldConfig, build_scaffold
+    from neumesh_core.cli.scaffold import StageProgress
 
     name = args.name or os.path.basename(os.path.normpath(args.data))
     out_dir = args.out or os.path.join("/tmp", f"neumesh_scaffold_{name}")

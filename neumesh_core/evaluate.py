@@ -75,7 +75,7 @@ def view_coverage(points: np.ndarray, cameras: Cameras, depths: np.ndarray, rel_
     the ray at the cameras' resolution (inf where empty).  Returns (P,) int counts."""
     import torch
 
-    from .scaffold.hull import ViewStack
+    from .data.views import ViewStack
 
     if depths.shape != (len(cameras), cameras.height, cameras.width):
         raise ValueError(f"depths must be (N,H,W) = ({len(cameras)},{cameras.height},{cameras.width}), "

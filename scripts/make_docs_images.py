@@ -146,7 +146,7 @@ def demo_picture(field, scene, out_dir, n=4):
     split = scene.split("test")
     with tempfile.TemporaryDirectory() as renders:
         r = nm.evaluate(field, split, background=scene.background, out_dir=renders)
-        from neumesh_core.cli import _comparison_figure
+        from neumesh_core.cli.demo import _comparison_figure
 
         _comparison_figure(split, renders, r, os.path.join(out_dir, "demo.png"), n=n)
     return {"split": "test", "n_views": len(split), "psnr": round(float(r["mean"]["psnr"]), 2),

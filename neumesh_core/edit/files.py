@@ -15,7 +15,7 @@ import time
 from typing import Optional
 
 from ..errors import NeuMeshError
-from ..train.checkpoint import read_header, save_field
+from ..field.io import read_header, save_field
 
 SUFFIX = ".neumesh"
 _EDIT_RE = re.compile(r"\.edit-(\d{3,})$")

@@ -26,6 +26,7 @@ from torch import nn
 
 from ..errors import VertexMismatchError
 from ..mesh import Mesh
+from .neighbours import blend_rows, idw_neighbours, snap_identity
 
 REST_TOLERANCE = 1e-5   # a stored rest position matches a field vertex within this x the field's extent
 
@@ -78,7 +79,6 @@ def remap_field(source, ids, rest, faces, k: int = 4):
     vertices at the source's rest positions, new ones at theirs) whose rows are copied (mapped) or
     interpolated (new), sharing the source's decoders.
     """
-    from ..edit.transfer import blend_rows, idw_neighbours, snap_identity
     from .field import FieldConfig, NeuMeshField
 
     ids = np.asarray(ids).astype(np.int64).reshape(-1)

@@ -14,7 +14,7 @@ import torch
 from ..data.cameras import batch_pixel_rays
 from ..data.scene import ImageSet, Scene
 from ..render.renderer import RenderSettings, default_step, render_rays
-from .checkpoint import load_optimizer_state, save_field
+from ..field.io import load_optimizer_state, save_field
 from .optim import ParameterAverage, RowSparseAdam
 
 

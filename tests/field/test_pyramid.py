@@ -118,7 +118,7 @@ def test_a_texture_only_pyramid_leaves_the_geometry_codes_alone(blob_mesh):
 def test_saving_a_field_with_coarse_levels_writes_a_plain_field(blob_mesh, tmp_path):
     # snapshots taken from a training callback call save_field on the live field: the file must render
     # what the field renders, without the (training-only) levels, and the live split must survive
-    from neumesh_core.train.checkpoint import load_field, save_field
+    from neumesh_core.field.io import load_field, save_field
 
     f = textured_field(blob_mesh, interpolation="early")
     p = CodePyramid(f, levels=2, factor=3.0)

@@ -13,7 +13,7 @@ from neumesh_core.render.renderer import render_rays
 
 from ..conftest import textured_field
 
-DATA = os.path.join(os.path.dirname(__file__), "..", "train", "data")
+DATA = os.path.join(os.path.dirname(__file__), "data")
 W = H = 24
 
 
@@ -106,7 +106,7 @@ def test_semantics_round_trip_through_field_files(blob_mesh, tmp_path):
     q = str(tmp_path / "plain.neumesh")
     nm.save_field(textured_field(blob_mesh), q)
     assert not nm.load_field(q).has_semantics
-    from neumesh_core.train.checkpoint import read_header
+    from neumesh_core.field.io import read_header
 
     assert "semantics" not in read_header(q)
 

@@ -10,8 +10,8 @@ import torch.nn.functional as F
 
 from neumesh_core.data.cameras import Cameras, pixel_rays
 from neumesh_core.data.scene import ImageSet, Scene
-from neumesh_core.scaffold import ScaffoldConfig, build_scaffold
-from neumesh_core.scaffold.mvs import MVSConfig, _box_sum_stack, select_sources
+from neumesh_core.reconstruct import ScaffoldConfig, build_scaffold
+from neumesh_core.reconstruct.mvs import MVSConfig, _box_sum_stack, select_sources
 
 R_SPHERE = 0.8
 SIZE = 80
@@ -115,7 +115,7 @@ def test_mvs_carves_the_frontal_hull(frontal_scene):
 def test_erode_matches_scipy_and_keeps_the_frame_border():
     from scipy.ndimage import binary_erosion
 
-    from neumesh_core.scaffold.mvs import _erode
+    from neumesh_core.reconstruct.mvs import _erode
 
     rng = np.random.default_rng(0)
     m = F.max_pool2d(torch.from_numpy(rng.random((1, 1, 40, 50)) > 0.97).float(), 7, 1, 3)[0, 0] > 0
@@ -136,8 +136,9 @@ def _sphere_views(eyes, size=64):
 
 @pytest.mark.parametrize("side_views", [True, False])
 def test_keep_silhouettes_gives_back_only_what_the_masks_need(side_views):
-    from neumesh_core.scaffold.hull import ViewStack, grid_points
-    from neumesh_core.scaffold.mvs import keep_silhouettes
+    from neumesh_core.data.views import ViewStack
+    from neumesh_core.reconstruct.hull import grid_points
+    from neumesh_core.reconstruct.mvs import keep_silhouettes
 
     n, lo = 49, np.full(3, -1.2, np.float32)
     voxel = 2.4 / (n - 1)

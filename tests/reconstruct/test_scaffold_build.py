@@ -9,7 +9,7 @@ from neumesh_core.data.cameras import Cameras
 from neumesh_core.data.scene import ImageSet, Scene
 from neumesh_core.errors import DataError
 from neumesh_core.mesh import Mesh, load_mesh
-from neumesh_core.scaffold import (Cancelled, ScaffoldConfig, ScaffoldError, build_scaffold,
+from neumesh_core.reconstruct import (Cancelled, ScaffoldConfig, ScaffoldError, build_scaffold,
                                    chamfer_distance)
 
 SMALL = dict(target_vertices=5000, hull_resolution=64)
@@ -118,7 +118,7 @@ def test_target_vertices_changes_resolution(small_scene):
 def test_cli_grid_and_face_caps_reach_the_config():
     import argparse
 
-    from neumesh_core.scaffold.cli import add_scaffold_options, config_from_args
+    from neumesh_core.cli.scaffold import add_scaffold_options, config_from_args
 
     p = argparse.ArgumentParser()
     add_scaffold_options(p)
@@ -197,7 +197,7 @@ def test_face_limit(small_scene):
 
 
 def test_cli_writes_mesh_and_report(small_scene_dir, tmp_path, capsys):
-    from neumesh_core.scaffold.cli import main
+    from neumesh_core.cli.scaffold import main
 
     out = tmp_path / "m" / "scaffold.ply"
     rc = main(["scaffold", "--data", small_scene_dir, "--out", str(out), "--vertices", "3000",

@@ -23,7 +23,8 @@ import torch
 import torch.nn.functional as F
 
 from ..data.cameras import Cameras
-from .hull import HullGrid, ViewStack
+from ..data.views import ViewStack
+from .hull import HullGrid, _node_positions, keep_silhouettes  # noqa: F401 (re-exported; build.py imports it from here)
 
 
 @dataclass
@@ -115,14 +116,6 @@ def _cam_dirs(K: torch.Tensor, W: int, H: int) -> torch.Tensor:
     y = (ys - K[1, 2]) / K[1, 1]
     x = (xs - K[0, 2] - K[0, 1] * y) / K[0, 0]
     return torch.stack([x, y, torch.ones_like(x)], -1)
-
-
-def _node_positions(flat_idx: np.ndarray, shape, lo, voxel: float) -> torch.Tensor:
-    """World positions (P,3) of grid nodes given by flat (C-order) indices into a grid of ``shape``."""
-    li = torch.from_numpy(np.asarray(flat_idx))
-    ny, nz = int(shape[1]), int(shape[2])
-    ijk = torch.stack([li // (ny * nz), (li // nz) % ny, li % nz], -1)
-    return torch.as_tensor(np.asarray(lo, np.float32)) + ijk.float() * voxel
 
 
 def _box_sum_stack(x: torch.Tensor, r: int) -> torch.Tensor:
@@ -359,62 +352,3 @@ def refine_hull(images, hull: HullGrid, hull_vox: np.ndarray, cfg: MVSConfig | N
              "fused_nodes": int(np.isfinite(fused).sum()),
              "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__}}
     return MVSResult(fused, filt.numpy(), stats)
-
-
-def keep_silhouettes(values: np.ndarray, hull_values: np.ndarray, lo: np.ndarray, voxel: float,
-                     views: ViewStack, masks: np.ndarray, threshold: float = 0.5, rounds: int = 2,
-                     chunk: int = 1 << 18) -> tuple[np.ndarray, dict]:
-    """Give back carved hull nodes where carving uncovered mask pixels.
-
-    ``values``: the hull after stereo carving (+ inside); ``hull_values``: the hull before it;
-    ``views``: the cameras of the ``masks`` (N,H,W).  Stereo is
-    least reliable at silhouettes (the window straddles the background) and a wrong depth there
-    carves the object's rim, which the field then cannot render (it has no density far from the
-    scaffold).  Every mask pixel must stay covered: the inside nodes are splatted into every view,
-    and carved nodes that project onto a mask pixel no inside node covers are restored to their hull
-    value.  Returns the new values and counts for the report.
-    """
-    N = len(views)
-    H, W = views.height, views.width
-    m = torch.from_numpy(np.asarray(masks) > threshold)
-    out = values.copy()
-    carved = np.flatnonzero(((hull_values > 0) & (values <= 0)).reshape(-1))
-    flat_hull = hull_values.reshape(-1)
-    flat_out = out.reshape(-1)
-
-    def pixels(idx):
-        u, v, z = views.project(_node_positions(idx, values.shape, lo, voxel))
-        ok = views.in_frame(u, v, z)
-        ui = u.floor().long().clamp(0, W - 1)
-        vi = v.floor().long().clamp(0, H - 1)
-        return ok, vi * W + ui
-
-    stats = {"carved_nodes": int(len(carved)), "restored_nodes": 0, "uncovered_px": []}
-    for _ in range(rounds):
-        cover = torch.zeros(N, H * W, dtype=torch.bool)
-        inside = np.flatnonzero(flat_out > 0)
-        for s in range(0, len(inside), chunk):
-            ok, pix = pixels(inside[s:s + chunk])
-            for n in range(N):
-                cover[n, pix[n][ok[n]]] = True
-        # a node covers the pixels its voxel spans: close the one-pixel gaps between node centres
-        cover = F.max_pool2d(cover.view(N, 1, H, W).float(), 3, stride=1, padding=1)[:, 0] > 0
-        cover = F.max_pool2d(1.0 - cover[:, None].float(), 3, stride=1, padding=1)[:, 0] < 0.5
-        missed = (m & ~cover).view(N, H * W)
-        stats["uncovered_px"].append(int(missed.sum()))
-        if not bool(missed.any()) or len(carved) == 0:
-            break
-        restore = np.zeros(len(carved), bool)
-        for s in range(0, len(carved), chunk):
-            ok, pix = pixels(carved[s:s + chunk])
-            hit = torch.zeros(pix.shape[1], dtype=torch.bool)
-            for n in range(N):
-                hit |= ok[n] & missed[n][pix[n]]
-            restore[s:s + chunk] = hit.numpy()
-        if not restore.any():
-            break
-        idx = carved[restore]
-        flat_out[idx] = flat_hull[idx]
-        carved = carved[~restore]
-        stats["restored_nodes"] += int(len(idx))
-    return out, stats

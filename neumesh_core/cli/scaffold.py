@@ -1,6 +1,6 @@
 """`neumesh scaffold`: posed images -> mesh scaffold (.ply) + JSON report next to it.
 
-The lead's ``neumesh_core/cli.py`` calls :func:`add_commands` with its subparsers object.
+``neumesh_core/cli/__init__.py`` calls :func:`add_commands` with its subparsers object.
 """
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import os
 import sys
 import time
 
-from .build import ScaffoldConfig
+from ..reconstruct.build import ScaffoldConfig
 
 
 def _positive_int(s: str) -> int:
@@ -127,7 +127,7 @@ def run_scaffold(args) -> int:
     """Entry point of `neumesh scaffold` (args from the parser built by :func:`add_commands`)."""
     from ..data.loader import load_scene
     from ..mesh import save_mesh
-    from .build import build_scaffold
+    from ..reconstruct.build import build_scaffold
 
     t0 = time.perf_counter()
     print(f"loading {args.data} (downscale {args.downscale}) ...", file=sys.stderr)
@@ -175,7 +175,7 @@ def add_commands(subparsers) -> None:
 
 
 def main(argv=None) -> int:
-    """Stand-alone entry (python -m neumesh_core.scaffold.cli scaffold ...)."""
+    """Stand-alone entry (python -m neumesh_core.cli.scaffold scaffold ...)."""
     from ..errors import NeuMeshError
 
     ap = argparse.ArgumentParser(prog="neumesh")

@@ -53,10 +53,10 @@ class _Progress:
 
 def cmd_semantics(args) -> int:
     import neumesh_core as nm
-    from neumesh_core.edit import save_edited
+    from ..edit import save_edited
 
-    from .distill import DistillConfig, distill_semantics, semantics_record
-    from .extractors import make_extractor
+    from ..semantics.distill import DistillConfig, distill_semantics, semantics_record
+    from ..semantics.extractors import make_extractor
 
     try:
         cfg = DistillConfig(sem_dim=args.sem_dim, pca_dim=args.pca or None, steps=args.steps,

@@ -11,7 +11,7 @@ import os
 import time
 from typing import Callable, Optional
 
-from .build import ScaffoldConfig, build_scaffold
+from .reconstruct.build import ScaffoldConfig, build_scaffold
 
 
 def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, background="white",
@@ -22,50 +22,56 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
     """Run the whole pipeline on a dataset folder; returns a summary dict (also written to fit.json).
 
     ``device``: where the field trains and is evaluated (the scaffold is built on the CPU)."""
-    import neumesh_core as nm
+    from .data.loader import load_scene
+    from .errors import VertexMismatchError
+    from .evaluate import evaluate
+    from .field.field import FieldConfig, create_field
+    from .field.io import load_field, save_field
+    from .mesh import load_mesh, save_mesh
+    from .train.trainer import TrainConfig, train
 
     os.makedirs(out_dir, exist_ok=True)
     t0 = time.perf_counter()
-    scene = nm.load_scene(data_dir, downscale=downscale, background=background)
+    scene = load_scene(data_dir, downscale=downscale, background=background)
     summary = {"data": os.path.abspath(data_dir), "downscale": downscale}
 
     mesh_path = os.path.join(out_dir, "scaffold.ply")
     report_path = os.path.join(out_dir, "scaffold.scaffold.json")
     if os.path.isfile(mesh_path):
-        mesh = nm.load_mesh(mesh_path)
+        mesh = load_mesh(mesh_path)
         log(f"scaffold: reusing {mesh_path} ({mesh.num_vertices} vertices); delete it to rebuild")
         summary["scaffold"] = {"reused": True, "vertices": mesh.num_vertices}
     else:
         mesh, rep = build_scaffold(scene, scaffold_config or ScaffoldConfig(), progress=scaffold_progress)
-        nm.save_mesh(mesh, mesh_path)
+        save_mesh(mesh, mesh_path)
         rep.save(report_path)
         log(rep.summary())
         summary["scaffold"] = {"reused": False, "vertices": rep.num_vertices,
                                "seconds": rep.timings.get("total"), "silhouette_iou": rep.silhouette_iou}
 
     field_path = os.path.join(out_dir, "field.neumesh")
-    tcfg = train_config or nm.TrainConfig(steps=steps)
+    tcfg = train_config or TrainConfig(steps=steps)
     if getattr(tcfg, "checkpoint_path", None) is None:
         tcfg.checkpoint_path = field_path
     if os.path.isfile(field_path):
-        field = nm.load_field(field_path, device=device)
+        field = load_field(field_path, device=device)
         if field.num_vertices != mesh.num_vertices:
-            raise nm.VertexMismatchError(
+            raise VertexMismatchError(
                 f"{field_path} has {field.num_vertices} vertices but {mesh_path} has {mesh.num_vertices}; "
                 "delete one of them to start over")
         done = field._checkpoint_meta.get("train_state", {}).get("step", 0)
         log(f"training: resuming {field_path} from step {done}")
         summary["resumed_from_step"] = done
     else:
-        field = nm.create_field(mesh, field_config or nm.FieldConfig(), device=device)
-    res = nm.train(field, scene, tcfg, callback=train_callback)
+        field = create_field(mesh, field_config or FieldConfig(), device=device)
+    res = train(field, scene, tcfg, callback=train_callback)
     if os.path.abspath(tcfg.checkpoint_path) != os.path.abspath(field_path):
-        nm.save_field(field, field_path)  # (the trainer already wrote field_path with its step/optimiser)
+        save_field(field, field_path)  # (the trainer already wrote field_path with its step/optimiser)
     summary["train"] = {"steps": getattr(res, "steps_done", None), "psnr": getattr(res, "final_psnr", None),
                         "seconds": getattr(res, "seconds", None)}
     if evaluate_split in scene.splits:
-        metrics = nm.evaluate(field, scene.split(evaluate_split),
-                              background=scene.background or (0.0, 0.0, 0.0), masked=scene.kind == "dtu")
+        metrics = evaluate(field, scene.split(evaluate_split),
+                           background=scene.background or (0.0, 0.0, 0.0), masked=scene.kind == "dtu")
         summary["eval"] = metrics.get("mean", metrics) if isinstance(metrics, dict) else metrics
     summary["seconds"] = time.perf_counter() - t0
     with open(os.path.join(out_dir, "fit.json"), "w") as fh:

@@ -89,7 +89,7 @@ def test_step_scale_travels_with_the_field(blob_mesh, tmp_path):
     from safetensors.torch import load_file, save_file
 
     from neumesh_core.render.renderer import RenderSettings, default_step
-    from neumesh_core.train.checkpoint import read_checkpoint
+    from neumesh_core.field.io import read_checkpoint
 
     f = textured_field(blob_mesh)
     assert default_step(f, RenderSettings()) == pytest.approx(f.radius * f.config.step_scale)
@@ -117,7 +117,7 @@ def test_version1_files_load_as_single_decoder_fields_and_render_as_before(inter
     render the same image: within 1e-5 of the stored pixels (they were rendered on another machine,
     whose float rounding may differ), and bit-identical to the same field saved as format 2 and
     loaded again (same path, same process)."""
-    from neumesh_core.train.checkpoint import read_header
+    from neumesh_core.field.io import read_header
 
     path = os.path.join(DATA, f"field_v1_{interp}.neumesh")
     assert read_header(path)["version"] == 1
@@ -168,7 +168,7 @@ def test_corrupt_decoder_binding_is_refused(blob_mesh, tmp_path):
 
     from safetensors.torch import load_file, save_file
 
-    from neumesh_core.train.checkpoint import read_header
+    from neumesh_core.field.io import read_header
 
     f = textured_field(blob_mesh)
     path = str(tmp_path / "a.neumesh")
@@ -198,7 +198,7 @@ def test_texture_frames_round_trip_and_bad_ones_are_refused(blob_mesh, tmp_path,
 
     from safetensors.torch import load_file, save_file
 
-    from neumesh_core.train.checkpoint import read_header
+    from neumesh_core.field.io import read_header
 
     f = textured_field(blob_mesh, interp)
     a, b = np.radians(40.0), np.radians(-25.0)

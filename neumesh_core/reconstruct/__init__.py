@@ -1,10 +1,10 @@
 """Mesh scaffold from posed images: visual hull -> density grid -> marching cubes -> clean-up.
 
-    from neumesh_core.scaffold import build_scaffold, ScaffoldConfig
+    from neumesh_core.reconstruct import build_scaffold, ScaffoldConfig
     mesh, report = build_scaffold(scene, ScaffoldConfig(target_vertices=200_000))
 """
 from .build import Cancelled, ScaffoldConfig, ScaffoldError, ScaffoldReport, build_scaffold
-from .metrics import chamfer_distance, rasterize_silhouette, silhouette_iou
+from .quality import chamfer_distance, rasterize_silhouette, silhouette_iou
 
 __all__ = [
     "Cancelled",

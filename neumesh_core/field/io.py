@@ -188,7 +188,7 @@ def _num_decoders(tensors: dict) -> int:
 
 def load_field(path: str, device="cpu"):
     """Load a field saved by :func:`save_field` (no code is unpickled)."""
-    from ..field.field import FieldConfig, NeuMeshField
+    from .field import FieldConfig, NeuMeshField
 
     meta, t = read_checkpoint(path)
     try:

@@ -11,10 +11,10 @@ import neumesh_core as nm
 from neumesh_core.cli import main
 
 from ..conftest import textured_field
-from .helpers import render
-from .test_fill import _grid, _spherical_corner_uvs
-from .test_io import write_obj
-from .test_swap import _other_texture, _region
+from ..edit.helpers import render
+from ..edit.test_fill import _grid, _spherical_corner_uvs
+from ..edit.test_io import write_obj
+from ..edit.test_swap import _other_texture, _region
 
 
 def _digest(path):
@@ -110,7 +110,7 @@ def test_paint_workflow_render_paint_apply(blob_mesh, tmp_path, capsys):
     shows it in that view."""
     from neumesh_core.imageio import read_image, save_image
 
-    from .helpers import camera
+    from ..edit.helpers import camera
 
     f = textured_field(blob_mesh)
     path = str(tmp_path / "f.neumesh")

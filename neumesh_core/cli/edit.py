@@ -20,7 +20,7 @@ def _load(path, device):
 
 
 def _report(record, out: str) -> None:
-    from .files import _jsonable
+    from ..edit.files import _jsonable
 
     print(file=sys.stderr)
     print(json.dumps({"op": record.op, "vertices_changed": record.num_changed, "out": out,
@@ -30,7 +30,7 @@ def _report(record, out: str) -> None:
 def _target_and_other(args, other_path):
     """Check the output path, then load the field to edit and the other field (source / template; the
     same object when ``other_path`` is empty or the field itself)."""
-    from .files import check_out_path
+    from ..edit.files import check_out_path
 
     check_out_path(args.field, args.out)   # before the work, not only when saving
     target = _load(args.field, args.device)
@@ -39,14 +39,14 @@ def _target_and_other(args, other_path):
 
 
 def _save(field, parent, record, out):
-    from .files import save_edited
+    from ..edit.files import save_edited
 
     return save_edited(field, parent, record, out_path=out)
 
 
 def cmd_swap(args) -> int:
-    from .io import read_pairs, read_region
-    from .swap import SwapConfig, swap_texture
+    from ..edit.io import read_pairs, read_region
+    from ..edit.swap import SwapConfig, swap_texture
 
     target, source = _target_and_other(args, args.source)
     region = read_region(args.region, target.num_vertices)
@@ -63,8 +63,8 @@ def cmd_swap(args) -> int:
 
 def cmd_fill(args) -> int:
     from ..errors import EditError
-    from .fill import fill_texture
-    from .io import read_region, read_uvs
+    from ..edit.fill import fill_texture
+    from ..edit.io import read_region, read_uvs
 
     target, template = _target_and_other(args, args.template)
     region = read_region(args.region, target.num_vertices)
@@ -114,8 +114,8 @@ def cmd_paint(args) -> int:
     import neumesh_core as nm
 
     from ..errors import EditError
-    from .files import check_out_path
-    from .paint import paint_layer, paint_texture
+    from ..edit.files import check_out_path
+    from ..edit.paint import paint_layer, paint_texture
 
     if not args.save_render:
         check_out_path(args.field, args.out)

@@ -5,7 +5,7 @@ import trimesh
 
 from neumesh_core.data.cameras import Cameras
 from neumesh_core.mesh import Mesh
-from neumesh_core.scaffold.metrics import chamfer_distance, rasterize_silhouette, silhouette_iou
+from neumesh_core.reconstruct.quality import chamfer_distance, rasterize_silhouette, silhouette_iou
 
 
 def _look_at(eye, target=(0, 0, 0), up=(0, 0, 1)):
@@ -95,7 +95,7 @@ def test_chamfer_distance():
 
 
 def test_mesh_cleanup_helpers():
-    from neumesh_core.scaffold.meshing import clean_mesh, keep_large_components, midpoint_subdivide
+    from neumesh_core.reconstruct.meshing import clean_mesh, keep_large_components, midpoint_subdivide
 
     s = trimesh.creation.icosphere(subdivisions=2)
     m = Mesh(s.vertices, s.faces)

@@ -15,55 +15,9 @@ import torch
 import torch.nn.functional as F
 
 from ..data.cameras import Cameras
+from ..data.views import ViewStack
 
 OUTSIDE = -1.0e4  # hull value of points that are not seen by enough views / out of the domain
-
-
-@dataclass
-class ViewStack:
-    """Per-view projection data as torch tensors (float32)."""
-
-    R: torch.Tensor  # (N,3,3) world->camera rotation
-    t: torch.Tensor  # (N,3)   world->camera translation
-    K: torch.Tensor  # (N,3,3)
-    width: int
-    height: int
-    sdf: torch.Tensor | None = None  # (N,1,H,W) signed distance to the mask boundary (pixels)
-
-    @classmethod
-    def from_cameras(cls, cams: Cameras) -> "ViewStack":
-        c2w = torch.as_tensor(cams.c2w, dtype=torch.float64)
-        R = c2w[:, :3, :3].transpose(1, 2)
-        t = -(R @ c2w[:, :3, 3:4])[..., 0]
-        return cls(R.float(), t.float(), torch.as_tensor(cams.K, dtype=torch.float32), cams.width, cams.height)
-
-    def __len__(self) -> int:
-        return len(self.R)
-
-    def project(self, pts: torch.Tensor):
-        """pts (P,3) -> u,v (N,P) pixel coordinates (pixel i spans [i, i+1)), z (N,P) depth."""
-        pc = torch.einsum("nij,pj->npi", self.R, pts) + self.t[:, None, :]
-        return _to_pixels(self.K[:, None], pc)
-
-    def project_view(self, i: int, pts: torch.Tensor):
-        """pts (...,3) -> u, v, z (...) in view ``i`` alone (same convention as :meth:`project`)."""
-        return _to_pixels(self.K[i], pts @ self.R[i].T + self.t[i])
-
-    def in_frame(self, u, v, z, margin: float = 0.0):
-        return (z > 1e-6) & (u >= -margin) & (u <= self.width + margin) & (v >= -margin) & (v <= self.height + margin)
-
-    def mean_focal(self) -> float:
-        return float(0.5 * (self.K[:, 0, 0] + self.K[:, 1, 1]).mean())
-
-
-def _to_pixels(K: torch.Tensor, pc: torch.Tensor):
-    """Camera-space points pc (...,3) -> u, v, z with intrinsics K (...,3,3) broadcast against pc."""
-    z = pc[..., 2]
-    zs = torch.where(z.abs() < 1e-8, torch.full_like(z, 1e-8), z)
-    x, y = pc[..., 0] / zs, pc[..., 1] / zs
-    u = K[..., 0, 0] * x + K[..., 0, 1] * y + K[..., 0, 2]
-    v = K[..., 1, 1] * y + K[..., 1, 2]
-    return u, v, z
 
 
 def mask_sdf(masks: np.ndarray, threshold: float = 0.5) -> np.ndarray:
@@ -221,3 +175,70 @@ def carve_hull(views: ViewStack, lo, hi, resolution: int, tolerance: int, min_vi
     vals = vals + np.float32(dilate_px)
     vals[vals < OUTSIDE / 2] = OUTSIDE
     return HullGrid(vals.astype(np.float32), lo.astype(np.float32), ext / resolutions[-1], evaluated)
+
+
+def _node_positions(flat_idx: np.ndarray, shape, lo, voxel: float) -> torch.Tensor:
+    """World positions (P,3) of grid nodes given by flat (C-order) indices into a grid of ``shape``."""
+    li = torch.from_numpy(np.asarray(flat_idx))
+    ny, nz = int(shape[1]), int(shape[2])
+    ijk = torch.stack([li // (ny * nz), (li // nz) % ny, li % nz], -1)
+    return torch.as_tensor(np.asarray(lo, np.float32)) + ijk.float() * voxel
+
+
+def keep_silhouettes(values: np.ndarray, hull_values: np.ndarray, lo: np.ndarray, voxel: float,
+                     views: ViewStack, masks: np.ndarray, threshold: float = 0.5, rounds: int = 2,
+                     chunk: int = 1 << 18) -> tuple[np.ndarray, dict]:
+    """Give back carved hull nodes where carving uncovered mask pixels.
+
+    ``values``: the hull after stereo carving (+ inside); ``hull_values``: the hull before it;
+    ``views``: the cameras of the ``masks`` (N,H,W).  Stereo is
+    least reliable at silhouettes (the window straddles the background) and a wrong depth there
+    carves the object's rim, which the field then cannot render (it has no density far from the
+    scaffold).  Every mask pixel must stay covered: the inside nodes are splatted into every view,
+    and carved nodes that project onto a mask pixel no inside node covers are restored to their hull
+    value.  Returns the new values and counts for the report.
+    """
+    N = len(views)
+    H, W = views.height, views.width
+    m = torch.from_numpy(np.asarray(masks) > threshold)
+    out = values.copy()
+    carved = np.flatnonzero(((hull_values > 0) & (values <= 0)).reshape(-1))
+    flat_hull = hull_values.reshape(-1)
+    flat_out = out.reshape(-1)
+
+    def pixels(idx):
+        u, v, z = views.project(_node_positions(idx, values.shape, lo, voxel))
+        ok = views.in_frame(u, v, z)
+        ui = u.floor().long().clamp(0, W - 1)
+        vi = v.floor().long().clamp(0, H - 1)
+        return ok, vi * W + ui
+
+    stats = {"carved_nodes": int(len(carved)), "restored_nodes": 0, "uncovered_px": []}
+    for _ in range(rounds):
+        cover = torch.zeros(N, H * W, dtype=torch.bool)
+        inside = np.flatnonzero(flat_out > 0)
+        for s in range(0, len(inside), chunk):
+            ok, pix = pixels(inside[s:s + chunk])
+            for n in range(N):
+                cover[n, pix[n][ok[n]]] = True
+        # a node covers the pixels its voxel spans: close the one-pixel gaps between node centres
+        cover = F.max_pool2d(cover.view(N, 1, H, W).float(), 3, stride=1, padding=1)[:, 0] > 0
+        cover = F.max_pool2d(1.0 - cover[:, None].float(), 3, stride=1, padding=1)[:, 0] < 0.5
+        missed = (m & ~cover).view(N, H * W)
+        stats["uncovered_px"].append(int(missed.sum()))
+        if not bool(missed.any()) or len(carved) == 0:
+            break
+        restore = np.zeros(len(carved), bool)
+        for s in range(0, len(carved), chunk):
+            ok, pix = pixels(carved[s:s + chunk])
+            hit = torch.zeros(pix.shape[1], dtype=torch.bool)
+            for n in range(N):
+                hit |= ok[n] & missed[n][pix[n]]
+            restore[s:s + chunk] = hit.numpy()
+        if not restore.any():
+            break
+        idx = carved[restore]
+        flat_out[idx] = flat_hull[idx]
+        carved = carved[~restore]
+        stats["restored_nodes"] += int(len(idx))
+    return out, stats

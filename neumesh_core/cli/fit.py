@@ -1,0 +1,48 @@
+"""`neumesh fit`: images alone -> scaffold -> trained field -> evaluation (resumable)."""
+from __future__ import annotations
+
+import os
+import sys
+
+from .common import (ProgressBar, _add_data_options, _add_device_option, _add_field_options,
+                     _add_train_options, _device, _field_config, _train_config)
+from .scaffold import add_scaffold_options
+
+
+def cmd_fit(args) -> int:
+    from ..fit import fit
+    from .scaffold import StageProgress, config_from_args
+
+    print("stage 1/3: scaffold (skipped when OUT/scaffold.ply exists)", file=sys.stderr)
+    bar = ProgressBar()
+
+    def train_cb(p):
+        if p.step == 1 or p.step % args.log_every == 0 or p.step >= p.total_steps:
+            bar(p)
+        return None
+
+    tcfg = _train_config(args, os.path.join(args.out, "field.neumesh"))
+    tcfg.log_every = 1
+    summary = fit(args.data, args.out, downscale=args.downscale, background=args.background,
+                  scaffold_config=config_from_args(args), field_config=_field_config(args), train_config=tcfg,
+                  scaffold_progress=StageProgress(), train_callback=train_cb,
+                  log=lambda m: print(m, file=sys.stderr), device=_device(args))
+    ev = summary.get("eval")
+    if ev:
+        print("stage 3/3: evaluation: " + ", ".join(f"{k} {v:.4f}" for k, v in ev.items() if k != "render_s"))
+    print(f"fit done in {summary['seconds']:.0f}s; outputs in {args.out}")
+    return 0
+
+
+def add_commands(sub) -> None:
+    p = sub.add_parser("fit", help="images alone -> scaffold -> trained field -> evaluation (resumable)",
+                       description="Build the scaffold (skipped when OUT/scaffold.ply exists), train the "
+                                   "field (resumes OUT/field.neumesh), evaluate on 'val'. Progress per stage.")
+    _add_data_options(p)
+    p.add_argument("--out", required=True, help="output folder: scaffold.ply, field.neumesh, fit.json")
+    p.add_argument("--log-every", type=int, default=25, help="steps between progress lines")
+    add_scaffold_options(p)
+    _add_field_options(p)
+    _add_train_options(p)
+    _add_device_option(p)
+    p.set_defaults(func=cmd_fit)

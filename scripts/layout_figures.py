@@ -1,0 +1,252 @@
+#!/usr/bin/env python3
+"""Layout figures of neumesh_core (issue 46): files over 400 lines, import arrows that run back up
+the layers, import circles. Pure `ast` (nothing is imported). tests/test_layers.py uses the same rules.
+
+    python scripts/layout_figures.py [--label after] [--json benchmarks/results/layout.json]
+"""
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import os
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PKG = "neumesh_core"
+
+# room -> layer (a room is a top-level module or subpackage of neumesh_core). Lower may not import higher.
+LAYERS = {
+    "errors": 0, "mesh": 0, "imageio": 0, "metrics": 0, "device": 0,
+    "data": 1,
+    "field": 2, "sampling": 2,
+    "render": 3,
+    "train": 4, "reconstruct": 4,
+    "edit": 5, "semantics": 5, "bake": 5, "evaluate": 5,
+    "fit": 6,
+    "cli": 7,
+    "": 8,  # the package root (neumesh_core/__init__.py): only cli/ may import it
+}
+# the pre-issue-46 name of reconstruct/, for the "before" figures
+OLD_ROOMS = {"scaffold": "reconstruct"}
+
+
+def modules(pkg_dir: str) -> dict[str, str]:
+    """dotted name (without the package prefix; '' for the root) -> file path"""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(pkg_dir):
+        dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
+        for fn in sorted(filenames):
+            if not fn.endswith(".py"):
+                continue
+            rel = os.path.relpath(os.path.join(dirpath, fn), pkg_dir)[:-3].replace(os.sep, ".")
+            if rel == "__init__":
+                rel = ""
+            elif rel.endswith(".__init__"):
+                rel = rel[: -len(".__init__")]
+            out[rel] = os.path.join(dirpath, fn)
+    return out
+
+
+def room_of(mod: str) -> str:
+    for old, room in OLD_ROOMS.items():
+        if mod == old or mod.startswith(old + "."):
+            return room
+    return mod.split(".")[0]
+
+
+def imports(mod: str, path: str, known: set[str]) -> list[tuple[str, int, str]]:
+    """(imported module inside the package, line, kind) for every import statement, lazy ones included.
+    kind: 'module' or 'root' (the package root itself) or 'bpy'."""
+    tree = ast.parse(open(path, encoding="utf-8").read(), path)
+    is_pkg = os.path.basename(path) == "__init__.py"
+    base = mod.split(".") if mod else []
+    if not is_pkg:
+        base = base[:-1]
+    out = []
+
+    def resolve(name: str) -> str:
+        # longest known prefix of the dotted name
+        parts = name.split(".") if name else []
+        while parts and ".".join(parts) not in known:
+            parts = parts[:-1]
+        return ".".join(parts)
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                top = a.name.split(".")[0]
+                if top == "bpy":
+                    out.append(("bpy", node.lineno, "bpy"))
+                elif top == PKG:
+                    sub = a.name[len(PKG) + 1:]
+                    out.append((resolve(sub), node.lineno, "root" if not sub else "module"))
+        elif isinstance(node, ast.ImportFrom):
+            if node.level == 0:
+                name = node.module or ""
+                top = name.split(".")[0]
+                if top == "bpy":
+                    out.append(("bpy", node.lineno, "bpy"))
+                    continue
+                if top != PKG:
+                    continue
+                sub = name[len(PKG) + 1:]
+            else:
+                anchor = base[: len(base) - (node.level - 1)] if node.level > 1 else base
+                sub = ".".join(anchor + ([node.module] if node.module else []))
+            if sub == "" and node.module is None and node.level:
+                # "from . import x" at the root, or "from .. import x": each name may be a module
+                for a in node.names:
+                    full = ".".join(filter(None, [sub, a.name]))
+                    out.append((full, node.lineno, "module") if full in known else ("", node.lineno, "root"))
+                continue
+            if sub == "":
+                out.append(("", node.lineno, "root"))
+                continue
+            for a in node.names:
+                full = sub + "." + a.name
+                out.append((full if full in known else resolve(sub), node.lineno, "module"))
+    return out
+
+
+def graph(pkg_dir: str):
+    mods = modules(pkg_dir)
+    known = set(mods)
+    edges = {}
+    for m, p in mods.items():
+        edges[m] = [(t, ln, kind) for t, ln, kind in imports(m, p, known) if t != m]
+    return mods, edges
+
+
+def upward(edges) -> list[str]:
+    bad = []
+    for m, outs in edges.items():
+        src_room = room_of(m)
+        if m == "":
+            continue  # the root re-exports everything
+        for t, ln, kind in outs:
+            if kind == "bpy":
+                continue
+            dst_room = room_of(t) if t else ""
+            if dst_room == src_room or (src_room == "cli" and dst_room == ""):
+                continue
+            if LAYERS.get(dst_room, 99) > LAYERS.get(src_room, 99):
+                line = (f"{m or PKG}:{ln} -> {t or PKG} ({src_room} {LAYERS.get(src_room)} -> "
+                           f"{dst_room or 'root'} {LAYERS.get(dst_room)})")
+                if line not in bad:
+                    bad.append(line)
+    return bad
+
+
+def _sccs(nodes, succ):
+    index, low, on, stack, out, i = {}, {}, set(), [], [], [0]
+
+    def visit(v):  # Tarjan (recursion depth is tiny here)
+        index[v] = low[v] = i[0]
+        i[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in succ.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+    for v in sorted(nodes):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def room_cycles(edges) -> list[list[str]]:
+    """import circles between rooms (subpackages / top-level modules), the package root left out"""
+    succ = {}
+    for m, outs in edges.items():
+        if m == "":
+            continue
+        a = room_of(m)
+        for t, _, kind in outs:
+            if kind == "bpy" or not t:
+                continue
+            b = room_of(t)
+            if a != b:
+                succ.setdefault(a, set()).add(b)
+    nodes = set(succ) | {b for s in succ.values() for b in s}
+    return _sccs(nodes, succ)
+
+
+def module_cycles(edges) -> list[list[str]]:
+    """import circles between modules (a package's __init__ re-exporting its own modules is no circle)"""
+    succ = {}
+    for m, outs in edges.items():
+        for t, _, kind in outs:
+            if kind == "bpy" or not t or m == "":
+                continue
+            if m and t.startswith(m + "."):
+                continue  # a package importing its own submodules
+            succ.setdefault(m, set()).add(t)
+    nodes = set(succ) | {b for s in succ.values() for b in s}
+    return _sccs(nodes, succ)
+
+
+def long_files(pkg_dir: str, limit: int = 400) -> dict[str, int]:
+    out = {}
+    for m, p in modules(pkg_dir).items():
+        n = sum(1 for _ in open(p, encoding="utf-8"))
+        if n > limit:
+            out[os.path.relpath(p, os.path.dirname(pkg_dir))] = n
+    return dict(sorted(out.items()))
+
+
+def figures(root: str = ROOT) -> dict:
+    pkg_dir = os.path.join(root, PKG)
+    mods, edges = graph(pkg_dir)
+    up = upward(edges)
+    rc, mc = room_cycles(edges), module_cycles(edges)
+    lf = long_files(pkg_dir)
+    return {"modules": len(mods), "files_over_400_lines": len(lf), "long_files": lf,
+            "upward_imports": len(up), "upward": up, "room_cycles": len(rc), "room_cycle_list": rc,
+            "module_cycles": len(mc), "module_cycle_list": mc,
+            "bpy_imports": sum(1 for outs in edges.values() for t in outs if t[2] == "bpy")}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--root", default=ROOT, help="checkout to measure (default: this one)")
+    ap.add_argument("--label", default="after", help="key in the JSON file (before/after)")
+    ap.add_argument("--json", default=None, help="merge the figures into this JSON file under --label")
+    a = ap.parse_args(argv)
+    f = figures(a.root)
+    for k in ("modules", "files_over_400_lines", "upward_imports", "room_cycles", "module_cycles", "bpy_imports"):
+        print(f"{k:22s} {f[k]}")
+    for p, n in f["long_files"].items():
+        print(f"  long: {p} {n}")
+    for u in f["upward"]:
+        print(f"  up:   {u}")
+    for c in f["room_cycle_list"] + f["module_cycle_list"]:
+        print(f"  circle: {' <-> '.join(c)}")
+    if a.json:
+        data = {}
+        if os.path.exists(a.json):
+            with open(a.json, encoding="utf-8") as fh:
+                data = json.load(fh)
+        data[a.label] = f
+        tmp = a.json + ".tmp"
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(data, fh, indent=1)
+        os.replace(tmp, a.json)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
