@@ -3,15 +3,16 @@
 Public API (see README.md): load_scene, load_mesh, create_field, train, save_field, load_field,
 render_camera, evaluate, save_image, make_default_scene; edits: swap_texture, fill_texture,
 paint_texture (nm.edit); semantics: nm.semantics; baking: bake_texture (nm.bake: decimate, save_bake);
-scaffold building: build_scaffold, ScaffoldConfig. The add-on reaches the core only through these names.
+scaffold building: build_scaffold, ScaffoldConfig; real captures: read_capture, undistorted_images,
+estimate_poses, frames_from_video; deformation: nm.deform (ArapSolver, arap). The add-on reaches the core only through these names.
 """
 from __future__ import annotations
 
 from .data.cameras import (Cameras, axis_to_ray_depth, intrinsics_from_fov, opencv_to_opengl, opengl_to_opencv,
                            pixel_rays, ray_to_axis_depth)
 from .data.scene import ImageSet, Scene
-from .errors import (CheckpointError, DataError, EditError, NeuMeshError, NoSemanticsError, SelectionError,
-                     VertexMismatchError, WeightsUnavailableError)
+from .errors import (CheckpointError, DataError, DeformError, EditError, NeuMeshError, NoSemanticsError,
+                     SelectionError, VertexMismatchError, WeightsUnavailableError)
 from .mesh import Mesh, load_mesh, save_mesh
 from .field.field import FieldConfig, NeuMeshField, create_field
 from .field.remap import field_key, remap_field, resolve_ids  # remap_field: the add-on's topology edits
@@ -29,17 +30,24 @@ from . import semantics  # noqa: E402  (nm.semantics: distill_semantics, select_
 from . import bake  # noqa: E402  (nm.bake: bake_texture, decimate, save_bake)
 from .bake import bake_texture  # noqa: E402
 from .reconstruct import ScaffoldConfig, build_scaffold  # noqa: E402
+from .data.capture import Capture, undistorted_images  # noqa: E402
+from .data.loader import read_capture  # noqa: E402
+from .reconstruct.poses import PosesConfig, PosesError, PosesProgress, PosesReport, estimate_poses  # noqa: E402
+from .reconstruct.video import frames_from_video  # noqa: E402
+from . import deform  # noqa: E402  (nm.deform: ArapSolver, arap)
 
 __version__ = "0.1.0"
 
 
 __all__ = [
     "Cameras", "ScaffoldConfig", "axis_to_ray_depth", "bake", "bake_texture", "build_scaffold", "depth_buffer",
-    "field_key", "ray_to_axis_depth", "remap_field", "resolve_ids", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "EditError", "FieldConfig", "ImageSet",
+    "field_key", "ray_to_axis_depth", "remap_field", "resolve_ids", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "DeformError", "EditError", "FieldConfig", "ImageSet",
     "Mesh", "NeuMeshError", "NeuMeshField", "NoSemanticsError", "RenderOutput", "RenderSettings", "Scene",
     "SelectionError", "TrainConfig", "TrainProgress", "TrainResult", "VertexMismatchError",
     "WeightsUnavailableError", "create_field", "default_scene_dir", "evaluate", "fill_texture",
     "intrinsics_from_fov", "load_field", "load_mesh", "load_scene", "make_default_scene", "opencv_to_opengl",
     "opengl_to_opencv", "paint_layer", "paint_texture", "pixel_rays", "read_image", "render_camera", "render_rays",
     "save_field", "save_image", "save_mesh", "swap_texture", "train",
+    "Capture", "PosesConfig", "PosesError", "PosesProgress", "PosesReport", "estimate_poses", "frames_from_video",
+    "read_capture", "undistorted_images",
 ]

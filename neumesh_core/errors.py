@@ -5,6 +5,10 @@ class NeuMeshError(Exception):
     """Base class for all errors raised deliberately by neumesh_core."""
 
 
+class Cancelled(NeuMeshError):
+    """Raised when a progress callback asked to stop (rendering, edits, undistortion, pose recovery ...)."""
+
+
 class DataError(NeuMeshError):
     """A dataset is missing files, has mismatched counts or unreadable images."""
 
@@ -32,3 +36,8 @@ class NoSemanticsError(NeuMeshError):
 
 class SelectionError(NeuMeshError):
     """A click or point does not give a region (background, outside the image, nothing similar)."""
+
+
+class DeformError(NeuMeshError, ValueError):
+    """A deformation cannot be set up with the given input (empty or overlapping anchor/handle sets,
+    vertex indices out of range, target positions of the wrong shape).  Nothing was changed."""

@@ -21,7 +21,7 @@ LAYERS = {
     "data": 1,
     "field": 2, "sampling": 2,
     "render": 3,
-    "train": 4, "reconstruct": 4,
+    "train": 4, "reconstruct": 4, "deform": 4,
     "edit": 5, "semantics": 5, "bake": 5, "evaluate": 5,
     "fit": 6,
     "cli": 7,

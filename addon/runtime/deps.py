@@ -35,9 +35,11 @@ DEPENDENCIES = (
     ("sklearn", "scikit-learn", False, "scikit-learn", ("semantics", "select")),   # PCA, DBSCAN
     ("skimage", "scikit-image", False, "scikit-image", ("semantics", "scaffold")),  # superpixels, marching cubes
     ("xatlas", "xatlas", False, "xatlas", ("bake",)),                              # UV atlas
+    ("pycolmap", "pycolmap", False, "pycolmap>=4", ("capture",)),                   # COLMAP folders, poses from photos
+    ("cv2", "opencv-python-headless", False, "opencv-python-headless<4.12", ("capture",)),  # undistortion, video
 )
 FEATURES = {"scaffold": "Build scaffold", "semantics": "Distil semantics", "select": "Select by click",
-            "edit": "Texture edits", "bake": "Bake to material"}
+            "edit": "Texture edits", "bake": "Bake to material", "capture": "Real captures (COLMAP, video)"}
 
 
 def numpy_requirement(blender_version=None) -> str:

@@ -1,4 +1,4 @@
-"""`neumesh` command line: train, render, eval, demo, bake, scaffold, edit, semantics, fit.
+"""`neumesh` command line: train, render, eval, demo, bake, scaffold, edit, semantics, fit, poses.
 
 One module per command (or group); shared option groups and helpers in :mod:`.common`. The only place in
 neumesh_core that imports the package root (``import neumesh_core as nm``).
@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import bake, demo, edit, fit, render, scaffold, semantics, train
+from . import bake, demo, edit, fit, poses, render, scaffold, semantics, train
 from . import eval as eval_cmd
 from .common import ProgressBar, turntable_cameras  # noqa: F401  (public: benchmarks and scripts use them)
 
@@ -17,7 +17,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="neumesh", description="NeuMesh++ editable neural radiance fields "
                                  "on mesh scaffolds (CPU-first).")
     sub = ap.add_subparsers(dest="command", required=True)
-    for mod in (train, render, eval_cmd, demo, bake, scaffold, edit, semantics, fit):  # order of `--help`
+    for mod in (train, render, eval_cmd, demo, bake, scaffold, edit, semantics, fit, poses):  # order of `--help`
         mod.add_commands(sub)
     return ap
 

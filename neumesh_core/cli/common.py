@@ -82,10 +82,12 @@ def _add_train_options(ap):
 def _add_data_options(ap, required=True):
     g = ap.add_argument_group("data")
     g.add_argument("--data", required=required,
-                   help="dataset folder: NeRF-synthetic/Blender (transforms_*.json) or NeuS/DTU "
-                        "(cameras_sphere.npz + image(s)/ + mask/)")
-    g.add_argument("--downscale", type=float, default=1,
-                   help="image downscale factor (2 = half resolution); cameras are scaled to match")
+                   help="dataset folder: NeRF-synthetic/Blender (transforms_*.json), NeuS/DTU "
+                        "(cameras_sphere.npz + image(s)/ + mask/), instant-ngp/nerfstudio (transforms.json) "
+                        "or COLMAP (sparse/0 + images/; `neumesh poses` makes one from photos)")
+    g.add_argument("--downscale", type=float, default=None,
+                   help="image downscale factor (2 = half resolution); cameras are scaled to match. Default 1, "
+                        "except photos over 1600 px, which are reduced to at most 1600 (said when loading)")
     g.add_argument("--background", choices=["white", "black"], default="white",
                    help="background colour that Blender-format RGBA images are composited on")
 

@@ -13,6 +13,10 @@ id    name    shape                                             texture (albedo)
 3     base    rounded slab the body sits in                     green with pale diagonal stripes
 ====  ======  ================================================  =========================================
 
+The **same-colour** variant (``make_multipart_scene(..., same_colour=True)``) gives every part the arm's
+texture (yellow with dark dots, like a toy moulded in one plastic): the parts then differ in shape only,
+which is what the geometric selection features (:mod:`neumesh_core.semantics.geometry`) must see.
+
 Images are sphere-traced (exact distance bounds, so no surface is skipped) with 4 jittered samples
 per pixel and shaded like the blob scene (ambient + Lambert + Blinn-Phong); the mesh is marching cubes
 of the united distance field (``mesh.ply``), and ``part_labels.npy`` holds each mesh vertex's part.
@@ -83,8 +87,13 @@ def normals(x: torch.Tensor, eps: float = 1e-5) -> torch.Tensor:
     return g / g.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-def albedo(x: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
-    """(N,3) albedo of surface points of the given parts."""
+SHARED_TEXTURE_PART = 2   # the same-colour variant paints every part like the arm
+
+
+def albedo(x: torch.Tensor, part: torch.Tensor, same_colour: bool = False) -> torch.Tensor:
+    """(N,3) albedo of surface points of the given parts (``same_colour``: the arm's texture on all)."""
+    if same_colour:
+        part = torch.full_like(part, SHARED_TEXTURE_PART)
     x = x.to(torch.float64)
     col = torch.zeros(len(x), 3, dtype=torch.float64)
     c = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
@@ -163,8 +172,9 @@ def _pixel_dirs(K, c2w, width, height, off):
     return torch.as_tensor(c2w[:3, 3]).expand_as(d), d
 
 
-def render(K, c2w, width: int, height: int, spp: int = 4, seed: int = 0):
-    """Un-premultiplied colour (H,W,3) and coverage alpha (H,W) of one OpenCV camera, float32."""
+def render(K, c2w, width: int, height: int, spp: int = 4, seed: int = 0, same_colour: bool = False):
+    """Un-premultiplied colour (H,W,3) and coverage alpha (H,W) of one OpenCV camera, float32
+    (``same_colour``: one texture on every part)."""
     off = _sample_offsets(width, height, spp, seed)
     o, d = _pixel_dirs(K, c2w, width, height, off)
     hit, t = trace(o, d)
@@ -172,7 +182,7 @@ def render(K, c2w, width: int, height: int, spp: int = 4, seed: int = 0):
     if hit.any():
         p = o[hit] + t[hit, None] * d[hit]
         n = normals(p)
-        alb = albedo(p, part_distances(p).argmin(-1))
+        alb = albedo(p, part_distances(p).argmin(-1), same_colour)
         light = torch.as_tensor(LIGHT_DIR, dtype=torch.float64)
         ndl = (n @ light).clamp_min(0.0)
         hv = light[None] - d[hit]
@@ -213,10 +223,10 @@ def multipart_mesh(grid: int = 56) -> tuple:
 
 def make_multipart_scene(out_dir: str, resolution: int = 96, n_train: int = 40, n_val: int = 6,
                          n_test: int = 6, grid: int = 72, seed: int = 0,
-                         camera_angle_x: float = CAMERA_ANGLE_X) -> str:
+                         camera_angle_x: float = CAMERA_ANGLE_X, same_colour: bool = False) -> str:
     """Write the multi-part scene in NeRF-synthetic format plus ``mesh.ply``, ``part_labels.npy``
     (per mesh vertex) and ``scene.json`` (written last).  Deterministic.  ``SMALL_KWARGS`` is the
-    quick test variant."""
+    quick test variant; ``same_colour`` paints every part with one texture (the labels are the same)."""
     from ..imageio import save_image
 
     out_dir = os.fspath(out_dir)
@@ -232,7 +242,8 @@ def make_multipart_scene(out_dir: str, resolution: int = 96, n_train: int = 40, 
         frames = []
         for i, c in enumerate(centres):
             c2w = look_at_opencv(c + CENTER, CENTER)
-            rgb, alpha = render(K, c2w, resolution, resolution, seed=seed * 100_003 + 10_000 * s_i + i)
+            rgb, alpha = render(K, c2w, resolution, resolution, seed=seed * 100_003 + 10_000 * s_i + i,
+                                same_colour=same_colour)
             save_image(os.path.join(out_dir, split, f"r_{i}.png"), np.concatenate([rgb, alpha[..., None]], -1))
             frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": (c2w @ gl_flip).tolist()})
         with open(os.path.join(out_dir, f"transforms_{split}.json"), "w", encoding="utf-8") as fh:
@@ -240,10 +251,10 @@ def make_multipart_scene(out_dir: str, resolution: int = 96, n_train: int = 40, 
     mesh, labels = multipart_mesh(grid)
     save_mesh(mesh, os.path.join(out_dir, "mesh.ply"))
     np.save(os.path.join(out_dir, "part_labels.npy"), labels)
-    desc = {"name": "neumesh multi-part scene", "parts": list(PART_NAMES),
+    desc = {"name": "neumesh multi-part scene" + (" (same colour)" if same_colour else ""), "parts": list(PART_NAMES),
             "generator": "neumesh_core.data.multipart.make_multipart_scene",
             "params": {"resolution": resolution, "n_train": n_train, "n_val": n_val, "n_test": n_test,
-                       "grid": grid, "seed": seed},
+                       "grid": grid, "seed": seed, "same_colour": bool(same_colour)},
             "mesh": {"file": "mesh.ply", "vertices": int(mesh.num_vertices), "labels": "part_labels.npy"}}
     with open(os.path.join(out_dir, "scene.json"), "w", encoding="utf-8") as fh:
         json.dump(desc, fh, indent=1)

@@ -60,9 +60,16 @@ class Scene:
     background: Optional[tuple] = None
     bbox: Optional[np.ndarray] = None
     source: str = ""
-    kind: str = ""  # "blender" | "dtu"
+    kind: str = ""  # "blender" | "dtu" | "transforms" | "colmap"
     mesh_path: Optional[str] = None
     notes: list = field(default_factory=list)  # reader remarks (e.g. "no masks found")
+    capture: Optional[object] = None  # data.capture.Capture for real captures: raw rig, sparse points, aabb_scale
+
+    @property
+    def has_masks(self) -> bool:
+        """True when every split has masks (object silhouettes). Real captures usually have none:
+        training then fits the whole image (background included); see scene.notes."""
+        return all(s.masks is not None for s in self.splits.values())
 
     def split(self, name: str) -> ImageSet:
         if name not in self.splits:

@@ -12,6 +12,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from ..deform.rotations import polar_rotations, polar_rotations_reference  # noqa: F401  (re-exported)
 from ..errors import EditError
 
 
@@ -198,87 +199,6 @@ class NonRigidResult:
     residuals: list = dc_field(default_factory=list)  # per iteration
 
 
-def _incidence(n: int, edges: np.ndarray):
-    """Sparse (n,E) matrices: ``both`` has 1 at both ends of every edge, ``signed`` +1 at the first end
-    and -1 at the second (so ``signed @ r`` sums r over a vertex's edges with the edge's sign)."""
-    import scipy.sparse as sp
-
-    E = len(edges)
-    rows = np.concatenate([edges[:, 0], edges[:, 1]])
-    cols = np.concatenate([np.arange(E), np.arange(E)])
-    both = sp.csr_matrix((np.ones(2 * E), (rows, cols)), shape=(n, E))
-    signed = sp.csr_matrix((np.concatenate([np.ones(E), -np.ones(E)]), (rows, cols)), shape=(n, E))
-    return both, signed
-
-
-def _local_rotations(rest: np.ndarray, cur: np.ndarray, edges: np.ndarray, both=None) -> np.ndarray:
-    """ARAP local step: per vertex the rotation best mapping its rest edge vectors to the current ones
-    (the rotation of the polar decomposition of sum_e e1 e0^T over the vertex's edges)."""
-    n = len(rest)
-    i, j = edges[:, 0], edges[:, 1]
-    e0 = rest[j] - rest[i]
-    e1 = cur[j] - cur[i]
-    outer = (e1[:, :, None] * e0[:, None, :]).reshape(-1, 9)       # (E,9)
-    if both is None:
-        both, _ = _incidence(n, edges)
-    S = np.asarray(both @ outer).reshape(n, 3, 3)
-    return polar_rotations(S)
-
-
-def polar_rotations_reference(S: np.ndarray) -> np.ndarray:
-    """(n,3,3) proper rotations nearest to the (n,3,3) matrices ``S``: U diag(1,1,det(U V^T)) V^T from a
-    batched SVD (the rotation factor of the polar decomposition; identity for a zero matrix).  The plain
-    reference of :func:`polar_rotations`."""
-    U, _, Vt = np.linalg.svd(np.asarray(S, np.float64))
-    det = np.linalg.det(U @ Vt)
-    U[:, :, 2] *= np.where(det < 0, -1.0, 1.0)[:, None]
-    R = U @ Vt
-    bad = ~np.isfinite(R).all(axis=(1, 2))
-    R[bad] = np.eye(3)
-    return R
-
-
-def polar_rotations(S: np.ndarray) -> np.ndarray:
-    """The rotations of :func:`polar_rotations_reference` (the proper rotation R maximising
-    tr(R^T S)) by Horn's quaternion method: the eigenvector of the largest eigenvalue of a symmetric
-    4x4 matrix per input, one batched ``eigh`` (1.6x faster than the batched 3x3 SVD at 50k
-    matrices; the ARAP step calls it every iteration).  Where the maximiser is not unique (rank <= 1,
-    e.g. a zero matrix) any maximiser may come back; a zero matrix gives the identity."""
-    M = np.asarray(S, np.float64)
-    n = len(M)
-    Sxx, Sxy, Sxz = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
-    Syx, Syy, Syz = M[:, 1, 0], M[:, 1, 1], M[:, 1, 2]
-    Szx, Szy, Szz = M[:, 2, 0], M[:, 2, 1], M[:, 2, 2]
-    N = np.empty((n, 4, 4))
-    N[:, 0, 0] = Sxx + Syy + Szz
-    N[:, 1, 1] = Sxx - Syy - Szz
-    N[:, 2, 2] = -Sxx + Syy - Szz
-    N[:, 3, 3] = -Sxx - Syy + Szz
-    N[:, 0, 1] = N[:, 1, 0] = Szy - Syz
-    N[:, 0, 2] = N[:, 2, 0] = Sxz - Szx
-    N[:, 0, 3] = N[:, 3, 0] = Syx - Sxy
-    N[:, 1, 2] = N[:, 2, 1] = Sxy + Syx
-    N[:, 1, 3] = N[:, 3, 1] = Sxz + Szx
-    N[:, 2, 3] = N[:, 3, 2] = Syz + Szy
-    bad = ~np.isfinite(N).all(axis=(1, 2))
-    N[bad] = 0.0
-    _, V = np.linalg.eigh(N)
-    w, x, y, z = V[:, 0, -1], V[:, 1, -1], V[:, 2, -1], V[:, 3, -1]
-    R = np.empty((n, 3, 3))
-    R[:, 0, 0] = w * w + x * x - y * y - z * z
-    R[:, 0, 1] = 2 * (x * y - w * z)
-    R[:, 0, 2] = 2 * (x * z + w * y)
-    R[:, 1, 0] = 2 * (x * y + w * z)
-    R[:, 1, 1] = w * w - x * x + y * y - z * z
-    R[:, 1, 2] = 2 * (y * z - w * x)
-    R[:, 2, 0] = 2 * (x * z - w * y)
-    R[:, 2, 1] = 2 * (y * z + w * x)
-    R[:, 2, 2] = w * w - x * x - y * y + z * z
-    zero = bad | (np.abs(M).reshape(n, 9).max(1) == 0)
-    R[zero] = np.eye(3)
-    return R
-
-
 def arap_icp(src_points: np.ndarray, src_edges: np.ndarray, dst_points: np.ndarray,
              iterations: int = 12, stiffness=(10.0, 3.0, 1.0), max_distance: Optional[float] = None,
              tree=None, progress: Optional[Callable[[float], bool]] = None) -> NonRigidResult:
@@ -291,7 +211,8 @@ def arap_icp(src_points: np.ndarray, src_edges: np.ndarray, dst_points: np.ndarr
         min_X  sum_i |x_i - c_i|^2 + lam * sum_(i,j) |(x_i - x_j) - (R_i + R_j)/2 (p_i - p_j)|^2
 
     (p the aligned rest positions, R_i the ARAP local rotations of the current estimate), alternating
-    the local rotations and the global solve.  A vertex whose closest target point is farther than
+    the local rotations and the global solve (the ARAP pieces of :class:`neumesh_core.deform.ArapTerms`,
+    uniform weights).  A vertex whose closest target point is farther than
     ``max_distance`` has no counterpart: its data target is its current position instead (it follows
     its neighbours through the ARAP term), so the system matrix depends on ``lam`` alone and is
     factorised once per stiffness (scipy sparse LU).  ``stiffness`` lam runs from stiff to flexible
@@ -301,6 +222,8 @@ def arap_icp(src_points: np.ndarray, src_edges: np.ndarray, dst_points: np.ndarr
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
+    from ..deform.arap import ArapTerms
+
     p = np.asarray(src_points, np.float64)
     dst = np.asarray(dst_points, np.float64)
     edges = np.asarray(src_edges, np.int64).reshape(-1, 2)
@@ -309,15 +232,12 @@ def arap_icp(src_points: np.ndarray, src_edges: np.ndarray, dst_points: np.ndarr
     if len(edges) == 0 or iterations <= 0:
         d, _ = _query(tree, p)
         return NonRigidResult(p.copy(), float(d.mean()), [float(d.mean())])
-    both, signed = _incidence(n, edges)
-    BBt = (both @ both.T).tocsr()              # degree on the diagonal, 1 per edge off it
-    L = sp.diags(2.0 * BBt.diagonal()) - BBt    # graph Laplacian D - A (uniform weights)
+    terms = ArapTerms(p, edges)                 # uniform weights: L = D - A, the ARAP local/global pieces
     unit = float(np.linalg.norm(p[edges[:, 0]] - p[edges[:, 1]], axis=1).mean())
     x = p.copy()
     residuals = []
     lams = list(stiffness) + [stiffness[-1]] * max(0, iterations - len(stiffness))
     solvers = {}
-    e_rest = p[edges[:, 0]] - p[edges[:, 1]]
     for it in range(iterations):
         d, idx = _query(tree, x)
         residuals.append(float(d.mean()))
@@ -326,13 +246,11 @@ def arap_icp(src_points: np.ndarray, src_edges: np.ndarray, dst_points: np.ndarr
             far = d > max_distance
             c[far] = x[far]
         lam = lams[it]
-        R = _local_rotations(p, x, edges, both)
-        Rm = 0.5 * (R[edges[:, 0]] + R[edges[:, 1]])
-        b = np.asarray(signed @ np.einsum("eab,eb->ea", Rm, e_rest))
+        b = terms.rhs(terms.rotations(x))
         if lam not in solvers:
-            solvers[lam] = splu((sp.identity(n) + lam * L).tocsc())
+            solvers[lam] = splu((sp.identity(n) + lam * terms.laplacian).tocsc())
         rhs = c + lam * b
-        x_new = np.stack([solvers[lam].solve(np.ascontiguousarray(rhs[:, k])) for k in range(3)], 1)
+        x_new = solvers[lam].solve(np.ascontiguousarray(rhs))
         moved = float(np.abs(x_new - x).max())
         x = x_new
         if progress is not None and progress((it + 1) / iterations) is False:

@@ -38,18 +38,30 @@ def knn_radius_reference(points: torch.Tensor, verts: torch.Tensor, k: int, radi
     return torch.cat(idx_out), torch.cat(dist_out)
 
 
+def kd_tree(points: np.ndarray):
+    """A KD-tree over (N,3) points with pykdtree's ``query(p, k=, distance_upper_bound=)``: pykdtree's
+    (multi-threaded C), or scipy's cKDTree where pykdtree is not installed (e.g. a GPU machine that
+    renders with the hash grid or the Triton kernels and needs a tree only for rare set-up queries).
+    Both report a missing neighbour as index N and distance inf."""
+    try:
+        from pykdtree.kdtree import KDTree
+    except ImportError:   # pragma: no cover - pykdtree is a dependency; scipy covers its absence
+        from scipy.spatial import cKDTree
+
+        return cKDTree(points, leafsize=16)
+    return KDTree(points, leafsize=16)
+
+
 class VertexIndex:
     """KD-tree over scaffold vertices; rebuilt cheaply (~30 ms for 300k) when vertices move."""
 
     def __init__(self, vertices, k: int = 4, radius: float = float("inf")):
-        from pykdtree.kdtree import KDTree
-
         v = vertices.detach().cpu().numpy() if torch.is_tensor(vertices) else np.asarray(vertices)
         self._v = np.ascontiguousarray(v, dtype=np.float32)
         self.n = len(self._v)
         self.k = int(k)
         self.radius = float(radius)
-        self._tree = KDTree(self._v, leafsize=16)
+        self._tree = kd_tree(self._v)
 
     def query(self, points: torch.Tensor):
         """points (M,3) float tensor -> (idx (M,K) long, dist (M,K) float32) on points' device."""
@@ -60,7 +72,7 @@ class VertexIndex:
                     torch.empty(0, self.k, device=device))
         kk = min(self.k, self.n)
         ub = self.radius if np.isfinite(self.radius) else None
-        dist, idx = self._tree.query(p, k=kk, distance_upper_bound=ub)
+        dist, idx = self._tree.query(p, k=kk, **({} if ub is None else {"distance_upper_bound": ub}))
         dist = np.asarray(dist, dtype=np.float32).reshape(len(p), kk)
         idx = np.asarray(idx).reshape(len(p), kk).astype(np.int64)
         missing = idx >= self.n
@@ -189,10 +201,8 @@ def make_index(vertices, k: int, radius: float, backend: str = "kdtree"):
 
 def vertex_neighbours(vertices, k: int) -> np.ndarray:
     """(N,k) indices of each vertex's k nearest *other* vertices (for the TV loss)."""
-    from pykdtree.kdtree import KDTree
-
     v = np.ascontiguousarray(np.asarray(vertices), dtype=np.float32)
     kk = min(k + 1, len(v))
-    _, idx = KDTree(v, leafsize=16).query(v, k=kk)
+    _, idx = kd_tree(v).query(v, k=kk)
     idx = np.asarray(idx).reshape(len(v), kk)
     return idx[:, 1:].astype(np.int64)

@@ -8,13 +8,9 @@ import numpy as np
 import torch
 
 from ..data.cameras import pixel_rays
-from ..errors import NeuMeshError
+from ..errors import Cancelled, NeuMeshError  # noqa: F401  (Cancelled: nm.Cancelled, lives in errors)
 from ..sampling.marcher import march_rays
 from .volume import composite, render_weights
-
-
-class Cancelled(NeuMeshError):
-    """Raised when a progress callback asked to stop."""
 
 
 @dataclass
@@ -34,8 +30,14 @@ class RenderSettings:
     # the same sample positions are evaluated, so the image is the same
     skip_empty: bool = True
     empty_tile: int = 8
+    # which renderer marches and decodes: "auto" (the fused Triton kernel on CUDA when triton imports and
+    # the field is covered, render/fused_triton.py; the torch path otherwise, the CPU included),
+    # "torch" (the reference) or "triton" (the kernel, an error where it cannot run)
+    backend: str = "auto"
 
     def __post_init__(self):
+        if self.backend not in ("auto", "torch", "triton"):
+            raise ValueError(f"backend must be 'auto', 'torch' or 'triton', not {self.backend!r}")
         if int(self.supersample) != self.supersample or self.supersample < 1:
             raise ValueError(f"supersample must be a whole number >= 1, got {self.supersample}")
 
@@ -86,6 +88,9 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
     settings = settings or RenderSettings()
     fl = _as_list(fields)
     n = origins.shape[0]
+    if settings.backend != "torch" and _fused(settings, fl, origins.device, train, jitter, vertex_ids, semantics):
+        return _render_fused(fl[0], origins, dirs, background, settings, far,
+                             None if ranges is None else ranges[0])
     t_far = float("inf") if far is None else far.to(origins.device, torch.float32)
     sem_width = _semantic_width(fl) if semantics else 0
     parts = []
@@ -144,6 +149,34 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
             out["sem"] = c["sem"]
     if vertex_ids:
         out["vertex_ids"] = touched
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)
+        out["rgb"] = out["rgb"] + (1.0 - out["opacity"])[:, None] * bg
+    return out
+
+
+def _fused(settings, fl, device, train, jitter, vertex_ids, semantics) -> bool:
+    if settings.backend == "auto" and torch.device(device).type != "cuda":
+        return False   # the CPU's default: the torch path (triton is not even imported)
+    from .fused_triton import use_triton
+
+    return use_triton(settings, fl, device, train=train, jitter=jitter, vertex_ids=vertex_ids,
+                      semantics=semantics)
+
+
+def _render_fused(field, origins, dirs, background, settings, far, ranges) -> dict:
+    """:func:`render_rays` through the fused Triton kernel (render/fused_triton.py): the same near/far
+    limits as the torch path, the same outputs."""
+    from .fused_triton import render_rays_fused
+
+    near_f = settings.near
+    far_f = float("inf") if far is None else far.to(origins.device, torch.float32)
+    if ranges is not None:
+        r_near, r_far = (x.to(origins.device) for x in ranges)
+        near_f = r_near.clamp_min(settings.near)
+        far_f = torch.minimum(r_far, far_f) if torch.is_tensor(far_f) else r_far.clamp_max(far_f)
+    out = render_rays_fused(field, origins, dirs, settings, default_step(field, settings), near=near_f, far=far_f)
+    out["n_samples"] = int(out["n_samples"].sum())
     if background is not None:
         bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)
         out["rgb"] = out["rgb"] + (1.0 - out["opacity"])[:, None] * bg
@@ -262,11 +295,13 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     # and a pixel sensor apply); S == 1 is the single ray through the centre
     ss = int(settings.supersample)
     offsets = [((i + 0.5) / ss, (j + 0.5) / ss) for j in range(ss) for i in range(ss)]
-    rgb = torch.zeros(n, 3)      # premultiplied; the background is added once at the end
-    opac = torch.zeros(n)
-    depth_w = torch.full((n,), float("inf")) if ss == 1 else torch.zeros(n)   # ss > 1: opacity-weighted
-    mod = torch.zeros(n, 3)
-    sem = torch.zeros(n, _semantic_width(fl)) if semantics else None
+    # the image is assembled on the fields' device and copied to the host once (on a GPU: no copy and
+    # no host-side scatter per batch)
+    rgb = torch.zeros(n, 3, device=device)      # premultiplied; the background is added once at the end
+    opac = torch.zeros(n, device=device)
+    depth_w = torch.full((n,), float("inf"), device=device) if ss == 1 else torch.zeros(n, device=device)
+    mod = torch.zeros(n, 3, device=device)
+    sem = torch.zeros(n, _semantic_width(fl), device=device) if semantics else None
     n_samples = 0
     far_t = None if far is None else torch.as_tensor(np.asarray(far, np.float32).reshape(-1)).to(device)
     if far_t is not None and far_t.numel() != n:
@@ -288,7 +323,6 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     chunk = chunk_size(settings, device)
     total = max(1, len(offsets) * m)
     far_m = far_t if pixels is None or far_t is None else far_t[pixels]
-    pix_cpu = None if pixels is None else pixels.cpu()
     pix_xy = None if pixels is None else torch.stack([pixels % width, pixels // width], -1)
     with torch.no_grad():
         for k, off in enumerate(offsets):
@@ -299,17 +333,17 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
                                   semantics=semantics, far=None if far_m is None else far_m[s:e],
                                   ranges=None if ranges is None else
                                   [None if r is None else (r[0][s:e], r[1][s:e]) for r in ranges])
-                rows = slice(s, e) if pix_cpu is None else pix_cpu[s:e]
-                op = out["opacity"].cpu()
-                rgb[rows] += out["rgb"].cpu()
+                rows = slice(s, e) if pixels is None else pixels[s:e]
+                op = out["opacity"]
+                rgb[rows] += out["rgb"]
                 opac[rows] += op
                 if ss == 1:
-                    depth_w[rows] = out["depth"].cpu()
+                    depth_w[rows] = out["depth"]
                 else:
-                    depth_w[rows] += torch.where(op > 1e-6, out["depth"].cpu() * op, torch.zeros_like(op))
-                mod[rows] += out["mod_rgb"].cpu()
+                    depth_w[rows] += torch.where(op > 1e-6, out["depth"] * op, torch.zeros_like(op))
+                mod[rows] += out["mod_rgb"]
                 if sem is not None:
-                    sem[rows] += out["sem"].cpu()
+                    sem[rows] += out["sem"]
                 n_samples += out["n_samples"]
                 if progress is not None and progress((k * m + e) / total) is False:
                     raise Cancelled("rendering cancelled")
@@ -321,9 +355,10 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
         depth = torch.where(opac > 1e-6, depth_w / opac.clamp_min(1e-12), torch.full_like(opac, float("inf")))
     inv = 1.0 / len(offsets)
     if background is not None:
-        bg = torch.as_tensor(background, dtype=torch.float32)
+        bg = torch.as_tensor(background, dtype=torch.float32, device=device)
         rgb = rgb + (len(offsets) - opac)[:, None] * bg
-    return RenderOutput((rgb * inv).view(height, width, 3).numpy(), (opac * inv).view(height, width).numpy(),
-                        depth.view(height, width).numpy(), (mod * inv).view(height, width, 3).numpy(),
+    rgb, opac, depth, mod = ((rgb * inv).cpu(), (opac * inv).cpu(), depth.cpu(), (mod * inv).cpu())
+    return RenderOutput(rgb.view(height, width, 3).numpy(), opac.view(height, width).numpy(),
+                        depth.view(height, width).numpy(), mod.view(height, width, 3).numpy(),
                         n_samples, time.perf_counter() - t0,
-                        None if sem is None else (sem * inv).view(height, width, -1).numpy())
+                        None if sem is None else (sem * inv).cpu().view(height, width, -1).numpy())

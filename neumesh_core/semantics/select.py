@@ -11,13 +11,20 @@
    holds the click's own seeds (else the largest) gives the region's mean feature.
 4. Region growing over the mesh: starting from the seeds in that cluster, add neighbouring vertices
    (mesh edges, and vertices within ``spatial_radius`` so that parts that touch without sharing edges
-   join) whose feature has a cosine similarity >= ``threshold`` with the mean, until nothing is added.
+   join; never across a concave crease) whose combined similarity is >= ``threshold``, until nothing
+   is added.  The combined similarity is ``(1 - geometry) * semantic + geometry * geometric``: the
+   cosine similarity of the vertex's semantic feature with the cluster's mean (or, where larger, a
+   Gaussian of their distance in the extractor's units, ``semantic_tolerance``), and the similarity of
+   its geometric heat-embedding vector (:mod:`.geometry`: about 1 inside a part, 0 across a concave
+   crease) with the clicked vertex's.  ``geometry = 0, creases = False, semantic_tolerance = 0`` is the
+   semantic-only selection of earlier versions.
    That fixed point is the union of the connected components, in the graph restricted to similar
    vertices, that hold a seed; it is computed that way (scipy's connected components), which gives the
    same set as growing step by step, at once.
 
 A :class:`SelectionContext` caches the vertex features and the neighbour graph of one field pose, so
-re-running the growth with another threshold (the add-on's redo slider) costs milliseconds.
+re-running the growth with another threshold (the add-on's redo slider) costs milliseconds; the
+geometric features are computed once per scaffold (:func:`.geometry.geometric_features`).
 """
 from __future__ import annotations
 
@@ -29,6 +36,7 @@ import numpy as np
 import torch
 
 from ..errors import SelectionError
+from .geometry import GeometryConfig, GeometryUnavailable, geometric_features, signed_bend
 
 
 @dataclass
@@ -46,12 +54,21 @@ class SelectConfig:
     spatial_k: int = 8             # at most this many spatial neighbours per vertex
     min_opacity: float = 0.5       # a click whose ray is less opaque hit the background
     seed: int = 0
+    geometry: float = 0.5          # weight of the geometric similarity (0: semantic features only)
+    semantic_tolerance: float = 1.0   # features closer than this (extractor units) are alike (0: cosine only)
+    creases: bool = True           # never grow across a concave crease (bend beyond the crease angle)
+    geometry_config: GeometryConfig = dc_field(default_factory=GeometryConfig)   # read from the
+    #                                  SelectionContext's config (the features are computed once for it)
 
     def __post_init__(self) -> None:
         if not -1.0 <= self.threshold <= 1.0:
             raise ValueError(f"threshold is a cosine similarity in [-1, 1], not {self.threshold}")
         if self.seed_vertices < 1 or self.dbscan_min_samples < 1 or self.spatial_k < 0:
             raise ValueError("seed_vertices and dbscan_min_samples must be positive, spatial_k >= 0")
+        if not 0.0 <= self.geometry <= 1.0:
+            raise ValueError(f"geometry is a weight in [0, 1], not {self.geometry}")
+        if self.semantic_tolerance < 0:
+            raise ValueError(f"semantic_tolerance is a distance (>= 0), not {self.semantic_tolerance}")
 
 
 @dataclass
@@ -67,17 +84,28 @@ class Selection:
 
 
 class SelectionContext:
-    """Vertex features (unit length) and the region-growing graph of ``field`` in its current pose."""
+    """Vertex features (unit length), geometric features and the region-growing graph of ``field`` in
+    its current pose.  ``geometry_cache``: a folder for the geometric features' cache file (they are
+    kept in memory per scaffold in any case)."""
 
-    def __init__(self, field, config: Optional[SelectConfig] = None):
+    def __init__(self, field, config: Optional[SelectConfig] = None, geometry_cache: Optional[str] = None):
         field._require_semantics()
         self.field = field
         self.config = config or SelectConfig()
+        self.geometry_cache = geometry_cache
         self.vertices = np.asarray(field.vertices, np.float32)
         feats = field.vertex_semantics().float()
         self.features = torch.nn.functional.normalize(feats, dim=-1).cpu().numpy()
+        # the distilled features were centred and divided by this scale: times it they are in the
+        # extractor's own units again, where a distance means the same in every scene
+        scale = (getattr(field, "semantics_info", None) or {}).get("targets", {}).get("target_scale")
+        self.raw_features = feats.cpu().numpy() * float(scale) if scale else None
         self._graph = None
+        self._cut_graph = None
         self._tree = None
+        self._geometry = None
+        self._geo_embedding = None
+        self.geometry_error: Optional[str] = None
 
     def matches(self, field) -> bool:
         """Still valid for ``field`` (same object, same pose)?"""
@@ -88,7 +116,47 @@ class SelectionContext:
         click); the add-on calls this in a background thread while the artist moves to the click."""
         self.tree
         self.graph
+        if self.config.geometry > 0 or self.config.creases:
+            self.geometry
+            if self.config.creases:
+                self.cut_graph
         return self
+
+    @property
+    def geometry(self):
+        """The scaffold's :class:`~.geometry.GeometricFeatures` (None when a library they need is missing:
+        ``geometry_error`` says which; selection then uses the semantic features alone)."""
+        if self._geometry is None and self.geometry_error is None:
+            try:
+                self._geometry = geometric_features(self.field, self.config.geometry_config, self.geometry_cache)
+                self._geo_embedding = self._geometry.vertex_embedding()
+            except GeometryUnavailable as exc:
+                self.geometry_error = str(exc)
+        return self._geometry
+
+    @property
+    def geo_embedding(self) -> Optional[np.ndarray]:
+        """(N,k) unit heat-embedding vector per vertex (None without geometric features)."""
+        return self._geo_embedding if self.geometry is not None else None
+
+    @property
+    def cut_graph(self):
+        """:attr:`graph` without the edges across a concave crease (bend, in the rest pose, beyond the
+        crease angle); :attr:`graph` itself when the geometric features are unavailable."""
+        if self._cut_graph is None:
+            geo = self.geometry
+            if geo is None:
+                return self.graph
+            import scipy.sparse as sp
+
+            a = sp.triu(self.graph, k=1).tocoo()
+            rest = self.field.rest_vertices.detach().cpu().numpy()
+            bend = signed_bend(rest, geo.normals, a.row, a.col)
+            keep = bend >= -np.deg2rad(geo.config.crease_angle)
+            n = len(self.vertices)
+            c = sp.coo_matrix((np.ones(int(keep.sum()), np.int8), (a.row[keep], a.col[keep])), shape=(n, n)).tocsr()
+            self._cut_graph = (c + c.T).tocsr()
+        return self._cut_graph
 
     @property
     def tree(self):
@@ -133,20 +201,51 @@ class SelectionContext:
             self._graph = (a + a.T).tocsr()
         return self._graph
 
-    def grow(self, mean_feature: np.ndarray, seeds: np.ndarray, threshold: float) -> np.ndarray:
-        """Vertices reachable from ``seeds`` through vertices whose cosine similarity with
-        ``mean_feature`` is >= ``threshold`` (seeds below it do not start a region)."""
-        from scipy.sparse.csgraph import connected_components
+    def similarity(self, mean_feature: np.ndarray, geo_vertex: Optional[int] = None, geometry: float = 0.0,
+                   raw_mean: Optional[np.ndarray] = None, tolerance: float = 0.0) -> np.ndarray:
+        """(N,) combined similarity of every vertex: ``(1 - geometry)`` x semantic similarity +
+        ``geometry`` x geometric similarity.
 
+        The semantic similarity is the cosine similarity of the vertex's semantic feature with
+        ``mean_feature``, or, where larger, ``exp(-d^2 / (2 tolerance^2))``, d the distance of the
+        vertex's feature in the extractor's units from ``raw_mean`` (features that differ by less than
+        the tolerance are alike whatever their direction: on an object of one colour the centred
+        features are noise, and their directions mean nothing).  The geometric similarity with vertex
+        ``geo_vertex`` (the dot product of their heat-embedding vectors, times
+        ``exp(-(difference of log shape diameter)^2 / (2 thickness_tolerance^2))`` when the features hold
+        the shape diameter).  The semantic term alone without ``geo_vertex`` or geometric features."""
         m = np.asarray(mean_feature, np.float32)
         m = m / max(float(np.linalg.norm(m)), 1e-12)
-        ok = self.features @ m >= threshold
+        sim = self.features @ m
+        if tolerance > 0 and raw_mean is not None and self.raw_features is not None:
+            d2 = ((self.raw_features - np.asarray(raw_mean, np.float32)) ** 2).sum(1)
+            sim = np.maximum(sim, np.exp(-d2 / (2.0 * tolerance * tolerance)))
+        emb = self.geo_embedding if geometry > 0 and geo_vertex is not None else None
+        if emb is not None and float(np.linalg.norm(emb[geo_vertex])) > 1e-6:
+            g = emb @ emb[geo_vertex]
+            ls = self.geometry.log_sdf
+            if ls is not None:
+                ls = ls[self.geometry.cluster]
+                tol = self.geometry.config.thickness_tolerance
+                g = g * np.exp(-((ls - ls[geo_vertex]) ** 2) / (2.0 * tol * tol))
+            sim = (1.0 - geometry) * sim + geometry * g
+        return sim
+
+    def grow(self, mean_feature: np.ndarray, seeds: np.ndarray, threshold: float,
+             geo_vertex: Optional[int] = None, geometry: float = 0.0, creases: bool = False,
+             raw_mean: Optional[np.ndarray] = None, tolerance: float = 0.0) -> np.ndarray:
+        """Vertices reachable from ``seeds`` through vertices whose :meth:`similarity` is >= ``threshold``
+        (seeds below it do not start a region); with ``creases``, never across a concave crease."""
+        from scipy.sparse.csgraph import connected_components
+
+        ok = self.similarity(mean_feature, geo_vertex, geometry, raw_mean, tolerance) >= threshold
         seeds = np.unique(np.asarray(seeds, np.int64))
         seeds = seeds[ok[seeds]]
         if len(seeds) == 0:
             return seeds
         keep = np.nonzero(ok)[0]
-        sub = self.graph[keep][:, keep]
+        graph = self.cut_graph if creases else self.graph
+        sub = graph[keep][:, keep]
         _, comp = connected_components(sub, directed=False)
         pos = np.searchsorted(keep, seeds)
         chosen = np.zeros(comp.max() + 1, bool)
@@ -276,7 +375,20 @@ def _select(ctx: SelectionContext, point: np.ndarray, extra: np.ndarray, cfg: Se
     members = seeds[labels == chosen] if chosen is not None else np.unique(click_seeds)
     mean = ctx.features[members].mean(0)
     mean = mean / max(float(np.linalg.norm(mean)), 1e-12)
-    region = ctx.grow(mean, members, cfg.threshold)
+    geo_vertex = None
+    if cfg.geometry > 0 or cfg.creases:
+        t = time.perf_counter()
+        emb = ctx.geo_embedding   # computes the geometric features on first use (once per scaffold)
+        info["geometry_s"] = time.perf_counter() - t
+        if emb is not None:
+            geo_vertex = int(click_seeds[0])   # the vertex nearest to the click
+        elif ctx.geometry_error:
+            info["geometry"] = ctx.geometry_error
+    # seeds that the 2D step drew from another part of the same colour fall below the threshold of the
+    # combined similarity and start nothing
+    raw_mean = ctx.raw_features[members].mean(0) if ctx.raw_features is not None else None
+    region = ctx.grow(mean, members, cfg.threshold, geo_vertex, cfg.geometry, cfg.creases, raw_mean,
+                      cfg.semantic_tolerance)
     if len(region) == 0:
         raise SelectionError(f"no vertex near the click is within similarity {cfg.threshold:.2f} of the "
                              "region's mean feature; lower the similarity threshold")

@@ -146,4 +146,4 @@ def test_load_scene_autodetect(tmp_path):
         load_scene(str(empty))
     assert "readme.txt" in str(ei.value)
     with pytest.raises(ValueError, match="kind"):
-        load_scene(root, kind="colmap")
+        load_scene(root, kind="meshroom")

@@ -42,3 +42,29 @@ def test_dataset_files(tmp_path):
     labels = np.load(os.path.join(d, "part_labels.npy"))
     assert len(labels) == nm.load_mesh(os.path.join(d, "mesh.ply")).num_vertices
     assert json.load(open(os.path.join(d, "scene.json")))["parts"] == list(mp.PART_NAMES)
+
+
+def test_same_colour_variant_paints_every_part_alike(tmp_path):
+    K = nm.intrinsics_from_fov(mp.CAMERA_ANGLE_X, 48, 48)
+    from neumesh_core.data.synthetic import look_at_opencv
+
+    c2w = look_at_opencv(mp.CENTER + np.array([mp.CAMERA_RADIUS, 0.4, 0.8]), mp.CENTER)
+    lab = mp.label_image(K, c2w, 48, 48)
+    pts = torch.rand(2000, 3, dtype=torch.float64) * 2 - 1
+    parts = torch.arange(2000) % 4
+    alb = mp.albedo(pts, parts, same_colour=True)
+    ref = mp.albedo(pts, torch.full_like(parts, mp.SHARED_TEXTURE_PART))
+    assert torch.equal(alb, ref)   # one texture, whatever the part
+    assert not torch.equal(mp.albedo(pts, parts), ref)
+    rgb, _ = mp.render(K, c2w, 48, 48, spp=1, same_colour=True)
+    seen = [p for p in range(4) if (lab == p).sum() > 20]
+    assert len(seen) >= 3
+    # mean hue per part: yellow everywhere (red and green high, blue low), unlike the coloured scene
+    for p in seen:
+        r, g, b = rgb[lab == p].mean(0)
+        assert r > b + 0.2 and g > b + 0.1, (p, r, g, b)
+    d = mp.make_multipart_scene(str(tmp_path / "same"), resolution=16, n_train=2, n_val=1, n_test=0, grid=24,
+                                same_colour=True)
+    desc = json.load(open(os.path.join(d, "scene.json")))
+    assert desc["params"]["same_colour"] is True and desc["parts"] == list(mp.PART_NAMES)
+    assert len(np.load(os.path.join(d, "part_labels.npy"))) == nm.load_mesh(os.path.join(d, "mesh.ply")).num_vertices

@@ -1,0 +1,83 @@
+"""`neumesh poses`: camera poses from plain photos or a video (pycolmap on the CPU)."""
+from __future__ import annotations
+
+import os
+import sys
+
+
+class _Progress:
+    """One refreshed status line on a terminal, a line per stage change otherwise."""
+
+    def __init__(self, stream=None):
+        self.stream = stream or sys.stderr
+        self.tty = self.stream.isatty()
+        self.last = None
+
+    def __call__(self, p) -> None:
+        line = f"[{100 * p.fraction:5.1f}%] {p.stage}: {p.message} ({p.elapsed_s:.0f}s)"
+        if self.tty:
+            print("\r" + line.ljust(80), end="", file=self.stream, flush=True)
+        elif (p.stage, p.registered) != self.last:
+            print(line, file=self.stream, flush=True)
+        self.last = (p.stage, p.registered)
+        return None
+
+    def done(self) -> None:
+        if self.tty:
+            print(file=self.stream)
+
+
+def cmd_poses(args) -> int:
+    from ..reconstruct.poses import PosesConfig, estimate_poses
+    from ..reconstruct.video import frames_from_video
+
+    if bool(args.images) == bool(args.video):
+        print("error: give either --images DIR (photos) or --video clip.mp4", file=sys.stderr)
+        return 2
+    images = args.images
+    sequential = False
+    if args.video:
+        images = os.path.join(args.out, "images")
+        print(f"extracting frames at {args.fps:g} fps from {args.video} into {images} ...", file=sys.stderr)
+        paths = frames_from_video(args.video, images, fps=args.fps, min_sharpness=args.min_sharpness)
+        print(f"{len(paths)} frames kept", file=sys.stderr)
+        sequential = True
+    cfg = PosesConfig(matcher=args.matcher, max_image_size=args.max_image_size, camera_model=args.camera_model,
+                      single_camera=not args.per_image_camera, num_threads=args.threads or -1)
+    bar = _Progress()
+    try:
+        rep = estimate_poses(images, args.out, cfg, callback=bar, sequential=sequential)
+    finally:
+        bar.done()
+    print(f"registered {rep.registered} of {rep.num_images} photos, mean reprojection error "
+          f"{rep.mean_reprojection_error:.2f} px, {rep.num_points} points, {rep.seconds:.0f}s "
+          f"(features {rep.stage_seconds.get('extract', 0):.0f}s, matching {rep.stage_seconds.get('match', 0):.0f}s, "
+          f"mapping {rep.stage_seconds.get('map', 0):.0f}s)")
+    if rep.unregistered:
+        print(f"not placed: {', '.join(rep.unregistered[:10])}" + (" ..." if len(rep.unregistered) > 10 else ""))
+    print(f"model: {rep.model_dir}; train with: neumesh train --data {args.out} ...")
+    return 0
+
+
+def add_commands(sub) -> None:
+    p = sub.add_parser("poses", help="camera poses from plain photos or a video (COLMAP via pycolmap, CPU)",
+                       description="Find features, match the photos and place the cameras (pycolmap incremental "
+                                   "mapping). Writes OUT/sparse/0 (a COLMAP model that --data OUT loads; the "
+                                   "photos stay where they are), OUT/database.db and OUT/poses_report.json. "
+                                   "Ctrl-C stops.")
+    p.add_argument("--images", help="folder of photos (.jpg/.png), read in place")
+    p.add_argument("--video", help="a video clip instead of photos; frames go to OUT/images")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--fps", type=float, default=2.0, help="frames per second taken from --video (default 2)")
+    p.add_argument("--min-sharpness", type=float, default=20.0,
+                   help="refuse a video whose frames are blurrier than this (variance of the Laplacian; default 20)")
+    p.add_argument("--matcher", choices=["auto", "exhaustive", "sequential"], default="auto",
+                   help="auto: sequential for video, exhaustive for up to 300 photos (default)")
+    p.add_argument("--max-image-size", type=int, default=1600,
+                   help="features are found on photos reduced to this long side in px (default 1600)")
+    p.add_argument("--camera-model", default="OPENCV",
+                   help="COLMAP camera model to estimate (default OPENCV; SIMPLE_RADIAL for few photos)")
+    p.add_argument("--per-image-camera", action="store_true",
+                   help="one camera per photo (photos from different cameras or zoom levels)")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
+    p.set_defaults(func=cmd_poses)

@@ -1,0 +1,555 @@
+"""The fused GPU renderer: one Triton kernel marches rays through the occupancy grid, finds each
+sample's K nearest scaffold vertices (:func:`neumesh_core.field.knn_triton.knn_keys`), evaluates the
+geometry and radiance decoders and composites, with no host synchronisation inside a frame.
+
+Reference: :func:`neumesh_core.render.renderer.render_rays` (the torch marcher
+:func:`~neumesh_core.sampling.marcher.march_rays`, the field's ``decode`` and
+:func:`~neumesh_core.render.volume.composite`), which stays the default on the CPU and the path for
+everything this kernel does not cover.  ``RenderSettings.backend`` chooses: "auto" (this kernel on CUDA
+when triton imports and the field is supported, torch otherwise), "torch" or "triton".
+
+One program handles a block of rays.  Each ray walks the steps of its interval (multiples of the step
+from the ray's origin, in windows of ``window`` steps that restart after ``max_eval`` evaluated steps,
+as the torch marcher does), skipping unoccupied cells; whenever every live ray of the block stands on
+an occupied step (or has finished), the block evaluates those samples together: the neighbour search,
+the indicators (w_k, p_k), the encodings and the decoders as small matrix products (``tl.dot`` on
+(block, width) tiles, fp32; "ieee" precision by default), early or post interpolation, at rest or
+deformed (per-vertex rotations to the rest frame).  A sample's compositing weight is computed from the
+densities of the samples kept before it, exactly as the reference composites the kept samples; its
+colour is decoded only when it is kept (weight above ``weight_threshold`` while the transmittance is
+above ``early_stop_eps``), and a ray stops when its transmittance falls below ``early_stop_eps``.
+
+Covered: one field, one radiance decoder, no texture frames, no semantics, rendering only (no
+autograd, no jitter).  Everything else falls back to the torch path (:func:`supported` says why).
+"""
+from __future__ import annotations
+
+import math
+from contextlib import nullcontext as _nullcontext
+from typing import Optional
+
+import torch
+
+from ..field.knn_triton import (TritonHashGrid, knn_keys, next_pow2, require_triton, triton,
+                                triton_available, triton_runs_on, tl)
+
+BACKENDS = ("auto", "torch", "triton")
+
+
+def supported(field) -> Optional[str]:
+    """None when the fused kernel renders ``field`` exactly as the torch path does, else the reason
+    it does not (the torch path then renders it)."""
+    if len(field.rad_decoders) != 1:
+        return "the field has several radiance decoders (decoder binding after a texture edit)"
+    if field.tex_frame is not None:
+        return "the field has texture frames (a swap or fill from a differently oriented surface)"
+    if field.code_prior is not None:
+        return "coarse code levels are attached (training)"
+    if field.config.sh_degree > 4 or field.config.sh_degree < 1:
+        return f"sh_degree {field.config.sh_degree} (the kernel encodes degrees 1-4)"
+    if field.config.k > 32:
+        return f"k={field.config.k} (the kernel keeps up to 32 neighbours)"
+    if not math.isfinite(field.radius) or field.radius <= 0:
+        return "the field's radius is not finite"
+    return None
+
+
+def use_triton(settings, fields, device, *, train: bool = False, jitter=None, vertex_ids: bool = False,
+               semantics: bool = False) -> bool:
+    """Whether :func:`render_rays` takes the fused kernel for this call (``settings.backend``)."""
+    backend = getattr(settings, "backend", "auto")
+    if backend not in BACKENDS:
+        raise ValueError(f"RenderSettings.backend must be one of {', '.join(BACKENDS)}, not {backend!r}")
+    if backend == "torch":
+        return False
+    reason = None
+    if train or jitter is not None or vertex_ids or semantics:
+        reason = "training, jittered, vertex-id or semantic renders take the torch path"
+    elif len(fields) != 1:
+        reason = "several fields composited together take the torch path"
+    else:
+        reason = supported(fields[0])
+    if backend == "auto":
+        return reason is None and torch.device(device).type == "cuda" and triton_available()
+    # "triton" asked for explicitly
+    require_triton(device)
+    if reason is not None:
+        from ..errors import NeuMeshError
+
+        raise NeuMeshError(f"the Triton renderer cannot render this: {reason}; use "
+                           "RenderSettings(backend='auto') to fall back to the torch renderer")
+    return True
+
+
+# ---------------------------------------------------------------------------------------------- tables
+def _padded_mlp(seq: torch.nn.Sequential, in_p: int, h_p: int, out_p: int, device):
+    """(W1 (in_p,h_p), b1, W2 (h_p,h_p), b2, W3 (h_p,out_p), b3): the 3-layer MLP's weights transposed
+    and zero-padded (padding rows/columns stay zero through ReLU)."""
+    l1, l2, l3 = seq[0], seq[2], seq[4]
+    out = []
+    for lin, (a, b) in ((l1, (in_p, h_p)), (l2, (h_p, h_p)), (l3, (h_p, out_p))):
+        w = torch.zeros(a, b, device=device)
+        w[:lin.in_features, :lin.out_features] = lin.weight.detach().t().float()
+        bias = torch.zeros(b, device=device)
+        bias[:lin.out_features] = lin.bias.detach().float()
+        out += [w.contiguous(), bias]
+    return out
+
+
+def _version_key(*tensors) -> tuple:
+    return tuple((t.data_ptr(), t._version, tuple(t.shape)) if t is not None else None for t in tensors)
+
+
+class FieldTables:
+    """What the kernel reads of a field, rebuilt only when the tensors behind it change: the hash grid
+    of the current vertices, the (position, normal) table, the code tables and the padded decoders."""
+
+    def __init__(self, field, cells_per_radius: int = 2):
+        cfg = field.config
+        sc = field.scaffold
+        dev = sc.vertices_.device
+        self.geo_d, self.tex_d = int(cfg.geo_dim), int(cfg.tex_dim)
+        self.pe = 1 + 2 * int(cfg.pos_freqs)
+        self.sh = int(cfg.sh_degree) ** 2
+        self.gi = next_pow2(self.geo_d + self.pe + 1, 16)
+        self.ri = next_pow2(self.tex_d + self.pe + 1 + self.sh + 3, 16)
+        self.h = next_pow2(int(cfg.hidden), 16)
+        self.k = int(cfg.k)
+        self.kp = next_pow2(self.k)
+        grid_key = _version_key(sc.vertices_) + (cells_per_radius, float(cfg.radius))
+        cache = sc.__dict__.get("_triton_hash_cache")
+        if cache is None or cache[0] != grid_key:
+            cache = (grid_key, TritonHashGrid(sc.vertices_, cfg.radius, cells_per_radius))
+            sc.__dict__["_triton_hash_cache"] = cache
+        self.hash = cache[1]
+        self.vtab = sc._vertex_table().contiguous()
+        self.geo = field.geo_codes.detach().contiguous()
+        self.tex = field.tex_codes.detach().contiguous()
+        self.mod = field.mod_colors.detach().contiguous()
+        self.rest_n = field.rest_normals.contiguous()
+        self.rot = None if sc.to_rest is None else sc.to_rest.reshape(-1, 9).contiguous()
+        params = list(field.geo_decoder.parameters()) + list(field.rad_decoders[0].parameters())
+        w_key = _version_key(*params)
+        wcache = field.__dict__.get("_triton_mlp_cache")
+        if wcache is None or wcache[0] != w_key:
+            wcache = (w_key, _padded_mlp(field.geo_decoder, self.gi, self.h, 16, dev) +
+                      _padded_mlp(field.rad_decoders[0], self.ri, self.h, 16, dev))
+            field.__dict__["_triton_mlp_cache"] = wcache
+        self.mlp = wcache[1]
+
+
+# ---------------------------------------------------------------------------------------------- kernel
+if triton is not None:
+    _PI = tl.constexpr(3.141592653589793)
+
+    @triton.jit
+    def _rows(table, idx, ok, D: tl.constexpr, W: tl.constexpr, OFF: tl.constexpr):
+        """table[idx, :D] placed at columns OFF..OFF+D of a (B, W) tile (zero elsewhere and where not ok)."""
+        col = tl.arange(0, W) - OFF
+        m = ok[:, None] & ((col >= 0) & (col < D))[None, :]
+        return tl.load(table + idx.to(tl.int64)[:, None] * D + col[None, :], mask=m, other=0.0)
+
+    @triton.jit
+    def _pe_cols(x, W: tl.constexpr, OFF: tl.constexpr, F: tl.constexpr):
+        """The frequency encoding [x, sin(2^i pi x), cos(2^i pi x)] (i < F) of x (B,) at columns OFF.."""
+        cc = tl.arange(0, W) - OFF
+        fi = tl.where(cc <= F, cc - 1, cc - F - 1)
+        fi = tl.minimum(tl.maximum(fi, 0), 30)
+        f = (tl.full([W], 1, tl.int32) << fi).to(tl.float32) * _PI
+        ang = x[:, None] * f[None, :]
+        v = tl.where((cc == 0)[None, :], x[:, None], tl.where((cc <= F)[None, :], tl.sin(ang), tl.cos(ang)))
+        return tl.where(((cc >= 0) & (cc < 2 * F + 1))[None, :], v, 0.0)
+
+    @triton.jit
+    def _sh_cols(x, y, z, W: tl.constexpr, OFF: tl.constexpr, DEG: tl.constexpr):
+        """Real spherical harmonics (degree DEG <= 4) of unit directions (B,) x3 at columns OFF.."""
+        cc = tl.arange(0, W) - OFF
+        out = tl.where((cc == 0)[None, :], (tl.full(x.shape, 0.28209479177387814, tl.float32))[:, None], 0.0)
+        if DEG > 1:
+            out += tl.where((cc == 1)[None, :], (-0.48860251190291987 * y)[:, None], 0.0)
+            out += tl.where((cc == 2)[None, :], (0.48860251190291987 * z)[:, None], 0.0)
+            out += tl.where((cc == 3)[None, :], (-0.48860251190291987 * x)[:, None], 0.0)
+        if DEG > 2:
+            xx = x * x
+            yy = y * y
+            zz = z * z
+            xy = x * y
+            yz = y * z
+            xz = x * z
+            out += tl.where((cc == 4)[None, :], (1.0925484305920792 * xy)[:, None], 0.0)
+            out += tl.where((cc == 5)[None, :], (-1.0925484305920792 * yz)[:, None], 0.0)
+            out += tl.where((cc == 6)[None, :], (0.94617469575755997 * zz - 0.31539156525251999)[:, None], 0.0)
+            out += tl.where((cc == 7)[None, :], (-1.0925484305920792 * xz)[:, None], 0.0)
+            out += tl.where((cc == 8)[None, :], (0.54627421529603959 * (xx - yy))[:, None], 0.0)
+            if DEG > 3:
+                out += tl.where((cc == 9)[None, :], (0.59004358992664352 * y * (-3.0 * xx + yy))[:, None], 0.0)
+                out += tl.where((cc == 10)[None, :], (2.8906114426405538 * xy * z)[:, None], 0.0)
+                out += tl.where((cc == 11)[None, :], (0.45704579946446572 * y * (1.0 - 5.0 * zz))[:, None], 0.0)
+                out += tl.where((cc == 12)[None, :], (0.3731763325901154 * z * (5.0 * zz - 3.0))[:, None], 0.0)
+                out += tl.where((cc == 13)[None, :], (0.45704579946446572 * x * (1.0 - 5.0 * zz))[:, None], 0.0)
+                out += tl.where((cc == 14)[None, :], (1.4453057213202769 * z * (xx - yy))[:, None], 0.0)
+                out += tl.where((cc == 15)[None, :], (0.59004358992664352 * x * (-xx + 3.0 * yy))[:, None], 0.0)
+        return out
+
+    @triton.jit
+    def _mlp3(x, w1, b1, w2, b2, w3, b3, IN: tl.constexpr, H: tl.constexpr, OUT: tl.constexpr,
+              PREC: tl.constexpr):
+        """Linear-ReLU-Linear-ReLU-Linear of a (B, IN) tile -> (B, OUT) (padded weights)."""
+        ri = tl.arange(0, IN)
+        rh = tl.arange(0, H)
+        ro = tl.arange(0, OUT)
+        a = tl.load(w1 + ri[:, None] * H + rh[None, :])
+        h = tl.dot(x, a, input_precision=PREC) + tl.load(b1 + rh)[None, :]
+        h = tl.maximum(h, 0.0)
+        a = tl.load(w2 + rh[:, None] * H + rh[None, :])
+        h = tl.maximum(tl.dot(h, a, input_precision=PREC) + tl.load(b2 + rh)[None, :], 0.0)
+        a = tl.load(w3 + rh[:, None] * OUT + ro[None, :])
+        return tl.dot(h, a, input_precision=PREC) + tl.load(b3 + ro)[None, :]
+
+    @triton.jit
+    def _render_kernel(
+            orig, dirs, gorig, gdirs, tnear, tfar, tstart, n_rays,
+            occ, res_x, res_y, res_z,
+            h_lo_x, h_lo_y, h_lo_z, h_cell, h_dx, h_dy, h_dz, cell_start, cell_count, v_sorted, ids_sorted,
+            radius,
+            vtab, geo, tex, modc, rest_n, rot,
+            gw1, gb1, gw2, gb2, gw3, gb3, rw1, rb1, rw2, rb2, rw3, rb3,
+            out, step, log_eps, weight_thr,
+            BLOCK: tl.constexpr, KP: tl.constexpr, K: tl.constexpr, WINDOW: tl.constexpr,
+            MAX_EVAL: tl.constexpr, EARLY: tl.constexpr, DEFORMED: tl.constexpr,
+            GEO_D: tl.constexpr, TEX_D: tl.constexpr, PE_F: tl.constexpr, SH_DEG: tl.constexpr,
+            GI: tl.constexpr, RI: tl.constexpr, H: tl.constexpr, PREC: tl.constexpr,
+            C: tl.constexpr, NCP: tl.constexpr, SCAN: tl.constexpr):
+        rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        inb = rows < n_rays
+        ox = tl.load(orig + rows * 3, mask=inb, other=0.0)
+        oy = tl.load(orig + rows * 3 + 1, mask=inb, other=0.0)
+        oz = tl.load(orig + rows * 3 + 2, mask=inb, other=0.0)
+        dx = tl.load(dirs + rows * 3, mask=inb, other=0.0)
+        dy = tl.load(dirs + rows * 3 + 1, mask=inb, other=0.0)
+        dz = tl.load(dirs + rows * 3 + 2, mask=inb, other=0.0)
+        gox = tl.load(gorig + rows * 3, mask=inb, other=0.0)
+        goy = tl.load(gorig + rows * 3 + 1, mask=inb, other=0.0)
+        goz = tl.load(gorig + rows * 3 + 2, mask=inb, other=0.0)
+        gdx = tl.load(gdirs + rows * 3, mask=inb, other=0.0)
+        gdy = tl.load(gdirs + rows * 3 + 1, mask=inb, other=0.0)
+        gdz = tl.load(gdirs + rows * 3 + 2, mask=inb, other=0.0)
+        tn = tl.load(tnear + rows, mask=inb, other=0.0)
+        tf = tl.load(tfar + rows, mask=inb, other=-1.0)
+        t0 = tl.load(tstart + rows, mask=inb, other=0.0)
+        PE: tl.constexpr = 1 + 2 * PE_F
+        SH: tl.constexpr = SH_DEG * SH_DEG
+        half = 0.5 * step
+        slot = tl.arange(0, KP)
+        sc = tl.arange(0, SCAN)
+
+        active = inb & (tf > tn)
+        j = tl.zeros([BLOCK], tl.int32)
+        nev = tl.zeros([BLOCK], tl.int32)
+        walked = tl.zeros([BLOCK], tl.int32)
+        log_t = tl.zeros([BLOCK], tl.float32)       # transmittance seen by the marcher (every sample)
+        log_tc = tl.zeros([BLOCK], tl.float32)      # transmittance of the kept samples (compositing)
+        acc_r = tl.zeros([BLOCK], tl.float32)
+        acc_g = tl.zeros([BLOCK], tl.float32)
+        acc_b = tl.zeros([BLOCK], tl.float32)
+        acc_o = tl.zeros([BLOCK], tl.float32)
+        acc_d = tl.zeros([BLOCK], tl.float32)
+        acc_mr = tl.zeros([BLOCK], tl.float32)
+        acc_mg = tl.zeros([BLOCK], tl.float32)
+        acc_mb = tl.zeros([BLOCK], tl.float32)
+        n_kept = tl.zeros([BLOCK], tl.int32)
+
+        while tl.max(active.to(tl.int32), 0) > 0:
+            # ---- every live ray walks to its next occupied step inside its interval (or finishes)
+            searching = active
+            found = active & (tl.zeros([BLOCK], tl.int32) > 0)
+            while tl.max(searching.to(tl.int32), 0) > 0:
+                # SCAN steps at once (within the window): the first occupied one in the ray's interval
+                jj = j[:, None] + sc[None, :]
+                inwin = jj < WINDOW
+                t2 = t0[:, None] + (jj.to(tl.float32) + 0.5) * step
+                in_range = (t2 < tf[:, None]) & (t2 >= tn[:, None]) & inwin
+                ix = tl.minimum(tl.maximum(tl.floor(gox[:, None] + gdx[:, None] * t2).to(tl.int32), 0), res_x - 1)
+                iy = tl.minimum(tl.maximum(tl.floor(goy[:, None] + gdy[:, None] * t2).to(tl.int32), 0), res_y - 1)
+                iz = tl.minimum(tl.maximum(tl.floor(goz[:, None] + gdz[:, None] * t2).to(tl.int32), 0), res_z - 1)
+                o = tl.load(occ + (ix * res_y + iy) * res_z + iz, mask=searching[:, None] & in_range, other=0)
+                first = tl.min(tl.where(in_range & (o != 0), sc[None, :], SCAN), 1)
+                past = tl.min(tl.where(inwin & (t2 >= tf[:, None]), sc[None, :], SCAN), 1)
+                hit = searching & (first < SCAN) & (first < past)
+                # past the interval's end (or, a guard against a ray that cannot advance in float32 far
+                # from the origin, after 2^22 steps)
+                ended = searching & ~hit & ((past < SCAN) | (walked >= 4194304))
+                walked += tl.where(searching, SCAN, 0)
+                active = active & ~ended
+                # hits stand on their step; the others move past the steps they scanned
+                scanned = tl.minimum(WINDOW - j, SCAN)
+                j = tl.where(hit, j + first, tl.where(searching & ~ended, j + scanned, j))
+                wrap = searching & ~hit & ~ended & (j >= WINDOW)
+                t0 = tl.where(wrap, t0 + WINDOW * step, t0)
+                j = tl.where(wrap, 0, j)
+                nev = tl.where(wrap, 0, nev)
+                # the (MAX_EVAL+1)-th occupied step of a window starts the next window
+                cap = hit & (nev >= MAX_EVAL)
+                t0 = tl.where(cap, t0 + j.to(tl.float32) * step, t0)
+                j = tl.where(cap, 0, j)
+                nev = tl.where(cap, 0, nev)
+                found = found | hit
+                searching = searching & ~hit & ~ended
+
+            if tl.max(found.to(tl.int32), 0) > 0:
+                # ---- the samples: neighbours, indicators, density
+                t = t0 + (j.to(tl.float32) + 0.5) * step
+                px = ox + dx * t
+                py = oy + dy * t
+                pz = oz + dz * t
+                keys = knn_keys(px, py, pz, found, h_lo_x, h_lo_y, h_lo_z, h_cell, h_dx, h_dy, h_dz,
+                                cell_start, cell_count, v_sorted, ids_sorted, radius, BLOCK, KP, K, C, NCP)
+                dist = (keys >> 32).to(tl.int32).to(tl.float32, bitcast=True)
+                valid = (slot[None, :] < K) & (dist < 3.0e38) & found[:, None]
+                idx = tl.where(valid, (keys & 0xFFFFFFFF).to(tl.int32), 0)
+                inv = tl.where(valid, 1.0 / tl.maximum(dist, 1e-8), 0.0)
+                w = inv / tl.maximum(tl.sum(inv, 1), 1e-12)[:, None]
+                vrow = idx.to(tl.int64) * 6
+                vm = valid
+                pk = (tl.load(vtab + vrow, mask=vm, other=0.0) - px[:, None]) * tl.load(vtab + vrow + 3, mask=vm, other=0.0) + \
+                    (tl.load(vtab + vrow + 1, mask=vm, other=0.0) - py[:, None]) * tl.load(vtab + vrow + 4, mask=vm, other=0.0) + \
+                    (tl.load(vtab + vrow + 2, mask=vm, other=0.0) - pz[:, None]) * tl.load(vtab + vrow + 5, mask=vm, other=0.0)
+                any_valid = tl.max(valid.to(tl.int32), 1) > 0
+                if EARLY:
+                    gin = tl.zeros([BLOCK, GI], tl.float32)
+                    for k in range(K):
+                        gin += tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)[:, None] * _rows(geo, tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1), found, GEO_D, GI, 0)
+                    p = tl.sum(pk * w, 1)
+                    wi = tl.sum(w * w, 1)
+                    pe_x = p / radius
+                    gin += _pe_cols(pe_x, GI, GEO_D, PE_F) + tl.where((tl.arange(0, GI) == GEO_D + PE)[None, :], (wi)[:, None], 0.0)
+                    y = _mlp3(gin, gw1, gb1, gw2, gb2, gw3, gb3, GI, H, 16, PREC)
+                    sigma = tl.exp(tl.minimum(tl.sum(tl.where((tl.arange(0, 16) == 0)[None, :], y, 0.0), 1), 15.0))
+                    sigma = tl.where(any_valid, sigma, 0.0)
+                else:
+                    sigma = tl.zeros([BLOCK], tl.float32)
+                    for k in range(K):
+                        wk = tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)
+                        gin = _rows(geo, tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1), found, GEO_D, GI, 0)
+                        gin += _pe_cols(tl.sum(tl.where(slot[None, :] == k, pk, tl.zeros_like(pk)), 1) / radius, GI, GEO_D, PE_F) + tl.where((tl.arange(0, GI) == GEO_D + PE)[None, :], (wk)[:, None], 0.0)
+                        y = _mlp3(gin, gw1, gb1, gw2, gb2, gw3, gb3, GI, H, 16, PREC)
+                        sigma += wk * tl.exp(tl.minimum(tl.sum(tl.where((tl.arange(0, 16) == 0)[None, :], y, 0.0), 1), 15.0))
+                sigma = tl.where(found, sigma, 0.0)
+                # ---- marching transmittance: which samples are kept, when a ray stops
+                tau = sigma * step
+                log_ts = log_t
+                weight = tl.exp(log_ts) * (1.0 - tl.exp(-tau))
+                keep = found & (weight > weight_thr) & (log_ts > log_eps)
+                log_t = tl.where(found, log_t - tau, log_t)
+                nev = tl.where(found, nev + 1, nev)
+                j = tl.where(found, j + 1, j)
+                wrap = found & (j >= WINDOW)
+                t0 = tl.where(wrap, t0 + WINDOW * step, t0)
+                j = tl.where(wrap, 0, j)
+                nev = tl.where(wrap, 0, nev)
+                active = active & (log_t > log_eps)
+                if tl.max(keep.to(tl.int32), 0) > 0:
+                    # ---- colour of the kept samples
+                    ts = t - half
+                    te = t + half
+                    tau_c = sigma * (te - ts)
+                    wc = tl.where(keep, tl.exp(log_tc) * (1.0 - tl.exp(-tau_c)), 0.0)
+                    log_tc = tl.where(keep, log_tc - tau_c, log_tc)
+                    if EARLY:
+                        tin = tl.zeros([BLOCK, RI], tl.float32)
+                        nx = tl.zeros([BLOCK], tl.float32)
+                        ny = tl.zeros([BLOCK], tl.float32)
+                        nz = tl.zeros([BLOCK], tl.float32)
+                        mr = tl.zeros([BLOCK], tl.float32)
+                        mg = tl.zeros([BLOCK], tl.float32)
+                        mb = tl.zeros([BLOCK], tl.float32)
+                        r0 = tl.zeros([BLOCK], tl.float32)
+                        r1 = tl.zeros([BLOCK], tl.float32)
+                        r2 = tl.zeros([BLOCK], tl.float32)
+                        r3 = tl.zeros([BLOCK], tl.float32)
+                        r4 = tl.zeros([BLOCK], tl.float32)
+                        r5 = tl.zeros([BLOCK], tl.float32)
+                        r6 = tl.zeros([BLOCK], tl.float32)
+                        r7 = tl.zeros([BLOCK], tl.float32)
+                        r8 = tl.zeros([BLOCK], tl.float32)
+                        for k in range(K):
+                            wk = tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)
+                            ik = tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1).to(tl.int64)
+                            tin += wk[:, None] * _rows(tex, ik, keep, TEX_D, RI, 0)
+                            nx += wk * tl.load(rest_n + ik * 3, mask=keep, other=0.0)
+                            ny += wk * tl.load(rest_n + ik * 3 + 1, mask=keep, other=0.0)
+                            nz += wk * tl.load(rest_n + ik * 3 + 2, mask=keep, other=0.0)
+                            mr += wk * tl.load(modc + ik * 3, mask=keep, other=0.0)
+                            mg += wk * tl.load(modc + ik * 3 + 1, mask=keep, other=0.0)
+                            mb += wk * tl.load(modc + ik * 3 + 2, mask=keep, other=0.0)
+                            if DEFORMED:
+                                r0 += wk * tl.load(rot + ik * 9, mask=keep, other=0.0)
+                                r1 += wk * tl.load(rot + ik * 9 + 1, mask=keep, other=0.0)
+                                r2 += wk * tl.load(rot + ik * 9 + 2, mask=keep, other=0.0)
+                                r3 += wk * tl.load(rot + ik * 9 + 3, mask=keep, other=0.0)
+                                r4 += wk * tl.load(rot + ik * 9 + 4, mask=keep, other=0.0)
+                                r5 += wk * tl.load(rot + ik * 9 + 5, mask=keep, other=0.0)
+                                r6 += wk * tl.load(rot + ik * 9 + 6, mask=keep, other=0.0)
+                                r7 += wk * tl.load(rot + ik * 9 + 7, mask=keep, other=0.0)
+                                r8 += wk * tl.load(rot + ik * 9 + 8, mask=keep, other=0.0)
+                        if DEFORMED:
+                            ex = r0 * dx + r1 * dy + r2 * dz
+                            ey = r3 * dx + r4 * dy + r5 * dz
+                            ez = r6 * dx + r7 * dy + r8 * dz
+                            en = tl.maximum(tl.sqrt(ex * ex + ey * ey + ez * ez), 1e-8)
+                            ex = ex / en
+                            ey = ey / en
+                            ez = ez / en
+                        else:
+                            ex = dx
+                            ey = dy
+                            ez = dz
+                        nn = tl.maximum(tl.sqrt(nx * nx + ny * ny + nz * nz), 1e-8)
+                        nx = nx / nn
+                        ny = ny / nn
+                        nz = nz / nn
+                        p = tl.sum(pk * w, 1)
+                        wi = tl.sum(w * w, 1)
+                        tin += _pe_cols(p / radius, RI, TEX_D, PE_F) + tl.where((tl.arange(0, RI) == TEX_D + PE)[None, :], (wi)[:, None], 0.0)
+                        tin += _sh_cols(ex, ey, ez, RI, TEX_D + PE + 1, SH_DEG)
+                        NO: tl.constexpr = TEX_D + PE + 1 + SH
+                        tin += tl.where((tl.arange(0, RI) == NO)[None, :], (nx)[:, None], 0.0) + tl.where((tl.arange(0, RI) == NO + 1)[None, :], (ny)[:, None], 0.0) + tl.where((tl.arange(0, RI) == NO + 2)[None, :], (nz)[:, None], 0.0)
+                        y = _mlp3(tin, rw1, rb1, rw2, rb2, rw3, rb3, RI, H, 16, PREC)
+                        cr = (1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 0)[None, :], y, 0.0), 1)))) + mr
+                        cg = (1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 1)[None, :], y, 0.0), 1)))) + mg
+                        cb = (1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 2)[None, :], y, 0.0), 1)))) + mb
+                    else:
+                        cr = tl.zeros([BLOCK], tl.float32)
+                        cg = tl.zeros([BLOCK], tl.float32)
+                        cb = tl.zeros([BLOCK], tl.float32)
+                        mr = tl.zeros([BLOCK], tl.float32)
+                        mg = tl.zeros([BLOCK], tl.float32)
+                        mb = tl.zeros([BLOCK], tl.float32)
+                        NO2: tl.constexpr = TEX_D + PE + 1 + SH
+                        for k in range(K):
+                            wk = tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)
+                            ik = tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1).to(tl.int64)
+                            if DEFORMED:
+                                ex = tl.load(rot + ik * 9, mask=keep, other=0.0) * dx + \
+                                    tl.load(rot + ik * 9 + 1, mask=keep, other=0.0) * dy + \
+                                    tl.load(rot + ik * 9 + 2, mask=keep, other=0.0) * dz
+                                ey = tl.load(rot + ik * 9 + 3, mask=keep, other=0.0) * dx + \
+                                    tl.load(rot + ik * 9 + 4, mask=keep, other=0.0) * dy + \
+                                    tl.load(rot + ik * 9 + 5, mask=keep, other=0.0) * dz
+                                ez = tl.load(rot + ik * 9 + 6, mask=keep, other=0.0) * dx + \
+                                    tl.load(rot + ik * 9 + 7, mask=keep, other=0.0) * dy + \
+                                    tl.load(rot + ik * 9 + 8, mask=keep, other=0.0) * dz
+                            else:
+                                ex = dx
+                                ey = dy
+                                ez = dz
+                            tin = _rows(tex, ik, keep, TEX_D, RI, 0)
+                            tin += _pe_cols(tl.sum(tl.where(slot[None, :] == k, pk, tl.zeros_like(pk)), 1) / radius, RI, TEX_D, PE_F) + tl.where((tl.arange(0, RI) == TEX_D + PE)[None, :], (wk)[:, None], 0.0)
+                            tin += _sh_cols(ex, ey, ez, RI, TEX_D + PE + 1, SH_DEG)
+                            tin += tl.where((tl.arange(0, RI) == NO2)[None, :], (tl.load(rest_n + ik * 3, mask=keep, other=0.0))[:, None], 0.0)
+                            tin += tl.where((tl.arange(0, RI) == NO2 + 1)[None, :], (tl.load(rest_n + ik * 3 + 1, mask=keep, other=0.0))[:, None], 0.0)
+                            tin += tl.where((tl.arange(0, RI) == NO2 + 2)[None, :], (tl.load(rest_n + ik * 3 + 2, mask=keep, other=0.0))[:, None], 0.0)
+                            y = _mlp3(tin, rw1, rb1, rw2, rb2, rw3, rb3, RI, H, 16, PREC)
+                            m0 = tl.load(modc + ik * 3, mask=keep, other=0.0)
+                            m1 = tl.load(modc + ik * 3 + 1, mask=keep, other=0.0)
+                            m2 = tl.load(modc + ik * 3 + 2, mask=keep, other=0.0)
+                            cr += wk * ((1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 0)[None, :], y, 0.0), 1)))) + m0)
+                            cg += wk * ((1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 1)[None, :], y, 0.0), 1)))) + m1)
+                            cb += wk * ((1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 2)[None, :], y, 0.0), 1)))) + m2)
+                            mr += wk * m0
+                            mg += wk * m1
+                            mb += wk * m2
+                    acc_r += wc * cr
+                    acc_g += wc * cg
+                    acc_b += wc * cb
+                    acc_mr += wc * mr
+                    acc_mg += wc * mg
+                    acc_mb += wc * mb
+                    acc_o += wc
+                    acc_d += wc * (0.5 * (ts + te))
+                    n_kept += keep.to(tl.int32)
+
+        base = out + rows * 10
+        tl.store(base, acc_r, mask=inb)
+        tl.store(base + 1, acc_g, mask=inb)
+        tl.store(base + 2, acc_b, mask=inb)
+        tl.store(base + 3, acc_o, mask=inb)
+        tl.store(base + 4, acc_d, mask=inb)
+        tl.store(base + 5, acc_mr, mask=inb)
+        tl.store(base + 6, acc_mg, mask=inb)
+        tl.store(base + 7, acc_mb, mask=inb)
+        tl.store(base + 8, n_kept.to(tl.float32), mask=inb)
+
+
+def default_block(device) -> int:
+    """Rays per program: 64 on a GPU (with 8 warps: the sm_90 build of 64 rays x 8 warps spills the least,
+    0.14 KB per thread against 0.6-0.7 KB for 32 rays; benchmarks/bench_render_gpu.py --sweep times
+    the others); in the interpreter (CPU) one big block, since there each operation costs about the same
+    for any block size."""
+    return 64 if torch.device(device).type == "cuda" else 1024
+
+
+# launch options, chosen by benchmarks/bench_render_gpu.py (``--sweep``); render_rays_fused's defaults
+# (block / cells_per_radius None: by device, see default_block / default_cells; num_warps: per program)
+KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 8, "cells_per_radius": None, "scan": 8}
+
+
+def default_cells(device) -> int:
+    """Neighbour-grid cells per radius: 2 on a GPU (125 half-radius cells, fewer vertices measured),
+    1 in the interpreter (27 cells in one round: fewer operations, each costing the same)."""
+    return 2 if torch.device(device).type == "cuda" else 1
+
+
+@torch.no_grad()
+def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings, step: float, near=0.0,
+                      far=float("inf"), **options) -> dict:
+    """Render rays (R,3) through ``field`` with the fused kernel: the outputs of
+    :func:`~neumesh_core.render.renderer.render_rays` (rgb premultiplied, no background) with
+    ``n_samples`` the number of samples composited.  ``step``: the marching step
+    (:func:`~neumesh_core.render.renderer.default_step`).  ``near``/``far``: a distance or (R,) per ray.
+    ``options``: launch options overriding :data:`KERNEL_OPTIONS` (block: rays per program; precision:
+    tl.dot's input precision, "ieee" (fp32) or "tf32x3"/"tf32"; num_warps; cells_per_radius: 1 or 2, the
+    neighbour grid's cells per radius; scan: occupancy steps looked at per marching iteration)."""
+    opts = {**KERNEL_OPTIONS, **options}
+    require_triton(origins.device)
+    reason = supported(field)
+    if reason is not None:
+        from ..errors import NeuMeshError
+
+        raise NeuMeshError(f"the Triton renderer cannot render this field: {reason}")
+    dev = origins.device
+    n = origins.shape[0]
+    grid = field.grid
+    origins = origins.float().contiguous()
+    dirs = dirs.float().contiguous()
+    t_near, t_far = grid.ray_aabb(origins, dirs)
+    t_near = torch.maximum(t_near, near) if torch.is_tensor(near) else t_near.clamp_min(near)
+    t_far = torch.minimum(t_far, far) if torch.is_tensor(far) else t_far.clamp_max(far)
+    t_start = torch.floor(t_near / step) * step
+    g_o, g_d = grid.cell_coordinates(origins, dirs)
+    out = torch.zeros(n, 10, device=dev)
+    if n:
+        tb = FieldTables(field, int(opts["cells_per_radius"] or default_cells(dev)))
+        occ = grid.occ.contiguous().view(torch.uint8)
+        res = list(grid.occ.shape)   # host metadata: no device sync
+        blk = int(opts["block"] or default_block(dev))
+        rot = tb.rot if tb.rot is not None else tb.rest_n
+        launch = _render_kernel[(triton.cdiv(n, blk),)]
+        with torch.cuda.device(dev) if dev.type == "cuda" else _nullcontext():
+            launch(
+                origins, dirs, g_o.contiguous(), g_d.contiguous(), t_near.contiguous(), t_far.contiguous(),
+                t_start.contiguous(), n,
+                occ, res[0], res[1], res[2],
+                *tb.hash.args()[:11], float(field.radius),
+                tb.vtab, tb.geo, tb.tex, tb.mod, tb.rest_n, rot,
+                *tb.mlp,
+                out, float(step), float(math.log(settings.early_stop_eps)), float(settings.weight_threshold),
+                BLOCK=blk, KP=tb.kp, K=tb.k, WINDOW=int(settings.window), MAX_EVAL=8,
+                EARLY=field.config.interpolation == "early", DEFORMED=tb.rot is not None,
+                GEO_D=tb.geo_d, TEX_D=tb.tex_d, PE_F=int(field.config.pos_freqs), SH_DEG=int(field.config.sh_degree),
+                GI=tb.gi, RI=tb.ri, H=tb.h, PREC=opts["precision"], C=tb.hash.c, NCP=tb.hash.ncp,
+                SCAN=int(opts["scan"]), num_warps=int(opts["num_warps"]))
+    opacity = out[:, 3]
+    depth = torch.where(opacity > 1e-6, out[:, 4] / opacity.clamp_min(1e-6), torch.full_like(opacity, float("inf")))
+    return {"rgb": out[:, :3], "opacity": opacity, "depth": depth, "mod_rgb": out[:, 5:8],
+            "n_samples": out[:, 8]}

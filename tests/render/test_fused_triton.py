@@ -1,0 +1,125 @@
+"""The Triton kernels against their torch references: the K-nearest-vertex search
+(field/knn_triton.py vs knn_radius_reference) and the fused renderer (render/fused_triton.py vs the torch
+render_rays), early and post interpolation, at rest and deformed.
+
+Without a GPU the kernels run in Triton's interpreter (TRITON_INTERPRET=1, set here before triton is
+imported): slow, so the scenes are tiny.  With a GPU (benchmarks/gpu_check.sh) they run compiled on CUDA.
+Skipped, with the reason, where triton does not import (install the optional extra: ``.[gpu]``).
+"""
+import os
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+if not torch.cuda.is_available() and "triton" not in sys.modules:
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+
+triton = pytest.importorskip("triton", reason="triton is not installed (pip install -e '.[gpu]')")
+
+import neumesh_core as nm  # noqa: E402
+from neumesh_core.errors import NeuMeshError  # noqa: E402
+from neumesh_core.field import knn_triton  # noqa: E402
+from neumesh_core.field.knn import knn_radius_reference  # noqa: E402
+from neumesh_core.metrics import psnr  # noqa: E402
+
+from ..conftest import textured_field  # noqa: E402
+
+DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+if not knn_triton.triton_runs_on(DEVICE):
+    pytest.skip("triton was imported before TRITON_INTERPRET=1 could be set and there is no GPU; run "
+                "this module on its own or with TRITON_INTERPRET=1", allow_module_level=True)
+
+
+@pytest.mark.parametrize("cells_per_radius", [1, 2])
+def test_knn_kernel_matches_the_reference(cells_per_radius):
+    g = torch.Generator().manual_seed(0)
+    verts = torch.rand(1500, 3, generator=g)
+    pts = torch.rand(300, 3, generator=g) * 1.4 - 0.2        # some outside the vertices' box
+    pts[0] = torch.tensor([5.0, 5.0, 5.0])                   # nothing within the radius
+    r = 0.12
+    index = knn_triton.TritonKNNIndex(verts.to(DEVICE), 4, r, block=64 if DEVICE == "cuda" else 512,
+                                      cells_per_radius=cells_per_radius)
+    idx, dist = index.query(pts.to(DEVICE))
+    ref_i, ref_d = knn_radius_reference(pts, verts, 4, r)
+    idx, dist = idx.cpu(), dist.cpu()
+    assert torch.equal(torch.isinf(dist), torch.isinf(ref_d))
+    assert (idx == -1).equal(ref_i == -1) and bool((idx[0] == -1).all())
+    assert (ref_i >= 0).sum() > 400 and (ref_i == -1).sum() > 30   # both cases are exercised
+    fin = torch.isfinite(ref_d)
+    assert torch.allclose(dist[fin], ref_d[fin], atol=1e-6)
+    assert torch.equal(idx, ref_i)   # random positions: no ties
+
+
+def test_knn_kernel_with_fewer_vertices_than_k_and_a_huge_box():
+    verts = torch.tensor([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [1e3, 0.0, 0.0]])   # a sparse, wide box
+    pts = torch.tensor([[0.01, 0.0, 0.0], [999.99, 0.0, 0.0], [500.0, 0.0, 0.0]])
+    grid = knn_triton.TritonHashGrid(verts.to(DEVICE), 0.1)
+    assert np.prod(grid.dims) <= knn_triton.MAX_TABLE_CELLS
+    idx, dist = knn_triton.knn_radius_triton(pts.to(DEVICE), grid, 4)
+    ref_i, ref_d = knn_radius_reference(pts, verts, 4, 0.1)
+    assert torch.equal(idx.cpu(), ref_i) and torch.allclose(dist.cpu(), ref_d, atol=1e-6, equal_nan=True)
+
+
+def _scene(interpolation, deformed):
+    from neumesh_core.data.synthetic import default_mesh
+
+    field = textured_field(default_mesh(subdiv=2), interpolation, grid_resolution=32).to(DEVICE)
+    if deformed:
+        v = field.rest_vertices * torch.tensor([1.15, 1.0, 0.9], device=DEVICE)
+        v = v + 0.2 * torch.sin(2.0 * v[:, 1:2])           # a bend: per-vertex rotations differ
+        field.set_vertices(v)
+        assert field.to_rest is not None
+    K = np.array([[11.0, 0.0, 6.0], [0.5, 11.0, 6.0], [0.0, 0.0, 1.0]], np.float32)   # with skew
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]) @ \
+        np.array([[1.0, 0.0, 0.0], [0.0, 0.98, -0.2], [0.0, 0.2, 0.98]])
+    c2w[:3, 3] = -6.0 * c2w[:3, 2]
+    return field, K, c2w
+
+
+@pytest.mark.parametrize("interpolation", ["early", "post"])
+@pytest.mark.parametrize("deformed", [False, True], ids=["rest", "deformed"])
+def test_fused_render_matches_the_torch_render(interpolation, deformed):
+    field, K, c2w = _scene(interpolation, deformed)
+    w = h = 12
+    far = None
+    if deformed:   # a holdout in front of part of the field (per-pixel far distances)
+        far = np.full((h, w), np.inf, np.float32)
+        far[:, : w // 2] = 5.0
+    ref = nm.render_camera(field, K, c2w, w, h, settings=nm.RenderSettings(backend="torch"), far=far)
+    out = nm.render_camera(field, K, c2w, w, h, settings=nm.RenderSettings(backend="triton"), far=far)
+    assert ref.opacity.max() > 0.9 and ref.opacity.min() < 0.1   # the view sees the object and around it
+    assert psnr(out.rgb, ref.rgb) >= 50.0, psnr(out.rgb, ref.rgb)
+    assert np.abs(out.opacity - ref.opacity).max() < 1e-3
+    assert np.abs(out.mod_rgb - ref.mod_rgb).max() < 1e-3
+    hit = ref.opacity > 1e-3
+    assert np.array_equal(np.isfinite(out.depth), np.isfinite(ref.depth))
+    assert np.abs(out.depth[hit] - ref.depth[hit]).max() < 1e-3
+    assert abs(out.n_samples - ref.n_samples) <= max(2, ref.n_samples // 100)
+    if interpolation == "early" and not deformed:   # whole rays through the grid's box (no ray ranges)
+        whole = nm.render_camera(field, K, c2w, w, h, settings=nm.RenderSettings(backend="triton", skip_empty=False))
+        assert psnr(whole.rgb, ref.rgb) >= 50.0
+
+
+def test_backend_choice_and_errors():
+    from neumesh_core.data.synthetic import default_mesh
+    from neumesh_core.render.fused_triton import supported, use_triton
+
+    field = textured_field(default_mesh(subdiv=1), "early")
+    with pytest.raises(ValueError, match="backend"):
+        nm.RenderSettings(backend="cuda")
+    # the CPU default stays the torch path
+    assert not use_triton(nm.RenderSettings(), [field], "cpu")
+    assert not use_triton(nm.RenderSettings(backend="torch"), [field], DEVICE)
+    # what the kernel does not cover falls back under "auto" and is an error under "triton"
+    assert supported(field) is None
+    two = textured_field(default_mesh(subdiv=1), "early")
+    two.add_decoder(textured_field(default_mesh(subdiv=1), "early", seed=1).rad_decoders[0].apply(
+        lambda m: torch.nn.init.normal_(m.weight) if isinstance(m, torch.nn.Linear) else None))
+    assert "decoders" in supported(two)
+    assert not use_triton(nm.RenderSettings(), [two], "cuda")
+    with pytest.raises(NeuMeshError, match="backend='auto'"):
+        use_triton(nm.RenderSettings(backend="triton"), [two], DEVICE)
+    assert not use_triton(nm.RenderSettings(backend="auto"), [field, field], "cuda")
