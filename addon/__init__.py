@@ -1,8 +1,9 @@
 """NeuMesh for Blender: render, deform and train NeuMesh++ neural fields stored on mesh scaffolds.
 
 Installs as a Blender 4.2+ extension (blender_manifest.toml) and as a legacy add-on (bl_info) on
-older Blender. torch and the other dependencies are imported lazily (see deps.py / core.py), so the
-add-on registers without them and its preferences explain how to install them.
+older Blender. torch and the other dependencies are imported lazily (runtime/deps.py, runtime/core.py),
+so the add-on registers without them and its preferences explain how to install them.  The rooms
+(sub-packages) and what each may import: DEVELOPERS.md, "addon/".
 """
 
 bl_info = {
@@ -16,9 +17,7 @@ bl_info = {
     "category": "Render",
 }
 
-import bpy  # noqa: E402
-
-from . import deps  # noqa: E402
+from .runtime import deps  # noqa: E402
 
 # dependency folders (NEUMESH_PYTHONPATH, the add-on's own pip folder) go on sys.path first
 try:
@@ -26,19 +25,18 @@ try:
 except Exception as _exc:  # noqa: BLE001
     print(f"NeuMesh: dependency folder unavailable: {_exc}")
 
-from . import bake, colour, composite, edits, engine, identity, operators, paint, prefs, props, semantics, texture_edit, ui  # noqa: E402,E501
+from . import edit, render, runtime, scene, train, ui  # noqa: E402
 
-_modules = (prefs, props, identity, operators, composite, engine, colour, ui, edits, texture_edit, paint, semantics, bake)   # edits first: the others' panels are its children
+# each room registers its own modules; the order is the sidebar's order of panels, and a room's
+# classes may use the properties of the rooms before it
+_rooms = (runtime, scene, train, render, ui, edit)
 
 
 def register():
-    for m in _modules:
-        m.register()
+    for room in _rooms:
+        room.register()
 
 
 def unregister():
-    for m in reversed(_modules):
-        try:
-            m.unregister()
-        except Exception as exc:  # keep unregistering the rest
-            print(f"NeuMesh: unregister {m.__name__}: {exc}")
+    for room in reversed(_rooms):
+        room.unregister()

@@ -140,7 +140,7 @@ def bench_preview(a) -> dict:
     addon = sys.modules[MODULE]
     from helpers import add_armature_bend, add_camera, manual_K_c2w
 
-    nm = addon.core.get()
+    nm = addon.runtime.core.get()
     import torch
 
     V, F = sphere_grid(a.vertices)
@@ -151,9 +151,9 @@ def bench_preview(a) -> dict:
     nm.save_field(field, fpath)
     del field
     t = time.perf_counter()
-    obj = addon.sync.new_mesh_object("scaffold", V, F)
+    obj = addon.scene.sync.new_mesh_object("scaffold", V, F)
     t_mesh = time.perf_counter() - t
-    addon.props.set_field_path(obj, fpath)
+    addon.scene.props.set_field_path(obj, fpath)
     bpy.context.view_layer.objects.active = obj
     arm, _root, tip = add_armature_bend(obj, split_x=0.3, angle_deg=0.0)
     cam = add_camera((0.0, -3.6, 0.6), lens=35.0)
@@ -163,11 +163,11 @@ def bench_preview(a) -> dict:
     # warm-up: load + first collect (loads the field into the cache)
     t = time.perf_counter()
     dg = bpy.context.evaluated_depsgraph_get()
-    items = addon.render.collect(dg, for_render=False)
+    items = addon.render.fields.collect(dg, for_render=False)
     t_load = time.perf_counter() - t
 
     K, c2w = manual_K_c2w(cam, vw, vh)
-    pv = addon.engine.PreviewRenderer(divisors=(8, 4))
+    pv = addon.render.preview.PreviewRenderer(divisors=(8, 4))
     serial = pv.request(items, K, c2w, vw, vh)
     pv.wait(serial, divisor=4, timeout=600)
 
@@ -180,14 +180,14 @@ def bench_preview(a) -> dict:
         dg = bpy.context.evaluated_depsgraph_get()                  # what view_update receives
         dg.update()
         t1 = time.perf_counter()
-        items = addon.render.collect(dg, for_render=False)          # sync: evaluated world vertices
+        items = addon.render.fields.collect(dg, for_render=False)          # sync: evaluated world vertices
         t2 = time.perf_counter()
-        sv0 = addon.render.STATS["set_vertices"]
+        sv0 = addon.render.fields.STATS["set_vertices"]
         serial = pv.request(items, K, c2w, vw, vh)                  # view_draw -> preview thread
         ok = pv.wait(serial, divisor=pv.max_divisor, timeout=120)   # its first image, at any level
         t3 = time.perf_counter()
         assert ok, pv.error
-        assert addon.render.STATS["set_vertices"] == sv0 + 1
+        assert addon.render.fields.STATS["set_vertices"] == sv0 + 1
         first = pv.latest[1]
         ok8 = pv.wait(serial, divisor=8, timeout=120)
         t4 = time.perf_counter()
@@ -199,16 +199,16 @@ def bench_preview(a) -> dict:
     pv.stop()
 
     # set_vertices alone (the part of the preview that is not rendering)
-    f_cached = addon.render.get_field(obj.name_full, addon.props.field_abspath(obj))
+    f_cached = addon.render.fields.get_field(obj.name_full, addon.scene.props.field_abspath(obj))
     t = time.perf_counter()
     f_cached.set_vertices(items[0].vertices + 1e-4)
     t_setv = time.perf_counter() - t
-    addon.render._CACHE[obj.name_full].last_vertices = None
+    addon.render.fields._CACHE[obj.name_full].last_vertices = None
     low_w, low_h = vw // 8, vh // 8
     lows = []
     for _ in range(3):  # best of 3: the 2-core machine is shared, single timings are noisy
         t = time.perf_counter()
-        nm.render_camera(f_cached, addon.render.scale_K(K, vw, vh, low_w, low_h), c2w, low_w, low_h)
+        nm.render_camera(f_cached, addon.render.frame.scale_K(K, vw, vh, low_w, low_h), c2w, low_w, low_h)
         lows.append(time.perf_counter() - t)
     t_low = min(lows)
 
@@ -222,7 +222,7 @@ def bench_preview(a) -> dict:
         t = time.perf_counter()
         bpy.ops.render.render(write_still=True)
         f12.append(time.perf_counter() - t)
-    assert not addon.engine.LAST_ERROR["message"], addon.engine.LAST_ERROR["message"]
+    assert not addon.render.engine.LAST_ERROR["message"], addon.render.engine.LAST_ERROR["message"]
 
     best = min(runs, key=lambda r: r["total_s"])
     res = {

@@ -294,10 +294,10 @@ def blender_clicks(field_path: str, cams, clicks, threshold: float):
         # the interactive operator starts building the selection context (features, KD-tree, graph)
         # when it starts waiting for the click; time that, then the first click again on top of it
         name, view, xy, *_ = clicks[0]
-        addon.semantics._CONTEXTS.clear()
+        addon.edit.select._CONTEXTS.clear()
         obj = bpy.context.active_object
         t = time.perf_counter()
-        job = addon.semantics.prepare_selection(obj, bpy.context)
+        job = addon.edit.select.prepare_selection(obj, bpy.context)
         if job is not None:
             job.join()
         prep = time.perf_counter() - t

@@ -41,12 +41,12 @@ def _sync_frames(addon, arm, frames: int) -> list:
         dg = bpy.context.evaluated_depsgraph_get()
         dg.update()
         t = time.perf_counter()
-        items = addon.render.collect(dg, for_render=False)
-        with addon.render._LOCK:
+        items = addon.render.fields.collect(dg, for_render=False)
+        with addon.render.fields._LOCK:
             for it in items:
                 if it.field is None:
-                    addon.render.get_field(it.key, it.path)
-                addon.render._apply_vertices(it)
+                    addon.render.fields.get_field(it.key, it.path)
+                addon.render.fields._apply_vertices(it)
         if i:   # the first frame may (re)build a remapped field
             out.append(time.perf_counter() - t)
     return out
@@ -69,7 +69,7 @@ def main(argv=None) -> int:
     sys.path.insert(0, os.path.join(ROOT, "blender_tests"))
     from helpers import add_armature_bend
 
-    nm = addon.core.get()
+    nm = addon.runtime.core.get()
     V, F = sphere_grid(a.vertices)
     fpath = os.path.join(_BASE, "big.neumesh")
     nm.save_field(nm.create_field(nm.Mesh(V, F), nm.FieldConfig()), fpath)
@@ -81,10 +81,10 @@ def main(argv=None) -> int:
     print(f"sphere: {n:,} vertices, {len(F):,} triangles")
 
     res = {"vertices": n, "frames": a.frames}
-    for name in addon.identity.ATTRS:
+    for name in addon.scene.identity.ATTRS:
         obj.data.attributes.remove(obj.data.attributes[name])
     strict = _sync_frames(addon, arm, a.frames)
-    addon.identity.write(obj, addon.render.get_field(obj.name_full, addon.props.field_abspath(obj)))
+    addon.scene.identity.write(obj, addon.render.fields.get_field(obj.name_full, addon.scene.props.field_abspath(obj)))
     whole = _sync_frames(addon, arm, a.frames)
     bm = bmesh.new()
     bm.from_mesh(obj.data)
@@ -124,7 +124,7 @@ def main(argv=None) -> int:
     bpy.ops.object.mode_set(mode="OBJECT")
     t1 = time.perf_counter()
     dg = bpy.context.evaluated_depsgraph_get()
-    items = addon.render.collect(dg, for_render=False)
+    items = addon.render.fields.collect(dg, for_render=False)
     t2 = time.perf_counter()
     meshes = [o for o in bpy.context.scene.objects if o.type == "MESH"]
     for o in bpy.context.view_layer.objects:
@@ -133,7 +133,7 @@ def main(argv=None) -> int:
     bpy.ops.object.join()
     t3 = time.perf_counter()
     dg = bpy.context.evaluated_depsgraph_get()
-    items2 = addon.render.collect(dg, for_render=False)
+    items2 = addon.render.fields.collect(dg, for_render=False)
     t4 = time.perf_counter()
     res["separate_join_s"] = {"separate": t1 - t0, "first_sync_after_separate": t2 - t1, "join": t3 - t2,
                               "first_sync_after_join": t4 - t3, "total": t4 - t0,

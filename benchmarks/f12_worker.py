@@ -128,15 +128,15 @@ def run_blender(zip_path, field_path, inputs_path, size, threads):
     scene.render.resolution_percentage = 100
     scene.view_settings.view_transform = "Standard"
     scene.view_settings.look = "None"
-    engine = importlib.import_module(module + ".engine")
-    render = importlib.import_module(module + ".render")
-    camera = importlib.import_module(module + ".camera")
-    nm = addon.core.get()
-    addon.prefs.get_prefs().torch_threads = int(threads)
+    engine = importlib.import_module(module + ".render.engine")
+    render = importlib.import_module(module + ".render.fields")
+    camera = importlib.import_module(module + ".scene.camera")
+    nm = addon.runtime.core.get()
+    addon.runtime.prefs.get_prefs().torch_threads = int(threads)
     import torch
 
     def core_in_blender():
-        with addon.core.torch_work():   # as the engine renders: the preference's threads, jemalloc retains
+        with addon.runtime.core.torch_work():   # as the engine renders: the preference's threads, jemalloc retains
             return core_render(nm, field, inp)
 
     def f12():
@@ -159,7 +159,7 @@ def run_blender(zip_path, field_path, inputs_path, size, threads):
     np.savez(inputs_path, **inp)
     field = render.get_field(items[0].key, items[0].path)
     say(ready=True, first_f12=first, blender=bpy.app.version_string, python=sys.version.split()[0],
-        torch=torch.__version__, threads_main=torch.get_num_threads(), malloc=addon.malloc.report(),
+        torch=torch.__version__, threads_main=torch.get_num_threads(), malloc=addon.runtime.malloc.report(),
         supersample=inp["supersample"], transparent=transparent,
         env={k: os.environ.get(k) for k in ("LD_PRELOAD", "MALLOC_CONF", "OMP_NUM_THREADS")})
     commands({"f12": f12, "core": core_in_blender})

@@ -17,8 +17,8 @@ from real_blender_common import addon_module, facts, install_addon, script_args 
 module = install_addon(script_args()[0])
 res = bpy.ops.neumesh.check_dependencies()
 addon = addon_module(module)
-st = addon.prefs._status_cache["blas"]
+st = addon.runtime.prefs._status_cache["blas"]
 facts(result=sorted(res), version=list(bpy.app.version), sgemm=st["sgemm"], own=st["own"],
       gflops=st["gflops"], remedy=st["remedy"], rebound=len(st["rebind"]["rebound"]),
-      foreign=st["rebind"]["foreign"], rebind_error=st["rebind"]["error"], torch_lib=addon.blas.torch_cpu_library(),
-      message=addon.prefs.speed_message(st), missing=addon.deps.missing_required())
+      foreign=st["rebind"]["foreign"], rebind_error=st["rebind"]["error"], torch_lib=addon.runtime.blas.torch_cpu_library(),
+      message=addon.runtime.prefs.speed_message(st), missing=addon.runtime.deps.missing_required())

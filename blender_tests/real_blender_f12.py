@@ -34,18 +34,18 @@ exact_colour_settings(scene, W, H)
 scene.render.image_settings.file_format = "OPEN_EXR"
 scene.render.image_settings.color_depth = "32"
 scene.render.filepath = os.path.join(out_dir, "f12.exr")
-addon.prefs.get_prefs().torch_threads = 1
+addon.runtime.prefs.get_prefs().torch_threads = 1
 bpy.ops.render.render(write_still=True)
-phases = dict(addon.engine.LAST_RENDER)
+phases = dict(addon.render.engine.LAST_RENDER)
 got = linear_to_srgb(read_exr(os.path.join(out_dir, "f12.exr"))[..., :3])
 
-nm = addon.core.get()
+nm = addon.runtime.core.get()
 dg = bpy.context.evaluated_depsgraph_get()
-items = addon.render.collect(dg)
-K, c2w, _w, _h = addon.camera.camera_K_c2w(cam, scene, dg)
+items = addon.render.fields.collect(dg)
+K, c2w, _w, _h = addon.scene.camera.camera_K_c2w(cam, scene, dg)
 field = nm.load_field(field_path)
 field.set_vertices(items[0].vertices)
 ref = nm.render_camera(field, K, c2w, W, H, background=(1.0, 1.0, 1.0))
 facts(version=list(bpy.app.version), handoff=phases.get("handoff"), torch_threads=phases.get("torch_threads"),
       max_diff=float(np.abs(got - ref.rgb).max()), ref_std=float(ref.rgb.std()),
-      jemalloc=addon.malloc.available(), malloc=addon.malloc.report(), decay_now=addon.malloc.decay_times(), error=addon.engine.LAST_ERROR["message"])
+      jemalloc=addon.runtime.malloc.available(), malloc=addon.runtime.malloc.report(), decay_now=addon.runtime.malloc.decay_times(), error=addon.render.engine.LAST_ERROR["message"])

@@ -46,7 +46,7 @@ for f in (1, 2):
     dg = bpy.context.evaluated_depsgraph_get()
     from importlib import import_module
 
-    sync = import_module(module + ".sync")
+    sync = import_module(module + ".scene.sync")
     V = sync.evaluated_world_vertices(obj, dg, expected_count=len(obj.data.vertices))
     np.save(os.path.join(out_dir, f"verts_{f}.npy"), V)
 np.save(os.path.join(out_dir, "idx_tip.npy"), idx_tip)

@@ -235,12 +235,12 @@ class Driver:
 
     def _tick_error(self, win, area):
         if self.state == "error":
-            if not addon_module().engine.VIEWPORT_MESSAGE["lines"] and time.time() - self.state_t < 60:
+            if not addon_module().render.engine.VIEWPORT_MESSAGE["lines"] and time.time() - self.state_t < 60:
                 return 0.5
             path = os.path.join(self.out_dir, "error.png")
             with bpy.context.temp_override(window=win, area=area):
                 bpy.ops.screen.screenshot(filepath=path)
-            self.facts["viewport_message"] = dict(addon_module().engine.VIEWPORT_MESSAGE)
+            self.facts["viewport_message"] = dict(addon_module().render.engine.VIEWPORT_MESSAGE)
             self.facts["error_errors"] = self.viewport_errors()
             if self.docs:
                 self.show_preferences(area)
@@ -274,7 +274,7 @@ class Driver:
 
     def preview_done(self):
         """The viewport's NeuMesh preview has drawn its last (finest) pass."""
-        for e in list(addon_module().engine._PollRedraw._engines):
+        for e in list(addon_module().render.engine._PollRedraw._engines):
             pv = getattr(e, "_preview", None)
             if pv is None or pv.busy or pv.latest is None or pv.latest[1] != pv.divisors[-1]:
                 return False
@@ -285,24 +285,24 @@ class Driver:
 
     def preview_serial(self):
         """The newest preview render's serial number (-1 before the first)."""
-        return max([e._preview.latest[0] for e in list(addon_module().engine._PollRedraw._engines)
+        return max([e._preview.latest[0] for e in list(addon_module().render.engine._PollRedraw._engines)
                     if getattr(e, "_preview", None) is not None and e._preview.latest is not None] or [-1])
 
     def viewport_errors(self):
         """The messages the viewport's NeuMesh engines show instead of an image ('' = none)."""
         out = []
-        for e in list(addon_module().engine._PollRedraw._engines):
+        for e in list(addon_module().render.engine._PollRedraw._engines):
             pv = getattr(e, "_preview", None)
             out.append(getattr(e, "_error", "") or (pv.error if pv is not None else ""))
         return out
 
     def finish(self):
         addon = addon_module()
-        st = addon.prefs._status_cache.get("blas") or {}
+        st = addon.runtime.prefs._status_cache.get("blas") or {}
         facts(drawn=self.drawn, errors=self.errors, version=list(bpy.app.version),
               train_object=getattr(bpy.context.scene.neumesh.train_object, "name", None),
-              speed=addon.prefs.speed_message(st), sgemm_own=st.get("own"),
-              last_render_error=addon.engine.LAST_ERROR["message"], **self.facts)
+              speed=addon.runtime.prefs.speed_message(st), sgemm_own=st.get("own"),
+              last_render_error=addon.render.engine.LAST_ERROR["message"], **self.facts)
         bpy.context.preferences.view.use_save_prompt = False
         bpy.ops.wm.quit_blender()
 

@@ -18,7 +18,7 @@ def test_choosing_neumesh_sets_photo_colours_once(addon):
     scene = bpy.context.scene
     default = scene.view_settings.view_transform
     assert default in ("AgX", "Filmic")  # Blender's default: what made renders flat and grey
-    colour = addon.colour
+    colour = addon.render.colour
     scene.render.engine = "CYCLES"
     assert colour.engine_selected(scene) is False and scene.view_settings.view_transform == default
     scene.render.engine = "NEUMESH"
@@ -39,9 +39,29 @@ def test_choosing_neumesh_sets_photo_colours_once(addon):
     assert colour._load_post in bpy.app.handlers.load_post
 
 
+def test_a_render_chosen_by_script_or_command_line_uses_photo_colours(addon, tmp_path):
+    """Issue 47: `-E NEUMESH` (or a script setting the engine) never reached the message bus, so a file
+    saved with Filmic rendered flat and grey. The render_pre handler sets the photographic view before
+    the first NeuMesh render, once per scene, as the interface does."""
+    scene = bpy.context.scene
+    default = scene.view_settings.view_transform
+    assert default != "Standard" and not scene.neumesh.photo_colour_set
+    colour = addon.render.colour
+    assert colour._render_pre in bpy.app.handlers.render_pre
+    scene.render.engine = "NEUMESH"          # no message-bus event in background mode
+    add_camera((0.0, -4.0, 0.0), lens=35.0)
+    scene.render.resolution_x, scene.render.resolution_y = 16, 12
+    scene.render.filepath = str(tmp_path / "r.png")
+    bpy.ops.render.render(write_still=True)   # Blender calls render_pre: the view switches first
+    assert scene.view_settings.view_transform == "Standard" and scene.neumesh.photo_colour_set
+    scene.view_settings.view_transform = default   # the user's later choice is kept
+    bpy.ops.render.render(write_still=True)
+    assert scene.view_settings.view_transform == default
+
+
 def test_render_panel_note_is_wrapped_to_the_panel(addon):
     """The Render properties note used to be one label cut off mid-word; every line now fits."""
-    ui = addon.text
+    ui = addon.runtime.text
     measure = ui.text_measure()
     text = ("Colours look flat: View Transform is 'AgX', Look is 'AgX - Punchy'. NeuMesh fields hold the "
             "photos' colours; show them with 'Standard'.")
@@ -56,7 +76,7 @@ def test_wrap_text_splits_long_paths():
 
     import conftest
 
-    ui = importlib.import_module(conftest.ADDON_MODULE + ".text")
+    ui = importlib.import_module(conftest.ADDON_MODULE + ".runtime.text")
     measure = len  # one pixel per character
     path = "/very/long/folder/name/that/does/not/fit/field.neumesh"
     lines = ui.wrap_text("not found: " + path, 20, measure)
@@ -72,8 +92,8 @@ def test_load_field_fills_the_training_mesh(addon, trained_field):
     obj = bpy.context.active_object
     assert bpy.context.scene.neumesh.train_object == obj
     # loading onto an existing mesh with the right vertex count does the same
-    other = addon.sync.new_mesh_object("copy", addon.sync.mesh_vertices(obj.data),
-                                       addon.sync.mesh_triangles(obj.data))
+    other = addon.scene.sync.new_mesh_object("copy", addon.scene.sync.mesh_vertices(obj.data),
+                                       addon.scene.sync.mesh_triangles(obj.data))
     bpy.context.view_layer.objects.active = other
     assert bpy.ops.neumesh.load_field(filepath=trained_field) == {"FINISHED"}
     assert bpy.context.scene.neumesh.train_object == other
@@ -93,48 +113,48 @@ def test_scaffold_is_explained_where_it_is_seen(addon):
 
 
 def test_training_status_lines_are_short(addon):
-    job = addon.worker.TrainJob(dataset_path="", field_path="/tmp/x.neumesh", steps=2000)
+    job = addon.train.worker.TrainJob(dataset_path="", field_path="/tmp/x.neumesh", steps=2000)
     job.state, job.step, job.loss, job.psnr, job.rays_per_sec, job.eta_s = "TRAINING", 120, 0.0123, 23.4, 40100, 4000
-    assert job.status_lines() == ["Step 120/2000", "Loss 0.0123, PSNR 23.40 dB", "40.1k rays/s, ETA 1 h 06 min"]
+    assert job.status_lines() == ["Step 120/2000 (6%)", "Loss 0.0123, PSNR 23.40 dB", "40.1k rays/s, ETA 1 h 06 min"]
     assert max(len(l) for l in job.status_lines()) <= 30
 
 
 # ------------------------------------------------------------------------------------ wording (7)
 def test_missing_dependency_message_has_one_neumesh(addon, monkeypatch):
-    monkeypatch.setattr(addon.deps, "missing_required", lambda statuses=None: ["torch"])
-    monkeypatch.setattr(addon.core, "_nm", None)
+    monkeypatch.setattr(addon.runtime.deps, "missing_required", lambda statuses=None: ["torch"])
+    monkeypatch.setattr(addon.runtime.core, "_nm", None)
     with pytest.raises(RuntimeError) as exc:
         bpy.ops.neumesh.import_mesh(filepath="/nonexistent.ply")
     msg = str(exc.value)
     assert "NeuMesh: missing Python package(s) torch" in msg and msg.count("NeuMesh") == 2  # + "> NeuMesh"
     assert "NeuMesh: NeuMesh" not in msg and "Install dependencies" in msg
-    assert addon.engine.prefixed("NeuMesh: x") == "NeuMesh: x" and addon.engine.prefixed("x") == "NeuMesh: x"
+    assert addon.render.engine.prefixed("NeuMesh: x") == "NeuMesh: x" and addon.render.engine.prefixed("x") == "NeuMesh: x"
 
 
 def test_relative_field_path_in_unsaved_file_keeps_its_slashes(addon, trained_field):
     V, F = grid_mesh()
-    obj = addon.sync.new_mesh_object("grid", V, F)
+    obj = addon.scene.sync.new_mesh_object("grid", V, F)
     obj.neumesh.field_path = "//field.neumesh"
     add_camera((0, -3, 0.5))
     bpy.context.scene.render.engine = "NEUMESH"
     bpy.context.scene.render.resolution_x = bpy.context.scene.render.resolution_y = 16
     with pytest.raises(FileNotFoundError) as exc:
-        addon.render.collect(bpy.context.evaluated_depsgraph_get())
+        addon.render.fields.collect(bpy.context.evaluated_depsgraph_get())
     msg = str(exc.value)
     assert "not found: //field.neumesh" in msg and "has not been saved" in msg
     try:
         bpy.ops.render.render()
     except RuntimeError:
         pass
-    assert "//field.neumesh" in addon.engine.LAST_ERROR["message"]
-    assert addon.engine.LAST_ERROR["message"].startswith("NeuMesh: object 'grid'")
+    assert "//field.neumesh" in addon.render.engine.LAST_ERROR["message"]
+    assert addon.render.engine.LAST_ERROR["message"].startswith("NeuMesh: object 'grid'")
 
 
 # ------------------------------------------------------------------------------------ paths (3)
 def _object_with_field(addon, field):
     V, F = grid_mesh()
-    obj = addon.sync.new_mesh_object("grid", V, F)
-    addon.props.set_field_path(obj, str(field))
+    obj = addon.scene.sync.new_mesh_object("grid", V, F)
+    addon.scene.props.set_field_path(obj, str(field))
     return obj
 
 
@@ -153,7 +173,7 @@ def test_moving_the_folder_with_blend_and_field_keeps_working(addon, tmp_path):
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "moved" / "scene.blend"))
     o = bpy.data.objects["grid"]
     assert o.neumesh.field_path == "//fields/f.neumesh"
-    assert addon.props.field_abspath(o) == str(tmp_path / "moved" / "fields" / "f.neumesh")
+    assert addon.scene.props.field_abspath(o) == str(tmp_path / "moved" / "fields" / "f.neumesh")
 
 
 def test_save_copy_leaves_the_open_file_pointing_at_its_field(addon, tmp_path):
@@ -165,17 +185,17 @@ def test_save_copy_leaves_the_open_file_pointing_at_its_field(addon, tmp_path):
     copy = tmp_path / "b" / "c" / "copy.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(copy), copy=True)
     assert obj.neumesh.field_path == "//../fields/f.neumesh"  # the open file is still in a/
-    assert addon.props.field_abspath(obj) == str(field)
+    assert addon.scene.props.field_abspath(obj) == str(field)
     bpy.ops.wm.open_mainfile(filepath=str(copy))
     o = bpy.data.objects["grid"]
     assert o.neumesh.field_path == "//../../fields/f.neumesh"
-    assert addon.props.field_abspath(o) == str(field)
+    assert addon.scene.props.field_abspath(o) == str(field)
 
 
 def test_save_as_when_blender_does_not_say_where(addon, tmp_path, monkeypatch):
     """Blender 3.x calls save_pre with (None, None): the add-on keeps the path relative to the old
     folder, records where the file is, and repairs the path after the save and on opening."""
-    props = addon.props
+    props = addon.scene.props
     handlers = bpy.app.handlers.save_pre
     i = handlers.index(props._save_pre)
 

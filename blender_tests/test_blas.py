@@ -1,4 +1,4 @@
-"""addon/blas.py: torch's own BLAS in a process that links another one (Debian's Blender links the
+"""addon/runtime/blas.py: torch's own BLAS in a process that links another one (Debian's Blender links the
 reference libblas.so.3; a plain Python with that library preloaded is in the same situation)."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import sys
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-BLAS_PY = os.path.join(ROOT, "addon", "blas.py")
+BLAS_PY = os.path.join(ROOT, "addon", "runtime", "blas.py")
 
 
 def _blas_module():

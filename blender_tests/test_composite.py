@@ -48,8 +48,8 @@ def _core(addon, field_path, scene, cam, transparent=True):
     import neumesh_core as nm
 
     dg = bpy.context.evaluated_depsgraph_get()
-    items = addon.render.collect(dg)
-    K, c2w, w, h = addon.camera.camera_K_c2w(cam, scene, dg)
+    items = addon.render.fields.collect(dg)
+    K, c2w, w, h = addon.scene.camera.camera_K_c2w(cam, scene, dg)
     field = nm.load_field(field_path)
     field.set_vertices(items[0].vertices)
     return nm.render_camera(field, K, c2w, w, h, background=None if transparent else (1, 1, 1)), K, c2w, field
@@ -60,9 +60,9 @@ def test_depth_pass_is_camera_axis_distance_and_matches_cycles_of_the_scaffold(a
     cam.data.shift_x, cam.data.shift_y, cam.data.sensor_fit = 0.08, -0.05, "VERTICAL"   # as Cycles projects
     cam.data.sensor_height = 30.0
     scene.render.film_transparent = True
-    z = render_pass(addon.composite, scene, "Depth", tmp_path / "z.exr")[..., 0]
-    alpha = render_pass(addon.composite, scene, "Alpha", tmp_path / "a.exr")[..., 0]
-    mod = render_pass(addon.composite, scene, addon.engine.MOD_PASS, tmp_path / "m.exr")[..., :3]
+    z = render_pass(addon.render.composite, scene, "Depth", tmp_path / "z.exr")[..., 0]
+    alpha = render_pass(addon.render.composite, scene, "Alpha", tmp_path / "a.exr")[..., 0]
+    mod = render_pass(addon.render.composite, scene, addon.render.engine.MOD_PASS, tmp_path / "m.exr")[..., :3]
     ref, K, c2w, field = _core(addon, trained_field, scene, cam)
     np.testing.assert_allclose(mod, ref.mod_rgb, atol=1e-5)   # the modification-colour layer
     hit = np.isfinite(ref.depth)
@@ -80,7 +80,7 @@ def test_depth_pass_is_camera_axis_distance_and_matches_cycles_of_the_scaffold(a
     assert np.all(z[~hit] > 1e9)   # empty: infinitely far
     # Cycles' Z of the scaffold mesh itself (an opaque proxy at the field's surface)
     cycles_fast(scene, samples=1)
-    zc = render_pass(addon.composite, scene, "Depth", tmp_path / "zc.exr")[..., 0]
+    zc = render_pass(addon.render.composite, scene, "Depth", tmp_path / "zc.exr")[..., 0]
     both = (ref.opacity > 0.9) & (zc < 1e9)
     dz = np.abs(z - zc)[both] / float(field.config.radius)
     print(f"Z vs Cycles of the scaffold: median {np.median(dz):.3f}, p90 {np.percentile(dz, 90):.3f} radii "
@@ -141,14 +141,14 @@ def test_holdout_object_cuts_the_field_and_leaves_a_hole(addon, trained_field, t
     bpy.ops.mesh.primitive_plane_add(size=1.0, location=(-0.5, -1.5, 0.3), rotation=(math.radians(90), 0, 0))
     plane = bpy.context.active_object   # in front of the left part of the field, facing the camera
     scene.render.film_transparent = False
-    free = {s: render_pass(addon.composite, scene, s, tmp_path / f"free_{s}.exr") for s in ("Image", "Depth")}
+    free = {s: render_pass(addon.render.composite, scene, s, tmp_path / f"free_{s}.exr") for s in ("Image", "Depth")}
     plane.is_holdout = True
-    held = {s: render_pass(addon.composite, scene, s, tmp_path / f"held_{s}.exr") for s in ("Image", "Depth")}
+    held = {s: render_pass(addon.render.composite, scene, s, tmp_path / f"held_{s}.exr") for s in ("Image", "Depth")}
     # where the plane is: its own Z (Cycles' Z of the same plane, made opaque), alpha 0, no field
     plane.is_holdout = False
     obj.hide_render = True
     cycles_fast(scene, samples=1)
-    zp = render_pass(addon.composite, scene, "Depth", tmp_path / "plane_z.exr")[..., 0]
+    zp = render_pass(addon.render.composite, scene, "Depth", tmp_path / "plane_z.exr")[..., 0]
     on_plane = zp < 1e9
     assert on_plane.mean() > 0.05 and (free["Image"][..., 3] == 1).all()
     np.testing.assert_allclose(held["Depth"][..., 0][on_plane], zp[on_plane], rtol=1e-4)
@@ -162,7 +162,7 @@ def test_holdout_object_cuts_the_field_and_leaves_a_hole(addon, trained_field, t
     scene.render.engine = "NEUMESH"
     plane.location, plane.scale = (-0.5, 2.5, 0.3), (4.0, 4.0, 4.0)
     plane.is_holdout = True
-    behind = render_pass(addon.composite, scene, "Image", tmp_path / "behind.exr")
+    behind = render_pass(addon.render.composite, scene, "Image", tmp_path / "behind.exr")
     ref, *_ = _core(addon, trained_field, scene, cam)
     a = behind[..., 3]
     kept = a == 1.0   # no holdout there: the frame as before
@@ -183,14 +183,14 @@ def test_composite_with_scene_occludes_both_ways_and_survives_reload(addon, trai
     assert obj.name in comp.objects and scene.render.engine == "CYCLES"
     assert bpy.ops.neumesh.composite_with_scene() == {"FINISHED"}   # again: updates, nothing doubled
     assert len([s for s in bpy.data.scenes if s.name.startswith(scene.name + " NeuMesh")]) == 1
-    tree = addon.composite.compositor_tree(scene, create=False)
+    tree = addon.render.composite.compositor_tree(scene, create=False)
     assert len([n for n in tree.nodes if n.bl_idname == "CompositorNodeZcombine"]) == 1
     got = _render_exr(scene, tmp_path / "comp.exr")
     # the separate renders: the Cycles layer (without the field's scaffold) and the field layer
-    cyc = render_pass(addon.composite, scene, "Image", tmp_path / "cyc.exr")
-    zc = render_pass(addon.composite, scene, "Depth", tmp_path / "zc.exr")[..., 0]
-    fld = render_pass(addon.composite, comp, "Image", tmp_path / "fld.exr")
-    zf = render_pass(addon.composite, comp, "Depth", tmp_path / "zf.exr")[..., 0]
+    cyc = render_pass(addon.render.composite, scene, "Image", tmp_path / "cyc.exr")
+    zc = render_pass(addon.render.composite, scene, "Depth", tmp_path / "zc.exr")[..., 0]
+    fld = render_pass(addon.render.composite, comp, "Image", tmp_path / "fld.exr")
+    zf = render_pass(addon.render.composite, comp, "Depth", tmp_path / "zf.exr")[..., 0]
     bar = zc < 1e9
     field = fld[..., 3] > 0.9
     bar_front = bar & field & (zc < zf)
@@ -223,8 +223,8 @@ def test_each_view_layer_renders_its_own_visible_fields(addon, trained_field, tm
     scene.collection.objects.unlink(obj)
     other = scene.view_layers.new("without field")
     other.layer_collection.children["fields"].exclude = True
-    first = render_pass(addon.composite, scene, "Alpha", tmp_path / "first.exr", scene.view_layers[0].name)
-    second = render_pass(addon.composite, scene, "Alpha", tmp_path / "second.exr", "without field")
+    first = render_pass(addon.render.composite, scene, "Alpha", tmp_path / "first.exr", scene.view_layers[0].name)
+    second = render_pass(addon.render.composite, scene, "Alpha", tmp_path / "second.exr", "without field")
     assert first[..., 0].max() > 0.5 and second[..., 0].max() == 0.0
 
 
@@ -243,7 +243,25 @@ def test_composite_with_scene_keeps_eevee_and_says_what_is_missing(addon, traine
     scene.render.engine = eevee
     assert bpy.ops.neumesh.composite_with_scene() == {"FINISHED"}
     assert scene.render.engine == eevee and scene.neumesh.composite_scene.render.engine == "NEUMESH"
-    tree = addon.composite.compositor_tree(scene, create=False)
+    tree = addon.render.composite.compositor_tree(scene, create=False)
     names = {n.name for n in tree.nodes}
-    assert {addon.composite.NODE_SCENE, addon.composite.NODE_FIELDS, addon.composite.NODE_ZCOMBINE} <= names
+    assert {addon.render.composite.NODE_SCENE, addon.render.composite.NODE_FIELDS, addon.render.composite.NODE_ZCOMBINE} <= names
     assert all(vl.use_pass_z for vl in scene.view_layers)
+
+
+def test_cycles_without_a_denoiser_gets_denoising_switched_off(addon):
+    """Issue 47: Debian's Blender 3.4 Cycles has no denoiser (its `denoiser` enum is empty) and stopped
+    the first composite F12 with "Build without OpenImageDenoiser". Composite with Scene switches
+    denoising off there, and says so; a build with a denoiser keeps it."""
+    from types import SimpleNamespace as NS
+
+    check = addon.render.composite.cycles_denoising_check
+    without = NS(render=NS(engine="CYCLES"), cycles=NS(use_denoising=True, denoiser=""))
+    assert "no denoiser" in check(without) and without.cycles.use_denoising is False
+    assert check(without) == ""   # already off: nothing more to do
+    scene = bpy.context.scene
+    scene.render.engine = "CYCLES"
+    assert scene.cycles.denoiser == "OPENIMAGEDENOISE" and scene.cycles.use_denoising
+    assert check(scene) == "" and scene.cycles.use_denoising   # this build has OpenImageDenoise
+    eevee = NS(render=NS(engine="BLENDER_EEVEE"), cycles=NS(use_denoising=True, denoiser=""))
+    assert check(eevee) == "" and eevee.cycles.use_denoising

@@ -42,13 +42,13 @@ def _paint_red(addon, obj):
 
     import neumesh_core as nm
 
-    field, path = addon.edits.field_for_edit(obj)
+    field, path = addon.edit.base.field_for_edit(obj)
     rows = np.nonzero(field.rest_vertices[:, 0].numpy() > 0)[0]
     rec = nm.edit.EditRecord.begin("test-paint", field, rows, ("mod_colors",))
     with torch.no_grad():
         field.mod_colors[torch.as_tensor(rows)] = torch.tensor([0.4, -0.4, -0.4])
     rec.finish(field)
-    return addon.edits.commit_edit(obj, field, rec, path), path
+    return addon.edit.base.commit_edit(obj, field, rec, path), path
 
 
 def test_edit_is_saved_beside_shows_in_f12_and_undo_restores(addon, trained_field, tmp_path):
@@ -61,26 +61,26 @@ def test_edit_is_saved_beside_shows_in_f12_and_undo_restores(addon, trained_fiel
 
     edited, parent = _paint_red(addon, obj)
     assert parent == src and edited == str(tmp_path / "blob.edit-001.neumesh")
-    assert addon.props.field_abspath(obj) == edited
+    assert addon.scene.props.field_abspath(obj) == edited
     after = f12_srgb(tmp_path / "b.exr")
     assert np.abs(after - _core_render(edited, cam)).max() <= 1e-4
     assert (np.abs(after - original).max(-1) > 0.1).sum() > 20   # the edit is visible
     assert open(src, "rb").read() == before_bytes                 # the trained file is untouched
 
     assert bpy.ops.neumesh.undo_edit() == {"FINISHED"}
-    assert addon.props.field_abspath(obj) == src
+    assert addon.scene.props.field_abspath(obj) == src
     assert np.abs(f12_srgb(tmp_path / "c.exr") - original).max() <= 1e-4
     assert bpy.ops.neumesh.undo_edit() == {"CANCELLED"}           # nothing left to undo
 
     # two edits, then revert goes straight to the trained field
-    props = addon.props
+    props = addon.scene.props
     props.set_field_path(obj, edited)
     second, _ = _paint_red(addon, obj)
     assert second.endswith("blob.edit-002.neumesh") and os.path.isfile(edited)
-    chain = addon.edits.edit_chain(obj)
+    chain = addon.edit.base.edit_chain(obj)
     assert [op for op, _ in chain] == ["trained", "test-paint", "test-paint"]
     assert bpy.ops.neumesh.revert_field() == {"FINISHED"}
-    assert addon.props.field_abspath(obj) == src
+    assert addon.scene.props.field_abspath(obj) == src
     assert np.abs(f12_srgb(tmp_path / "d.exr") - original).max() <= 1e-4
 
 
@@ -99,19 +99,19 @@ def test_ctrl_z_steps_back_to_the_previous_field(addon, trained_field, tmp_path)
     else:
         pytest.skip("this Blender has no undo stack in background mode")
     obj = bpy.data.objects[name]                # undo rebuilds the objects
-    assert addon.props.field_abspath(obj) == src
+    assert addon.scene.props.field_abspath(obj) == src
     assert np.abs(f12_srgb(tmp_path / "c.exr") - original).max() <= 1e-4
 
 
 def test_edit_errors_change_nothing(addon, trained_field, tmp_path):
     bpy.ops.mesh.primitive_cube_add()
     cube = bpy.context.active_object
-    with pytest.raises(addon.edits.EditError, match="has no NeuMesh field"):
-        addon.edits.field_for_edit(cube)
+    with pytest.raises(addon.runtime.errors.UserError, match="has no NeuMesh field"):
+        addon.edit.base.field_for_edit(cube)
     cube.neumesh.field_path = str(tmp_path / "gone.neumesh")
-    with pytest.raises(addon.edits.EditError, match="missing"):
-        addon.edits.field_for_edit(cube)
+    with pytest.raises(addon.runtime.errors.UserError, match="field file not found"):
+        addon.edit.base.field_for_edit(cube)
     bpy.context.view_layer.objects.active = cube
     assert bpy.ops.neumesh.undo_edit.poll()
-    with pytest.raises(RuntimeError, match="missing"):
+    with pytest.raises(RuntimeError, match="field file not found"):
         bpy.ops.neumesh.undo_edit()

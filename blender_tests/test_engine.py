@@ -116,7 +116,7 @@ def test_result_hand_off_is_one_buffer_copy(addon, trained_field, tmp_path):
     only where neither applies."""
     _deformed_scene(addon, trained_field)
     bpy.ops.render.render()
-    assert addon.engine.LAST_RENDER["handoff"] == "flat"   # bpy 5.0.1 (3.4: test_real_blender.py)
+    assert addon.render.engine.LAST_RENDER["handoff"] == "flat"   # bpy 5.0.1 (3.4: test_real_blender.py)
 
     class Rect:   # a render pass's rect that checks foreach_set's length as Blender 3.x or 4+/5 does
         def __init__(self, n_check):
@@ -142,10 +142,10 @@ def test_result_hand_off_is_one_buffer_copy(addon, trained_field, tmp_path):
     px = np.random.default_rng(0).random((12, 4)).astype(np.float32)
     for n_check, how in ((48, "flat"), (12, "rows")):
         p = Pass(Rect(n_check))
-        assert addon.engine.set_pass_pixels(p, px) == how
+        assert addon.render.engine.set_pass_pixels(p, px) == how
         assert p.assigned is None and np.array_equal(p._rect.got, px.reshape(-1))
     p = Pass(Rect(7))
-    assert addon.engine.set_pass_pixels(p, px) == "list" and p.assigned == px.tolist()
+    assert addon.render.engine.set_pass_pixels(p, px) == "list" and p.assigned == px.tolist()
 
 
 def test_cpu_threads_preference_is_applied_to_renders(addon, trained_field):
@@ -156,23 +156,23 @@ def test_cpu_threads_preference_is_applied_to_renders(addon, trained_field):
     import torch
 
     _deformed_scene(addon, trained_field)
-    prefs = addon.prefs.get_prefs()
+    prefs = addon.runtime.prefs.get_prefs()
     saved = torch.get_num_threads()
     try:
         prefs.torch_threads = 1
         bpy.ops.render.render()
-        assert addon.engine.LAST_RENDER["torch_threads"] == 1
+        assert addon.render.engine.LAST_RENDER["torch_threads"] == 1
         prefs.torch_threads = 0
         bpy.ops.render.render()
-        assert addon.engine.LAST_RENDER["torch_threads"] == addon.core.all_cores()
+        assert addon.render.engine.LAST_RENDER["torch_threads"] == addon.runtime.core.all_cores()
         # another thread (as the viewport preview renders): the preference again, in that thread
         prefs.torch_threads = 1
-        items = addon.render.collect(bpy.context.evaluated_depsgraph_get())
+        items = addon.render.fields.collect(bpy.context.evaluated_depsgraph_get())
         K, c2w = manual_K_c2w(bpy.context.scene.camera, 16, 12)
-        th = threading.Thread(target=addon.render.render_items, args=(items, K, c2w, 16, 12))
+        th = threading.Thread(target=addon.render.frame.render_items, args=(items, K, c2w, 16, 12))
         th.start()
         th.join()
-        assert addon.render.LAST_TIMINGS["torch_threads"] == 1
+        assert addon.render.frame.LAST_TIMINGS["torch_threads"] == 1
     finally:
         prefs.torch_threads = 0
         torch.set_num_threads(saved)
@@ -202,7 +202,7 @@ def test_topology_change_gives_error_naming_modifier_and_no_image(addon, trained
     """The strict path, for a mesh without the NeuMesh vertex ids (removed here; test_topology.py covers
     topology changes with them): an error that names the modifier and says how to get the ids back."""
     obj, cam, _r, _t = _deformed_scene(addon, trained_field)
-    for name in addon.identity.ATTRS:
+    for name in addon.scene.identity.ATTRS:
         obj.data.attributes.remove(obj.data.attributes[name])
     obj.modifiers.new("Smooth it", "SUBSURF").levels = 1
     scene = bpy.context.scene
@@ -212,9 +212,9 @@ def test_topology_change_gives_error_naming_modifier_and_no_image(addon, trained
         bpy.ops.render.render(write_still=True)
     except RuntimeError as exc:  # Blender turns the engine's error report into an exception
         assert "Smooth it" in str(exc)
-    assert "'Smooth it'" in addon.engine.LAST_ERROR["message"]
-    assert "Subsurf" in addon.engine.LAST_ERROR["message"]
-    assert "Load field" in addon.engine.LAST_ERROR["message"]
+    assert "'Smooth it'" in addon.render.engine.LAST_ERROR["message"]
+    assert "Subsurf" in addon.render.engine.LAST_ERROR["message"]
+    assert "Load field" in addon.render.engine.LAST_ERROR["message"]
     if out.exists():  # Blender may still save the empty result: it must not contain a field image
         assert _read_png(str(out))[..., 3].max() == 0.0
 
@@ -226,7 +226,7 @@ def test_field_cache_reloads_on_change_and_skips_unchanged_vertices(addon, train
     shutil.copy(trained_field, path)
     obj, cam, _r, _t = _deformed_scene(addon, path)
     scene = bpy.context.scene
-    render = addon.render
+    render = addon.render.fields
     render.clear_cache()
     scene.render.filepath = str(tmp_path / "a.png")
     bpy.ops.render.render(write_still=True)
@@ -262,9 +262,9 @@ def test_animation_frames_follow_keyed_armature(addon, trained_field, tmp_path):
 def test_progressive_preview_renders_low_resolution_first(addon, trained_field):
     obj, cam, _r, _t = _deformed_scene(addon, trained_field)
     dg = bpy.context.evaluated_depsgraph_get()
-    items = addon.render.collect(dg, for_render=False)
+    items = addon.render.fields.collect(dg, for_render=False)
     K, c2w = manual_K_c2w(cam, 96, 80)
-    pv = addon.engine.PreviewRenderer(divisors=(8, 4, 2))
+    pv = addon.render.preview.PreviewRenderer(divisors=(8, 4, 2))
     try:
         serial = pv.request(items, K, c2w, 96, 80)
         assert pv.wait(serial, divisor=2, timeout=60), pv.error
@@ -282,9 +282,9 @@ def test_progressive_preview_renders_low_resolution_first(addon, trained_field):
 
 def test_progressive_preview_starts_coarser_when_the_first_level_would_be_slow(addon, trained_field):
     obj, cam, _r, _t = _deformed_scene(addon, trained_field)
-    items = addon.render.collect(bpy.context.evaluated_depsgraph_get(), for_render=False)
+    items = addon.render.fields.collect(bpy.context.evaluated_depsgraph_get(), for_render=False)
     K, c2w = manual_K_c2w(cam, 192, 160)
-    pv = addon.engine.PreviewRenderer(divisors=(4, 2), first_budget_s=0.1, max_divisor=16)
+    pv = addon.render.preview.PreviewRenderer(divisors=(4, 2), first_budget_s=0.1, max_divisor=16)
     try:
         assert pv.levels(192, 160) == (4, 2)            # nothing measured yet: the configured levels
         pv.seconds_per_pixel = 0.1 / (48 * 40) * 5.0     # level 4 (48x40) would take 0.5 s
@@ -314,7 +314,7 @@ def test_render_images_operator_writes_dataset_cameras(addon, trained_field, tin
     assert len(files) == 3
     img = _read_png(str(out / files[0]))
     assert img.shape[:2] == (32, 32) and img[..., :3].std() > 0.02
-    one = addon.operators.dataset_cameras()[1].name
+    one = addon.render.images.dataset_cameras()[1].name
     assert bpy.ops.neumesh.render_images(directory=str(tmp_path / "one"), camera=one) == {"FINISHED"}
     assert os.listdir(tmp_path / "one") == [one + ".png"]
     # exact on purpose: the same camera through the same render path in one process

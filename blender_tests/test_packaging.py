@@ -18,6 +18,9 @@ def test_zip_layout(addon_zip):
         manifest = zf.read("neumesh/blender_manifest.toml").decode()
         init = zf.read("neumesh/__init__.py").decode()
     assert "neumesh/neumesh_core/__init__.py" in names
+    for room in ("runtime", "scene", "render", "train", "edit", "ui"):   # the add-on's sub-packages
+        assert f"neumesh/{room}/__init__.py" in names, room
+    assert {"neumesh/runtime/deps.py", "neumesh/render/engine.py", "neumesh/edit/bake.py"} <= names
     assert any(n.startswith("neumesh/neumesh_core/render/") for n in names)
     assert not any("__pycache__" in n or n.endswith(".pyc") for n in names)
     import tomllib

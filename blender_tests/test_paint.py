@@ -33,10 +33,10 @@ def _scene(trained_field, tmp_path, names=("A",)):
 
 
 def _paint(addon, rows, cols, colour):
-    img = bpy.data.images[addon.paint.PAINT_IMAGE]
-    px = addon.paint._image_pixels(img)
+    img = bpy.data.images[addon.edit.paint.PAINT_IMAGE]
+    px = addon.edit.paint._image_pixels(img)
     px[rows[0]:rows[1], cols[0]:cols[1], :3] = colour
-    addon.paint._set_pixels(img, px)
+    addon.edit.paint._set_pixels(img, px)
     return img
 
 
@@ -50,14 +50,14 @@ def _core(path, cam):
 def test_paint_on_view_then_apply_shows_the_paint_in_f12(addon, trained_field, tmp_path):
     (obj,), cam = _scene(trained_field, tmp_path)
     assert bpy.ops.neumesh.paint_view() == {"FINISHED"}
-    img = bpy.data.images[addon.paint.PAINT_IMAGE]
+    img = bpy.data.images[addon.edit.paint.PAINT_IMAGE]
     assert tuple(img.size) == (W, H) and img["neumesh_camera"] == cam.name
     # the image holds the render (8-bit), the unpainted copy beside it
-    assert np.abs(addon.paint._image_pixels(img)[..., :3] - _core(str(tmp_path / "A.neumesh"), cam)).max() < 1 / 255 + 1e-6
-    before = addon.paint._image_pixels(img)[16:22, 18:30, :3]
+    assert np.abs(addon.edit.paint._image_pixels(img)[..., :3] - _core(str(tmp_path / "A.neumesh"), cam)).max() < 1 / 255 + 1e-6
+    before = addon.edit.paint._image_pixels(img)[16:22, 18:30, :3]
     _paint(addon, (16, 22), (18, 30), (0.05, 0.1, 0.9))
     assert bpy.ops.neumesh.apply_paint() == {"FINISHED"}
-    edited = addon.props.field_abspath(obj)
+    edited = addon.scene.props.field_abspath(obj)
     assert edited.endswith("A.edit-001.neumesh")
     after = np.clip(f12_srgb(tmp_path / "b.exr"), 0, 1)
     assert np.abs(after - _core(edited, cam)).max() <= 1e-4
@@ -65,7 +65,7 @@ def test_paint_on_view_then_apply_shows_the_paint_in_f12(addon, trained_field, t
     stroke = after[16:22, 18:30]
     assert np.abs(stroke - [0.05, 0.1, 0.9]).mean() < 0.3 * np.abs(before - [0.05, 0.1, 0.9]).mean()
     assert bpy.ops.neumesh.undo_edit() == {"FINISHED"}
-    assert addon.props.field_abspath(obj) == str(tmp_path / "A.neumesh")
+    assert addon.scene.props.field_abspath(obj) == str(tmp_path / "A.neumesh")
 
 
 def test_only_the_fields_under_the_paint_change(addon, trained_field, tmp_path):
@@ -77,8 +77,8 @@ def test_only_the_fields_under_the_paint_change(addon, trained_field, tmp_path):
                     (K @ (np.linalg.inv(c2w) @ np.array([0, 0, 0, 1.0]))[:3])[2]))
     _paint(addon, (17, 22), (x_a - 3, x_a + 3), (1.0, 1.0, 0.0))
     assert bpy.ops.neumesh.apply_paint() == {"FINISHED"}
-    assert addon.props.field_abspath(a).endswith("A.edit-001.neumesh")
-    assert addon.props.field_abspath(b) == str(tmp_path / "B.neumesh")
+    assert addon.scene.props.field_abspath(a).endswith("A.edit-001.neumesh")
+    assert addon.scene.props.field_abspath(b) == str(tmp_path / "B.neumesh")
 
 
 def test_bad_paint_input_changes_nothing(addon, trained_field, tmp_path):
@@ -100,4 +100,4 @@ def test_bad_paint_input_changes_nothing(addon, trained_field, tmp_path):
     bpy.context.scene.render.resolution_x = W + 8
     with pytest.raises(RuntimeError, match="camera or the render size changed"):
         bpy.ops.neumesh.apply_paint()
-    assert addon.props.field_abspath(obj) == str(tmp_path / "A.neumesh")
+    assert addon.scene.props.field_abspath(obj) == str(tmp_path / "A.neumesh")

@@ -16,7 +16,7 @@ def test_preferences_report_dependency_versions(addon):
     import numpy
     import torch
 
-    prefs = addon.prefs
+    prefs = addon.runtime.prefs
     p = prefs.get_prefs()
     assert p is not None and type(p).bl_idname == ADDON_MODULE
     assert bpy.ops.neumesh.check_dependencies() == {"FINISHED"}
@@ -24,12 +24,12 @@ def test_preferences_report_dependency_versions(addon):
     assert set(st) >= {"torch", "numpy", "scipy", "trimesh", "pykdtree"}
     assert st["torch"].found and st["torch"].version == torch.__version__
     assert st["numpy"].found and st["numpy"].version == numpy.__version__
-    assert addon.deps.missing_required(list(st.values())) == []
+    assert addon.runtime.deps.missing_required(list(st.values())) == []
 
 
 def test_dependency_check_without_environment_and_with_env_var(addon, tmp_path):
     """In a Python without site-packages torch is reported missing; NEUMESH_PYTHONPATH fixes it."""
-    deps_dir = os.path.dirname(addon.deps.__file__)
+    deps_dir = os.path.dirname(addon.runtime.deps.__file__)
     site = os.path.dirname(os.path.dirname(__import__("numpy").__file__))
     code = (
         "import sys, importlib.util; spec = importlib.util.spec_from_file_location('d', sys.argv[1]);"
@@ -69,24 +69,24 @@ def test_install_dependencies_operator_uses_blenders_python_and_own_folder(addon
     res = bpy.ops.neumesh.install_dependencies(
         requirements=f"--no-index --find-links {tmp_path} neumesh_fakedep==0.1", wait=True)
     assert res == {"FINISHED"}
-    job = addon.deps.current_install()
+    job = addon.runtime.install.current_install()
     assert job.state == "DONE", job.log_lines[-10:]
     assert job.command[0] == sys.executable and "--target" in job.command
-    target = addon.deps.addon_deps_dir(ADDON_MODULE)
+    target = addon.runtime.deps.addon_deps_dir(ADDON_MODULE)
     assert job.target == target and target.startswith(os.environ["BLENDER_USER_RESOURCES"])
     assert os.path.isfile(os.path.join(target, "neumesh_fakedep", "__init__.py"))
     assert target in sys.path
     import neumesh_fakedep
 
     assert neumesh_fakedep.__version__ == "0.1"
-    assert addon.deps.PIP_REQUIREMENTS[0] == "torch==2.13.0" and "numpy<2" in addon.deps.PIP_REQUIREMENTS
+    assert addon.runtime.deps.PIP_REQUIREMENTS[0] == "torch==2.13.0" and "numpy<2" in addon.runtime.deps.PIP_REQUIREMENTS
 
 
 def test_install_dependencies_failure_is_reported(addon, tmp_path):
     with pytest.raises(RuntimeError, match="pip failed"):
         bpy.ops.neumesh.install_dependencies(
             requirements=f"--no-index --find-links {tmp_path} neumesh-no-such-package==9.9", wait=True)
-    job = addon.deps.current_install()
+    job = addon.runtime.install.current_install()
     assert job.state == "ERROR" and "no-such-package" in " ".join(job.log_lines).lower().replace("_", "-")
 
 
@@ -94,7 +94,7 @@ def test_existing_environment_preference_goes_on_sys_path(addon, tmp_path):
     env = tmp_path / "site-packages"
     (env / "neumesh_envprobe").mkdir(parents=True)
     (env / "neumesh_envprobe" / "__init__.py").write_text("X = 42\n")
-    p = addon.prefs.get_prefs()
+    p = addon.runtime.prefs.get_prefs()
     p.env_path = str(env)
     try:
         assert sys.path[0] == str(env)
@@ -107,7 +107,7 @@ def test_existing_environment_preference_goes_on_sys_path(addon, tmp_path):
 
 
 def test_core_unavailable_message_says_what_to_do(addon, monkeypatch):
-    monkeypatch.setattr(addon.deps, "missing_required", lambda statuses=None: ["torch"])
-    monkeypatch.setattr(addon.core, "_nm", None)
-    with pytest.raises(addon.core.CoreUnavailable, match="Install dependencies"):
-        addon.core.get()
+    monkeypatch.setattr(addon.runtime.deps, "missing_required", lambda statuses=None: ["torch"])
+    monkeypatch.setattr(addon.runtime.core, "_nm", None)
+    with pytest.raises(addon.runtime.core.CoreUnavailable, match="Install dependencies"):
+        addon.runtime.core.get()

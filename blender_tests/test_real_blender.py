@@ -71,6 +71,20 @@ def test_real_blender_renders_animation_with_neumesh_engine(addon_zip, trained_f
     assert f1.shape == f2.shape == (40, 48, 3)
     assert f1.std() > 0.02  # the field is in the picture
 
+    # issue 47: the same file saved with Filmic and another engine; `-E NEUMESH` on the command line never
+    # reached the interface's engine-change message, and the frame came out flat and grey. Now the first
+    # NeuMesh render of a scene sets the photographic view (as choosing the engine in the interface
+    # does): the batch frame has the pixels of the Standard-view file, and the log says why.
+    filmic = str(out / "filmic.blend")
+    expr = ("import bpy; s = bpy.context.scene; s.view_settings.view_transform = 'Filmic'; "
+            "s.render.engine = 'CYCLES'; s.neumesh.photo_colour_set = False; "
+            f"bpy.ops.wm.save_as_mainfile(filepath={filmic!r})")
+    _run([BLENDER, "-b", str(out / "scene.blend"), "--python-expr", expr], env)
+    log = _run([BLENDER, "-b", filmic, "-E", "NEUMESH", "-o", str(out / "filmic_####"), "-f", "1"], env)
+    assert "View Transform set to 'Standard'" in log, log[-3000:]
+    g1 = np.asarray(Image.open(out / "filmic_0001.png").convert("RGB"), np.float32) / 255
+    assert np.abs(g1 - f1).max() <= 1.0 / 255
+
     # where the mesh is (image-space footprint of each part), from the vertices Blender evaluated
     import neumesh_core as nm  # noqa: F401  (same conventions as the add-on)
 
@@ -239,3 +253,23 @@ def test_composite_with_scene_renders_with_blender_b_a(addon_zip, trained_field,
         assert np.abs(got - expected).max() <= 1e-3
         np.testing.assert_allclose(got[bar_front], cyc[bar_front], atol=1e-3)
         assert np.abs(got - cyc)[field_front].max() > 0.1
+
+
+def test_semantics_and_bake_work_or_name_their_missing_packages(addon_zip, tmp_path):
+    """Issue 47: in Blender 3.4 Distil semantics said it started, then died in its thread on
+    `No module named 'skimage'`; Bake needed xatlas. Now each operator either works (the packages are
+    in the torch folder: scripts/setup_blender.sh installs the add-on's whole list) or refuses before
+    starting, naming the package in full."""
+    _need_torch()
+    env = _env(tmp_path)
+    f = _facts(_run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_features.py"),
+                     "--", addon_zip, str(tmp_path / "out")], env, timeout=600))
+    if f["missing"]["semantics"]:
+        assert "Distil semantics needs the Python package" in f["distil"], f
+        assert all(p in f["distil"] for p in f["missing"]["semantics"]) and f["distil_job"] is None, f
+    else:
+        assert f["distil"] == ["FINISHED"] and f["distil_job"][0] == "DONE", f
+    if f["missing"]["bake"]:
+        assert "Bake to material needs the Python package xatlas" in f["bake"] and not f["baked"], f
+    else:
+        assert f["bake"] == ["FINISHED"] and f["baked"], f

@@ -59,7 +59,7 @@ def _click_on(addon, cam, part):
 
     from neumesh_core.data import multipart as mp
 
-    K, c2w, w, h = addon.camera.camera_K_c2w(cam, bpy.context.scene)
+    K, c2w, w, h = addon.scene.camera.camera_K_c2w(cam, bpy.context.scene)
     dt = distance_transform_edt(mp.label_image(K, c2w, w, h) == part)
     assert dt.max() > 2, "the part is not visible from the test camera"
     y, x = np.unravel_index(dt.argmax(), dt.shape)
@@ -99,7 +99,7 @@ def test_click_creates_the_parts_vertex_group(addon, parts_data):
     assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head) == {"FINISHED"}
     assert obj.mode == "EDIT"
     bpy.ops.object.mode_set(mode="OBJECT")
-    assert np.array_equal(_group(obj, addon.semantics.DEFAULT_GROUP), got)
+    assert np.array_equal(_group(obj, addon.edit.select.DEFAULT_GROUP), got)
 
 
 def test_the_viewport_click_path_uses_the_stored_view(addon, parts_data):
@@ -125,21 +125,21 @@ def test_context_prepared_before_the_click_gives_the_same_group(addon, parts_dat
     _, _, sem, _ = parts_data
     obj, cam = _scene(sem)
     head = _click_on(addon, cam, 1)
-    addon.semantics._CONTEXTS.clear()
+    addon.edit.select._CONTEXTS.clear()
     assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="cold") == {"FINISHED"}
-    addon.semantics._CONTEXTS.clear()
-    job = addon.semantics.prepare_selection(obj, bpy.context)
+    addon.edit.select._CONTEXTS.clear()
+    job = addon.edit.select.prepare_selection(obj, bpy.context)
     assert job is not None
     job.join()
-    ctx = addon.semantics._CONTEXTS[obj.name_full]
+    ctx = addon.edit.select._CONTEXTS[obj.name_full]
     assert ctx._graph is not None and ctx._tree is not None   # built before the click
-    assert addon.semantics.prepare_selection(obj, bpy.context) is None   # already current: nothing to do
+    assert addon.edit.select.prepare_selection(obj, bpy.context) is None   # already current: nothing to do
     assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="warm") == {"FINISHED"}
-    assert addon.semantics._CONTEXTS[obj.name_full] is ctx                # reused, not rebuilt
+    assert addon.edit.select._CONTEXTS[obj.name_full] is ctx                # reused, not rebuilt
     assert np.array_equal(_group(obj, "warm"), _group(obj, "cold"))
     # a field without semantics: nothing is started, the click reports the error
     plain_obj, _ = _scene(parts_data[1])
-    assert addon.semantics.prepare_selection(plain_obj, bpy.context) is None
+    assert addon.edit.select.prepare_selection(plain_obj, bpy.context) is None
 
 
 def test_click_errors(addon, parts_data):
@@ -165,12 +165,12 @@ def test_distil_semantics_operator_writes_an_edit(addon, parts_data, tmp_path):
     bpy.context.scene.neumesh.dataset_path = d
     bpy.context.scene.neumesh_semantics.steps = 3
     assert bpy.ops.neumesh.distil_semantics(wait=True, max_views=2, rays_per_view=64) == {"FINISHED"}
-    out = addon.props.field_abspath(obj)
+    out = addon.scene.props.field_abspath(obj)
     assert out == str(tmp_path / "parts.edit-001.neumesh")
     f = nm.load_field(out)
     assert f.has_semantics and f.semantics_info["steps"] == 3
     assert nm.edit.edit_info(out)["op"] == "semantics"
-    assert bpy.ops.neumesh.undo_edit() == {"FINISHED"} and addon.props.field_abspath(obj) == src
+    assert bpy.ops.neumesh.undo_edit() == {"FINISHED"} and addon.scene.props.field_abspath(obj) == src
     bpy.context.scene.neumesh.dataset_path = str(tmp_path / "missing")
     with pytest.raises(RuntimeError, match="dataset folder"):
         bpy.ops.neumesh.distil_semantics(wait=True)
@@ -180,7 +180,7 @@ def test_semantic_colours(addon, parts_data):
     _, _, sem, labels = parts_data
     obj, _ = _scene(sem)
     assert bpy.ops.neumesh.semantic_colours() == {"FINISHED"}
-    attr = obj.data.color_attributes[addon.semantics.COLOUR_ATTRIBUTE]
+    attr = obj.data.color_attributes[addon.edit.semantic_colours.COLOUR_ATTRIBUTE]
     rgba = np.empty(len(obj.data.vertices) * 4, np.float32)
     attr.data.foreach_get("color", rgba)
     rgb = rgba.reshape(-1, 4)[:, :3]

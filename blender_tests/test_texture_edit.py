@@ -89,7 +89,7 @@ def test_swap_by_vertex_groups_renders_in_f12_and_undo_restores(addon, trained_f
     original = _f12(tmp_path / "a.exr")
     assert bpy.ops.neumesh.swap_texture(target_group="region", source_object="Source",
                                         source_group="region") == {"FINISHED"}
-    edited = addon.props.field_abspath(target)
+    edited = addon.scene.props.field_abspath(target)
     assert edited == str(tmp_path / "blob.edit-001.neumesh") and open(tgt_path, "rb").read() == before_bytes
     g = nm.load_field(edited)
     assert g.num_decoders == 2 and set(g.decoder_id[region].tolist()) == {1}
@@ -101,7 +101,7 @@ def test_swap_by_vertex_groups_renders_in_f12_and_undo_restores(addon, trained_f
     nm.swap_texture(api, region, nm.load_field(src_path), region)
     assert np.abs(g.tex_codes.detach().numpy() - api.tex_codes.detach().numpy()).max() < 1e-6
     assert bpy.ops.neumesh.undo_edit() == {"FINISHED"}
-    assert addon.props.field_abspath(target) == tgt_path
+    assert addon.scene.props.field_abspath(target) == tgt_path
     assert np.abs(_f12(tmp_path / "c.exr") - original).max() <= 1e-4
 
 
@@ -119,10 +119,10 @@ def test_swap_with_pairs_selected_in_edit_mode(addon, trained_field, tmp_path):
             bm.select_history.add(bm.verts[int(i)])
         bm.to_mesh(obj.data)
         bm.free()
-    assert addon.texture_edit.selected_pairs(target, source).tolist() == [[int(i), int(i)] for i in picks]
+    assert addon.edit.swap_fill.selected_pairs(target, source).tolist() == [[int(i), int(i)] for i in picks]
     assert bpy.ops.neumesh.swap_texture(target_group="region", source_object="Source", source_group="region",
                                         use_pairs=True) == {"FINISHED"}
-    info = addon.core.get().edit.edit_info(addon.props.field_abspath(target))
+    info = addon.runtime.core.get().edit.edit_info(addon.scene.props.field_abspath(target))
     assert info["history"][-1]["info"]["pairs"] == 4
     np.testing.assert_allclose(np.asarray(info["history"][-1]["info"]["transform"]), np.eye(4), atol=1e-6)
 
@@ -141,7 +141,7 @@ def _spherical_uv_map(obj, name="Sphere"):
 
 
 def test_fill_by_uv_maps(addon, trained_field, tmp_path):
-    nm = addon.core.get()   # the add-on's own (vendored) core: its CornerUVs is the one corner_uvs makes
+    nm = addon.runtime.core.get()   # the add-on's own (vendored) core: its CornerUVs is the one corner_uvs makes
     target, source, tgt_path, src_path, cam, region = _setup(trained_field, tmp_path)
     _spherical_uv_map(target)
     co = _spherical_uv_map(source)
@@ -150,15 +150,15 @@ def test_fill_by_uv_maps(addon, trained_field, tmp_path):
     original = _f12(tmp_path / "a.exr")
     assert bpy.ops.neumesh.fill_texture(target_group="region", target_uv="Sphere", template_object="Source",
                                         template_group="template", template_uv="Sphere", scale=2.0) == {"FINISHED"}
-    edited = addon.props.field_abspath(target)
+    edited = addon.scene.props.field_abspath(target)
     assert edited.endswith("blob.edit-001.neumesh")
     after = _f12(tmp_path / "b.exr")
     assert np.abs(after - _core_render(edited, cam)).max() <= 1e-4
     assert (np.abs(after - original).max(-1) > 0.05).sum() > 10
     # Blender's per-loop UVs are the corner UVs the core takes
-    uvs = addon.texture_edit.corner_uvs(source, "Sphere")
+    uvs = addon.edit.swap_fill.corner_uvs(source, "Sphere")
     api = nm.load_field(tgt_path)
-    nm.fill_texture(api, region, addon.texture_edit.corner_uvs(target, "Sphere"), nm.load_field(src_path), tmpl,
+    nm.fill_texture(api, region, addon.edit.swap_fill.corner_uvs(target, "Sphere"), nm.load_field(src_path), tmpl,
                     uvs, scale=2.0)
     assert np.abs(nm.load_field(edited).tex_codes.detach().numpy() - api.tex_codes.detach().numpy()).max() < 1e-6
 
@@ -182,11 +182,11 @@ def test_bad_input_reports_and_changes_nothing(addon, trained_field, tmp_path):
     for kwargs, msg in cases:
         with pytest.raises(RuntimeError, match=msg):
             bpy.ops.neumesh.swap_texture(**kwargs)
-        assert addon.props.field_abspath(target) == tgt_path
+        assert addon.scene.props.field_abspath(target) == tgt_path
     with pytest.raises(RuntimeError, match="no UV map 'UVMissing'"):
         bpy.ops.neumesh.fill_texture(target_group="region", target_uv="UVMissing", template_group="region",
                                      template_uv="UVMissing")
-    assert addon.props.field_abspath(target) == tgt_path
+    assert addon.scene.props.field_abspath(target) == tgt_path
     assert sorted(os.listdir(tmp_path)) == ["a.exr", "blob.neumesh", "other.neumesh"] or \
         not any(n.endswith(".edit-001.neumesh") for n in os.listdir(tmp_path))
 
@@ -194,15 +194,38 @@ def test_bad_input_reports_and_changes_nothing(addon, trained_field, tmp_path):
 def test_a_cancelled_background_edit_changes_nothing(addon, trained_field, tmp_path):
     """What Esc does in the modal operator: the job's progress callback answers False, the core raises
     Cancelled, the field copy is dropped and the object keeps its file."""
-    nm = addon.core.get()
+    nm = addon.runtime.core.get()
     target, _, tgt_path, _, _, region = _setup(trained_field, tmp_path)
-    field, _ = addon.edits.field_for_edit(target)
-    work = addon.edits.edit_copy(field)
+    field, _ = addon.edit.base.field_for_edit(target)
+    work = addon.edit.base.edit_copy(field)
     assert work is not field and work.num_vertices == field.num_vertices
-    job = addon.edits.EditJob("swap", lambda progress: [nm.swap_texture(work, region, work, region,
+    job = addon.runtime.jobs.Job("swap", lambda progress: [nm.swap_texture(work, region, work, region,
                                                                         progress=progress)])
     job.cancel()
     job.start().join()
-    assert job.cancelled and job.record is None and job.error is None
-    assert addon.props.field_abspath(target) == tgt_path
+    assert job.cancelled and job.result is None and job.error is None
+    assert addon.scene.props.field_abspath(target) == tgt_path
+    assert not any(".edit-" in n for n in os.listdir(tmp_path))
+
+
+def test_a_region_swapped_onto_itself_changes_nothing_and_writes_no_file(addon, trained_field, tmp_path):
+    """Issue 47: swapping a region onto itself reported "10242 vertices changed"; no row changes, so
+    nothing is saved and the object keeps its file."""
+    target, _, tgt_path, _, _, region = _setup(trained_field, tmp_path)
+    field, _ = addon.edit.base.field_for_edit(target)
+    nm = addon.runtime.core.get()
+    work = addon.edit.base.edit_copy(field)
+    rec = nm.swap_texture(work, region, work, region)
+    assert rec.num_changed == len(region) and addon.edit.base.changed_rows(rec) == 0
+    other = addon.edit.base.edit_copy(field)
+    import torch
+
+    rec2 = nm.edit.EditRecord.begin("probe", other, region[:5], ("mod_colors",))
+    with torch.no_grad():
+        other.mod_colors[torch.as_tensor(region[:2])] += 0.25
+    rec2.finish(other)
+    assert addon.edit.base.changed_rows(rec2) == 2   # the rows whose values moved, not all it wrote
+    assert bpy.ops.neumesh.swap_texture(target_group="region", source_object="", source_group="region",
+                                        nonrigid=False) == {"FINISHED"}
+    assert addon.scene.props.field_abspath(target) == tgt_path
     assert not any(".edit-" in n for n in os.listdir(tmp_path))

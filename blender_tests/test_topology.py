@@ -76,12 +76,12 @@ def _delete_vertices(obj, indices):
 
 def test_attach_writes_vertex_ids_and_the_scene_knows_the_field(addon, trained_field, tmp_path):
     obj, path = _load(trained_field, tmp_path, "A")
-    vid, rest, key = addon.identity.read(obj.data)
+    vid, rest, key = addon.scene.identity.read(obj.data)
     assert np.array_equal(vid, np.arange(len(obj.data.vertices)))
-    field = addon.render.get_field(obj.name_full, path)
+    field = addon.render.fields.get_field(obj.name_full, path)
     assert np.allclose(rest, field.rest_vertices.numpy(), atol=1e-6)
-    assert (key == addon.identity.key_of(field)).all()
-    assert addon.identity.lookup(bpy.context.scene, int(key[0])) == path
+    assert (key == addon.scene.identity.key_of(field)).all()
+    assert addon.scene.identity.lookup(bpy.context.scene, int(key[0])) == path
 
 
 def test_delete_half_renders_the_kept_half_as_before(addon, trained_field, tmp_path):
@@ -113,7 +113,7 @@ def test_separate_into_two_objects_renders_the_original_image(addon, trained_fie
     bpy.ops.mesh.separate(type="SELECTED")
     bpy.ops.object.mode_set(mode="OBJECT")
     parts = [o for o in bpy.context.scene.objects if o.type == "MESH"]
-    assert len(parts) == 2 and all(addon.props.field_abspath(o) == path for o in parts)
+    assert len(parts) == 2 and all(addon.scene.props.field_abspath(o) == path for o in parts)
     after = _f12(tmp_path / "b.exr")
     p = _psnr(after, before)
     print(f"separate: {p:.1f} dB against the unseparated render")
@@ -128,7 +128,7 @@ def test_a_moved_duplicate_renders_like_the_original_seen_from_a_moved_camera(ad
     _select_only(obj)
     bpy.ops.object.duplicate()
     copy = bpy.context.active_object
-    assert copy != obj and addon.props.field_abspath(copy) == path
+    assert copy != obj and addon.scene.props.field_abspath(copy) == path
     copy.location.z += 0.3
     obj.neumesh.enabled = False                # only the copy renders
     bpy.context.view_layer.update()
@@ -153,7 +153,7 @@ def test_joined_fields_render_as_they_did_apart(addon, trained_field, second_fie
     bpy.ops.object.join()
     joined = [o for o in bpy.context.scene.objects if o.type == "MESH"]
     assert len(joined) == 1
-    keys = np.unique(addon.identity.read(joined[0].data)[2])
+    keys = np.unique(addon.scene.identity.read(joined[0].data)[2])
     assert len(keys) == 2                       # one mesh, two fields
     together = _f12(tmp_path / "b.exr")
     assert np.abs(together - apart).max() < 2e-3
@@ -169,7 +169,7 @@ def test_subdivision_surface_renders_close_to_the_original(addon, trained_field,
     p = _psnr(after, before)
     print(f"subdivision surface level 1: {p:.1f} dB against the original render")
     assert p > 35.0   # measured 40.1 dB (the new vertices' codes are interpolated, see identity.py)
-    assert addon.render.STATS.get("remaps", 0) > 0
+    assert addon.render.fields.STATS.get("remaps", 0) > 0
 
 
 def test_save_and_reload_render_the_same_pixels(addon, trained_field, second_field, tmp_path):
@@ -185,7 +185,7 @@ def test_save_and_reload_render_the_same_pixels(addon, trained_field, second_fie
     before = _f12(tmp_path / "a.exr")
     blend = str(tmp_path / "scene.blend")
     bpy.ops.wm.save_as_mainfile(filepath=blend)
-    addon.render.clear_cache()
+    addon.render.fields.clear_cache()
     bpy.ops.wm.open_mainfile(filepath=blend)
     after = _f12(tmp_path / "b.exr")
     assert np.abs(after - before).max() < 1e-5

@@ -14,7 +14,7 @@ def test_import_dataset_cameras_match_dataset(addon, tiny_dataset):
     import neumesh_core as nm
 
     assert bpy.ops.neumesh.import_dataset(directory=tiny_dataset, split="train") == {"FINISHED"}
-    cams = addon.operators.dataset_cameras()
+    cams = addon.render.images.dataset_cameras()
     ds = nm.load_scene(tiny_dataset).splits["train"]
     assert len(cams) == len(ds.cameras) == 8
     scene = bpy.context.scene
@@ -22,7 +22,7 @@ def test_import_dataset_cameras_match_dataset(addon, tiny_dataset):
     dg = bpy.context.evaluated_depsgraph_get()
     for cam in cams:
         i = cam["neumesh_index"]
-        K, c2w, w, h = addon.camera.camera_K_c2w(cam, scene, dg)
+        K, c2w, w, h = addon.scene.camera.camera_K_c2w(cam, scene, dg)
         np.testing.assert_allclose(K, ds.cameras.K[i], atol=1e-3)
         np.testing.assert_allclose(c2w, ds.cameras.c2w[i], atol=1e-5)
         bg = cam.data.background_images
@@ -46,13 +46,13 @@ def test_import_mesh_keeps_core_vertex_order(addon, tiny_dataset):
     assert bpy.ops.neumesh.import_mesh(filepath=os.path.join(tiny_dataset, "mesh.ply")) == {"FINISHED"}
     obj = bpy.context.active_object
     m = nm.load_mesh(os.path.join(tiny_dataset, "mesh.ply"))
-    np.testing.assert_allclose(addon.sync.mesh_vertices(obj.data), np.asarray(m.vertices), atol=1e-6)
-    assert np.array_equal(addon.sync.mesh_triangles(obj.data), np.asarray(m.faces))
+    np.testing.assert_allclose(addon.scene.sync.mesh_vertices(obj.data), np.asarray(m.vertices), atol=1e-6)
+    assert np.array_equal(addon.scene.sync.mesh_triangles(obj.data), np.asarray(m.faces))
     assert bpy.context.scene.neumesh.train_object == obj
 
 
 def test_load_field_refuses_wrong_vertex_count(addon, trained_field):
-    addon.sync.new_mesh_object("tri", np.eye(3, dtype=np.float32), np.array([[0, 1, 2]]))
+    addon.scene.sync.new_mesh_object("tri", np.eye(3, dtype=np.float32), np.array([[0, 1, 2]]))
     bpy.context.view_layer.objects.active = bpy.data.objects["tri"]
     with pytest.raises(RuntimeError, match="vertices but the field has"):
         bpy.ops.neumesh.load_field(filepath=trained_field)
@@ -80,13 +80,13 @@ def test_train_from_blender_in_background_thread(addon, tiny_dataset, tmp_path):
     obj = _setup_training(tiny_dataset, steps=4)
     t0 = time.perf_counter()
     assert bpy.ops.neumesh.train() == {"FINISHED"}  # returns at once, training runs in a thread
-    job = addon.worker.current()
+    job = addon.train.worker.current()
     assert time.perf_counter() - t0 < 2.0 and job.running
     # the UI thread is free while training: progress is recorded
     assert job.join(timeout=180)
     assert job.state == "DONE", job.message
     assert job.step == 4 and np.isfinite(job.loss)
-    addon.operators._train_timer()  # what bpy.app.timers runs on the main thread
+    addon.train.operators.finish_training()  # what bpy.app.timers runs on the main thread
     path = str(tmp_path / "mesh.neumesh")
     assert os.path.isfile(path)
     assert obj.neumesh.field_path == "//mesh.neumesh"
@@ -99,7 +99,7 @@ def test_cancel_saves_and_resume_continues(addon, tiny_dataset, tmp_path):
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "c.blend"))
     obj = _setup_training(tiny_dataset, steps=400)
     bpy.ops.neumesh.train()
-    job = addon.worker.current()
+    job = addon.train.worker.current()
     t_end = time.time() + 120
     while job.step < 1 and job.running and time.time() < t_end:
         time.sleep(0.05)
@@ -109,18 +109,18 @@ def test_cancel_saves_and_resume_continues(addon, tiny_dataset, tmp_path):
     assert job.state == "CANCELLED", job.message
     stopped_at = job.step
     assert 1 <= stopped_at < 400
-    addon.operators.finish_training()
-    path = addon.props.field_abspath(obj)
+    addon.train.operators.finish_training()
+    path = addon.scene.props.field_abspath(obj)
     assert os.path.isfile(path)
     bpy.context.scene.neumesh.train_steps = stopped_at + 3
     assert bpy.ops.neumesh.train(resume=True, wait=True) == {"FINISHED"}
-    job2 = addon.worker.current()
+    job2 = addon.train.worker.current()
     assert job2.state == "DONE" and job2.step == stopped_at + 3, job2.message
     assert nm.load_field(path).num_vertices == len(obj.data.vertices)
 
 
 def test_train_needs_dataset(addon):
-    addon.sync.new_mesh_object("m", np.eye(3, dtype=np.float32), np.array([[0, 1, 2]]))
+    addon.scene.sync.new_mesh_object("m", np.eye(3, dtype=np.float32), np.array([[0, 1, 2]]))
     bpy.context.view_layer.objects.active = bpy.data.objects["m"]
     with pytest.raises(RuntimeError, match="dataset"):
         bpy.ops.neumesh.train()

@@ -15,7 +15,7 @@ from .errors import (CheckpointError, DataError, DeformError, EditError, NeuMesh
                      SelectionError, VertexMismatchError, WeightsUnavailableError)
 from .mesh import Mesh, load_mesh, save_mesh
 from .field.field import FieldConfig, NeuMeshField, create_field
-from .field.remap import field_key, resolve_ids
+from .field.remap import field_key, remap_field, resolve_ids  # remap_field: the add-on's topology edits
 from .render.renderer import Cancelled, RenderOutput, RenderSettings, render_camera, render_rays
 from .render.raster import depth_buffer
 from .field.io import load_field, save_field
@@ -41,7 +41,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "Cameras", "ScaffoldConfig", "axis_to_ray_depth", "bake", "bake_texture", "build_scaffold", "depth_buffer",
-    "field_key", "ray_to_axis_depth", "resolve_ids", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "DeformError", "EditError", "FieldConfig", "ImageSet",
+    "field_key", "ray_to_axis_depth", "remap_field", "resolve_ids", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "DeformError", "EditError", "FieldConfig", "ImageSet",
     "Mesh", "NeuMeshError", "NeuMeshField", "NoSemanticsError", "RenderOutput", "RenderSettings", "Scene",
     "SelectionError", "TrainConfig", "TrainProgress", "TrainResult", "VertexMismatchError",
     "WeightsUnavailableError", "create_field", "default_scene_dir", "evaluate", "fill_texture",

@@ -119,11 +119,11 @@ def depth_agreement(addon, scene, field_ob, width, height, out_dir):
         o.hide_render = True
     engine, samples = scene.render.engine, scene.cycles.samples
     scene.cycles.samples = 1
-    zc = render_pass(addon.composite, scene, "Depth", os.path.join(out_dir, "zc.exr"))[..., 0]
+    zc = render_pass(addon.render.composite, scene, "Depth", os.path.join(out_dir, "zc.exr"))[..., 0]
     scene.render.engine = "NEUMESH"
     scene.render.film_transparent = True
-    zf = render_pass(addon.composite, scene, "Depth", os.path.join(out_dir, "zf.exr"))[..., 0]
-    af = render_pass(addon.composite, scene, "Alpha", os.path.join(out_dir, "af.exr"))[..., 0]
+    zf = render_pass(addon.render.composite, scene, "Depth", os.path.join(out_dir, "zf.exr"))[..., 0]
+    af = render_pass(addon.render.composite, scene, "Alpha", os.path.join(out_dir, "af.exr"))[..., 0]
     scene.render.engine, scene.cycles.samples = engine, samples
     scene.render.film_transparent = False
     for o in others:
@@ -147,7 +147,7 @@ def main():
     ap.add_argument("--samples", type=int, default=24)
     a = ap.parse_args()
     addon = install_addon()
-    addon.prefs.get_prefs().torch_threads = int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
+    addon.runtime.prefs.get_prefs().torch_threads = int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
     w, h = a.size
     scene, field_ob = build_scene(os.path.abspath(a.field), w, h, a.samples)
     out_dir = os.environ["TMPDIR"]

@@ -123,8 +123,6 @@ def test_addon_private_core_scan_finds_uses(tmp_path):
     assert len(uses) == 2 and uses[0].startswith("2:") and "'.edit'" in uses[1]
 
 
-@pytest.mark.xfail(strict=False, reason="issue 46: the add-on still reaches private core modules until the "
-                                        "add-on developer's rewrite (nm.<public name> only) is merged")
 def test_addon_uses_only_the_public_core():
     addon = os.path.join(ROOT, "addon")
     bad = []

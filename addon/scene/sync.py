@@ -5,7 +5,7 @@ RNA API exposes per vertex only).
 """
 from __future__ import annotations
 
-from ._np import np
+from ..runtime._np import np
 
 # Modifiers that can add, remove, merge or reorder vertices. A field is stored per scaffold vertex, so
 # any of these between the field's mesh and the render would pair codes with the wrong vertices.

@@ -2,7 +2,7 @@
 
 When a field is attached to a mesh (Load field, New object, training), every vertex gets three point
 attributes: ``neumesh_vid`` (the field vertex index), ``neumesh_rest`` (that vertex's rest position
-in the field) and ``neumesh_key`` (the field's lineage key, :func:`neumesh_core.field.remap.field_key`).
+in the field) and ``neumesh_key`` (the field's lineage key, ``nm.field_key``).
 Blender keeps point attributes through Delete, Separate, Duplicate and Join, and interpolates them for
 the vertices that Subdivide, Extrude or a Subdivision Surface modifier make; the renderer maps mesh
 vertices to field vertices through them (``render.collect``) instead of by order:
@@ -22,8 +22,10 @@ import os
 import bpy
 from bpy.props import CollectionProperty, IntProperty, StringProperty
 
-from ._np import np
-from . import core
+from ..runtime._np import np
+from ..runtime import classes_factory, core
+from ..runtime.errors import UserError
+from . import props
 
 ATTR_VID = "neumesh_vid"
 ATTR_REST = "neumesh_rest"
@@ -31,18 +33,8 @@ ATTR_KEY = "neumesh_key"
 ATTRS = (ATTR_VID, ATTR_REST, ATTR_KEY)
 
 
-class IdentityError(RuntimeError):
-    """Mesh vertices cannot be mapped to field vertices; the message says what to do."""
-
-
-def _remap():
-    import importlib
-
-    return importlib.import_module(core.get().__name__ + ".field.remap")
-
-
 def key_of(field) -> int:
-    return int(_remap().field_key(field))
+    return int(core.get().field_key(field))
 
 
 def _attr(mesh, name, kind, domain="POINT"):
@@ -59,7 +51,7 @@ def write(obj, field) -> None:
     me = obj.data
     n = len(me.vertices)
     if n != field.num_vertices:
-        raise IdentityError(f"'{obj.name}' has {n} vertices but its field has {field.num_vertices}")
+        raise UserError(f"'{obj.name}' has {n} vertices but its field has {field.num_vertices}")
     rest = np.ascontiguousarray(field.rest_vertices.detach().cpu().numpy(), np.float32)
     _attr(me, ATTR_VID, "INT").data.foreach_set("value", np.arange(n, dtype=np.int32))
     _attr(me, ATTR_REST, "FLOAT_VECTOR").data.foreach_set("vector", rest.ravel())
@@ -118,8 +110,6 @@ def lookup(scene, key: int) -> str | None:
 def attach(context, obj, field, path: str) -> None:
     """Attach ``field`` (file ``path``) to ``obj`` whose mesh is its scaffold: path, identity
     attributes, scene record."""
-    from . import props
-
     props.set_field_path(obj, path)
     write(obj, field)
     register_field(context.scene, field, path)
@@ -135,19 +125,19 @@ def field_rows(obj, field, mesh_indices, what: str) -> np.ndarray:
     ident = read(obj.data)
     if ident is None:
         if len(obj.data.vertices) != field.num_vertices:
-            raise IdentityError(f"'{obj.name}' has {len(obj.data.vertices)} vertices but its field has "
+            raise UserError(f"'{obj.name}' has {len(obj.data.vertices)} vertices but its field has "
                                 f"{field.num_vertices} and the mesh has no NeuMesh vertex ids to map them; "
                                 "Load field on the original mesh again")
         return np.unique(idx)
     vid, rest, key = ident
     own = key_of(field)
     if (key[idx] != own).any():
-        raise IdentityError(f"{what}: the selection includes vertices of another field joined into '{obj.name}'; "
+        raise UserError(f"{what}: the selection includes vertices of another field joined into '{obj.name}'; "
                             "separate them (P) to edit that part")
-    ids = _remap().resolve_ids(field, vid[idx], rest[idx])
+    ids = core.get().resolve_ids(field, vid[idx], rest[idx])
     ids = np.unique(ids[ids >= 0])
     if len(ids) == 0:
-        raise IdentityError(f"{what}: the selected vertices are all new (made by subdivision or extrusion) and "
+        raise UserError(f"{what}: the selected vertices are all new (made by subdivision or extrusion) and "
                             "carry no codes of their own; include vertices of the original mesh")
     return ids
 
@@ -160,7 +150,7 @@ def vertex_ids(obj, field, mesh_indices) -> np.ndarray:
     if ident is None:
         return np.where(idx < field.num_vertices, idx, -1)
     vid, rest, key = ident
-    ids = _remap().resolve_ids(field, vid[idx], rest[idx])
+    ids = core.get().resolve_ids(field, vid[idx], rest[idx])
     ids[key[idx] != key_of(field)] = -1
     return ids
 
@@ -179,7 +169,7 @@ def corner_rows(obj, field, corner_vertices: np.ndarray):
     if ident is None:
         return np.ones(len(cv), bool), cv
     vid, rest, key = ident
-    ids = _remap().resolve_ids(field, vid, rest)
+    ids = core.get().resolve_ids(field, vid, rest)
     ids[key != key_of(field)] = -1
     out = ids[cv]
     keep = out >= 0
@@ -189,14 +179,5 @@ def corner_rows(obj, field, corner_vertices: np.ndarray):
 classes = (NeuMeshFieldRef,)
 
 
-_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
-
-
-def register():
-    _register_classes()
-    bpy.types.Scene.neumesh_fields = CollectionProperty(type=NeuMeshFieldRef)
-
-
-def unregister():
-    del bpy.types.Scene.neumesh_fields
-    _unregister_classes()
+register, unregister = classes_factory(classes, (
+    (bpy.types.Scene, "neumesh_fields", lambda: CollectionProperty(type=NeuMeshFieldRef)),))

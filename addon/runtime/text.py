@@ -85,6 +85,20 @@ def wrapped_label(layout, text: str, width: float, icon: str = "NONE", context=N
     return col
 
 
+def job_status(layout, job, context, cancel: str | None = None):
+    """A background job in a panel: its ``status_lines()`` wrapped (the state's icon on the first), and
+    while it runs a progress bar with the percentage and the ``cancel`` operator."""
+    width = text_width(context)
+    icon = "SORTTIME" if job.running else {"DONE": "CHECKMARK", "ERROR": "ERROR"}.get(job.state, "INFO")
+    for i, line in enumerate(job.status_lines()):
+        wrapped_label(layout, line, width, icon=icon if i == 0 else "NONE", context=context)
+    if job.running:
+        if hasattr(layout, "progress"):
+            layout.progress(factor=job.fraction, text=f"{100 * job.fraction:.0f}%")
+        if cancel:
+            layout.operator(cancel, icon="CANCEL")
+
+
 def labelled(layout, data, prop, label, **kw):
     """A property with its label above it (the sidebar is too narrow for both on one row)."""
     col = layout.column(align=True)

@@ -17,72 +17,66 @@ committed.
 """
 from __future__ import annotations
 
-import copy
 import os
-import threading
-import time
-import traceback
 
 import bpy
 
-from . import core, props, render
-
-
-class EditError(RuntimeError):
-    """An edit cannot start; the message says what to do. Nothing was changed."""
-
-
-def field_path_of(obj) -> str:
-    """The object's field file (absolute); :class:`EditError` when it has none or it is missing."""
-    if obj is None or obj.type != "MESH":
-        raise EditError("select a mesh object that carries a NeuMesh field")
-    path = props.field_abspath(obj)
-    if not path:
-        raise EditError(f"object '{obj.name}' has no NeuMesh field; load or train one first")
-    if not os.path.isfile(path):
-        raise EditError(f"object '{obj.name}': its field file is missing: {obj.neumesh.field_path}")
-    return path
+from ..runtime import core, jobs
+from ..runtime.errors import UserError
+from ..runtime.jobs import Job, JobModal, redraw
+from ..runtime.text import text_width, wrapped_label
+from ..scene import identity, props, sync
+from ..scene.props import field_path_of
+from ..render import fields
 
 
 def field_for_edit(obj):
     """(field, path): the object's field as the renderer holds it (edits write into this instance, so
     the next render shows them without reloading)."""
     path = field_path_of(obj)
-    return render.get_field(obj.name_full, path), path
+    return fields.get_field(obj.name_full, path), path
+
+
+def changed_rows(record, rtol: float = 1e-5, atol: float = 1e-6) -> int:
+    """How many of the rows an edit wrote hold other values than before (a region swapped onto itself
+    writes every row and changes none). Values are compared with a tolerance, never bit for bit."""
+    if not record.new:
+        return int(record.num_changed)
+    import torch
+
+    changed = torch.zeros(len(record.vertices), dtype=torch.bool)
+    for t, old in record.old.items():
+        new = record.new[t]
+        if old.dtype.is_floating_point:
+            diff = ~torch.isclose(new, old, rtol=rtol, atol=atol)
+        else:
+            diff = new != old
+        changed |= diff.reshape(len(changed), -1).any(1)
+    return int(changed.sum())
 
 
 def commit_edit(obj, field, record, parent_path: str) -> str:
     """Save ``field`` (edited in memory by ``record``) beside ``parent_path`` and point ``obj`` at the
     new file; returns its path.  On failure the edit is undone in memory and the object is left as
     it was."""
-    nm = core.get()
-    edit = _edit_module(nm)
     try:
-        out = edit.save_edited(field, parent_path, record)
+        out = core.get().edit.save_edited(field, parent_path, record)
     except BaseException:
         record.undo(field)
         raise
     props.set_field_path(obj, out)
-    render.adopt(obj.name_full, out, field)
+    fields.adopt(obj.name_full, out, field)
     _register(obj, field, out)
     return out
 
 
 def _register(obj, field, path):
     """The scene's record of which file holds this field's key (joined objects find it there)."""
-    from . import identity
-
     try:
         for scene in obj.users_scene or (bpy.context.scene,):
             identity.register_field(scene, field, path)
     except Exception as exc:  # noqa: BLE001 - only joins of this object later would miss it
         print(f"NeuMesh: could not record the field of '{obj.name}': {exc}")
-
-
-def _edit_module(nm):
-    import importlib
-
-    return importlib.import_module(nm.__name__ + ".edit")
 
 
 _CHAIN_CACHE: dict = {}
@@ -93,8 +87,8 @@ def edit_chain(obj):
     Cached per file (panels draw often; headers change only when a file is rewritten)."""
     try:
         path = field_path_of(obj)
-        edit = _edit_module(core.get())
-    except (EditError, core.CoreUnavailable):
+        edit = core.get().edit
+    except (UserError, core.CoreUnavailable):
         return []
     st = os.stat(path)
     key = (path, st.st_mtime_ns, st.st_size)
@@ -120,133 +114,26 @@ def _read_chain(edit, path):
     return chain[::-1]
 
 
-def edit_copy(field):
-    """A private copy of a cached field for a background edit (taken under the render lock, so no
-    render or deformation is half-way through it)."""
-    with render._LOCK:
-        return copy.deepcopy(field)
+edit_copy = fields.private_copy   # a private copy of a cached field for a background edit
 
 
 def region_of(obj, group: str, field, what: str):
     """Field vertex indices of vertex group ``group`` of ``obj`` (mesh vertices mapped to field vertices
-    through their identity attributes, see identity.py); :class:`EditError` when the group is missing
+    through their identity attributes, see identity.py); :class:`UserError` when the group is missing
     or empty, or its vertices cannot be mapped."""
-    from . import identity, sync
-
     if not group:
-        raise EditError(f"{what}: choose a vertex group of '{obj.name}'")
+        raise UserError(f"{what}: choose a vertex group of '{obj.name}'")
     if obj.vertex_groups.get(group) is None:
-        raise EditError(f"{what}: '{obj.name}' has no vertex group '{group}'")
+        raise UserError(f"{what}: '{obj.name}' has no vertex group '{group}'")
     idx = sync.vertex_group_indices(obj, group)
     if len(idx) == 0:
-        raise EditError(f"{what}: vertex group '{group}' of '{obj.name}' is empty; assign vertices to it")
-    try:
-        return identity.field_rows(obj, field, idx, what)
-    except identity.IdentityError as exc:
-        raise EditError(str(exc)) from exc
-
-
-class EditJob:
-    """One core edit in a background thread: ``fn(progress) -> [EditRecord | None, ...]``; ``progress(fraction)``
-    returns False once :meth:`cancel` was called (the core then raises ``Cancelled``)."""
-
-    def __init__(self, label: str, fn):
-        self.label = label
-        self.fn = fn
-        self.fraction = 0.0
-        self.record = None
-        self.error = None
-        self.cancelled = False
-        self.started = time.time()
-        self.threads = core.wanted_threads()   # read here, on the main thread
-        self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run_in_torch_work, name=f"neumesh-{label}", daemon=True)
-
-    def start(self):
-        self._thread.start()
-        return self
-
-    def cancel(self):
-        self._cancel.set()
-
-    @property
-    def running(self) -> bool:
-        return self._thread.is_alive()
-
-    def join(self):
-        self._thread.join()
-
-    def _progress(self, fraction):
-        self.fraction = float(fraction)
-        return not self._cancel.is_set()
-
-    def _run_in_torch_work(self):
-        with core.torch_work(self.threads):   # the preference's threads; jemalloc keeps freed memory
-            self._run()
-
-    def _run(self):
-        try:
-            self.record = self.fn(self._progress)
-        except Exception as exc:  # noqa: BLE001 - reported by the operator
-            if type(exc).__name__ == "Cancelled":
-                self.cancelled = True
-            else:
-                self.error = exc
-                if not isinstance(exc, (EditError, ValueError)):
-                    traceback.print_exc()
-        finally:
-            try:
-                core.guard_torch_namespaces()
-            except Exception:  # noqa: BLE001
-                pass
-
-
-class JobModal:
-    """Mixin: an operator whose work runs in a background job (``_start(context)`` -> a job with
-    ``start()``, ``join()``, ``running``, ``fraction``, ``cancel()``; ``_finish(context, job)``).
-    From a script (EXEC) it blocks; invoked from the UI it is modal with progress in the status bar and
-    Esc to cancel, and the viewport stays usable meanwhile.  ``edit_label`` names the work."""
-
-    edit_label = "working"
-
-    def execute(self, context):
-        job = self._start(context)
-        if job is None:
-            return {"CANCELLED"}
-        job.start().join()
-        return self._finish(context, job)
-
-    def invoke(self, context, event):
-        job = self._start(context)
-        if job is None:
-            return {"CANCELLED"}
-        self._job = job.start()
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.1, window=context.window)
-        wm.progress_begin(0, 100)
-        wm.modal_handler_add(self)
-        _status(context, f"NeuMesh: {self.edit_label}... (Esc cancels)")
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context, event):
-        job = self._job
-        if event.type == "ESC" and job.running:
-            job.cancel()
-        if event.type == "TIMER":
-            context.window_manager.progress_update(int(100 * job.fraction))
-            _status(context, f"NeuMesh: {self.edit_label} {100 * job.fraction:.0f}% (Esc cancels)")
-        if job.running:   # the viewport stays usable while the edit runs; Esc is ours
-            return {"RUNNING_MODAL"} if event.type == "ESC" else {"PASS_THROUGH"}
-        wm = context.window_manager
-        wm.event_timer_remove(self._timer)
-        wm.progress_end()
-        _status(context, None)
-        return self._finish(context, job)
+        raise UserError(f"{what}: vertex group '{group}' of '{obj.name}' is empty; assign vertices to it")
+    return identity.field_rows(obj, field, idx, what)
 
 
 class EditOperator(JobModal):
     """Mixin of the edit operators.  A subclass implements :meth:`prepare` (main thread: read Blender
-    state, raise :class:`EditError` for bad input) returning ``(targets, fn)``: ``targets`` a list of
+    state, raise :class:`UserError` for bad input) returning ``(targets, fn)``: ``targets`` a list of
     ``(obj, field, parent_path)`` with ``field`` a copy from :func:`edit_copy`, and ``fn(progress)``
     running the core edit on those fields and returning one record per target (None: unchanged).
     Invoked from the UI the edit runs in a thread with progress and Esc; EXEC blocks."""
@@ -260,14 +147,17 @@ class EditOperator(JobModal):
     def _start(self, context):
         try:
             targets, fn = self.prepare(context)
-        except (EditError, core.CoreUnavailable, ValueError) as exc:
+        except (UserError, core.CoreUnavailable, ValueError) as exc:
+            self.report({"ERROR"}, f"NeuMesh: {exc}")
+            return None
+        except core.error_types() as exc:   # the core's own input errors (nm.EditError...): the message says it
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return None
         except Exception as exc:  # noqa: BLE001
             self.report({"ERROR"}, f"NeuMesh: {self.edit_label} failed: {exc}")
             return None
         self._targets = [(obj.name_full, field, parent) for obj, field, parent in targets]
-        return EditJob(self.edit_label, fn)
+        return Job(self.edit_label, fn)
 
     def _finish(self, context, job):
         if job.cancelled:
@@ -276,9 +166,13 @@ class EditOperator(JobModal):
         if job.error is not None:
             self.report({"ERROR"}, f"NeuMesh: {self.edit_label}: {job.error}")
             return {"CANCELLED"}
-        saved, changed = [], 0
-        for (name, field, parent), record in zip(self._targets, job.record):
+        saved, changed, unchanged = [], 0, []
+        for (name, field, parent), record in zip(self._targets, job.result):
             if record is None:
+                continue
+            n = changed_rows(record)
+            if n == 0:   # nothing to save: the object keeps its file (the edit ran on a copy)
+                unchanged.append(name)
                 continue
             obj = bpy.data.objects.get(name)
             try:
@@ -286,23 +180,19 @@ class EditOperator(JobModal):
             except Exception as exc:  # noqa: BLE001
                 self.report({"ERROR"}, f"NeuMesh: could not save the edited field of '{name}': {exc}")
                 return {"CANCELLED"} if not saved else {"FINISHED"}
-            changed += record.num_changed
-        for area in getattr(context.screen, "areas", []) or []:
-            area.tag_redraw()
-        done = [r for r in job.record if r is not None]
+            changed += n
+        redraw(context, whole=True)
+        done = [r for r in job.result if r is not None]
+        if not saved:
+            why = f" ('{', '.join(unchanged)}' already looked like that)" if unchanged else ""
+            self.report({"INFO"}, f"NeuMesh: {self.edit_label}: nothing changed{why}; no file written")
+            return {"FINISHED"}
         self.report({"INFO"}, f"NeuMesh: {self.edit_label}: {changed} vertices changed; saved "
                               f"{', '.join(saved)} ({self.summary(done[0]) if done else ''})")
         return {"FINISHED"}
 
     def summary(self, record) -> str:
         return f"{record.info.get('seconds', 0.0):.1f} s"
-
-def _status(context, text):
-    try:
-        context.workspace.status_text_set(text)
-    except Exception:  # noqa: BLE001 - no workspace in background mode
-        pass
-
 
 def _point_back(op, context, which: str):
     """Point the active object at the file its field was edited from (``which="parent"``) or at the
@@ -311,9 +201,9 @@ def _point_back(op, context, which: str):
     path = None
     try:
         path = field_path_of(obj)
-        edit = _edit_module(core.get())
+        edit = core.get().edit
         target = edit.parent_of(path) if which == "parent" else edit.root_of(path)
-    except (EditError, core.CoreUnavailable) as exc:
+    except (UserError, core.CoreUnavailable) as exc:
         op.report({"ERROR"}, f"NeuMesh: {exc}")
         return {"CANCELLED"}
     except Exception as exc:  # noqa: BLE001 - e.g. a corrupt header
@@ -327,77 +217,79 @@ def _point_back(op, context, which: str):
         op.report({"ERROR"}, f"NeuMesh: {what} is missing: {target}")
         return {"CANCELLED"}
     props.set_field_path(obj, target)
-    _register(obj, render.get_field(obj.name_full, target), target)
+    _register(obj, fields.get_field(obj.name_full, target), target)
     shown = "the trained field " if which == "root" else ""
     op.report({"INFO"}, f"NeuMesh: '{obj.name}' shows {shown}{os.path.basename(target)}")
     return {"FINISHED"}
 
 
-class NEUMESH_OT_undo_edit(bpy.types.Operator):
+class _PointBack:
+    bl_options = {"REGISTER", "UNDO"}
+    which = "parent"
+
+    def execute(self, context):
+        return _point_back(self, context, self.which)
+
+
+class NEUMESH_OT_undo_edit(_PointBack, bpy.types.Operator):
     """Point the object back at the field file this edit was made from (the edited file stays on disk;
     Ctrl+Z does the same within this session)"""
 
-    bl_idname = "neumesh.undo_edit"
-    bl_label = "Undo edit"
-    bl_options = {"REGISTER", "UNDO"}
-
-    def execute(self, context):
-        return _point_back(self, context, "parent")
+    bl_idname, bl_label = "neumesh.undo_edit", "Undo edit"
 
 
-class NEUMESH_OT_revert_field(bpy.types.Operator):
+class NEUMESH_OT_revert_field(_PointBack, bpy.types.Operator):
     """Point the object back at the trained field, before all edits (edited files stay on disk)"""
 
-    bl_idname = "neumesh.revert_field"
-    bl_label = "Revert to trained field"
-    bl_options = {"REGISTER", "UNDO"}
-
-    def execute(self, context):
-        return _point_back(self, context, "root")
+    bl_idname, bl_label, which = "neumesh.revert_field", "Revert to trained field", "root"
 
 
-class NEUMESH_PT_edit(bpy.types.Panel):
-    """Parent panel of the edit tools; shows the active object's edit history."""
+class _FieldPanel:
+    """A sidebar panel about the active object's field: ``draw_edit(context, layout, obj)`` runs when the
+    active object carries one, else the panel says to select one."""
 
-    bl_label = "Edit field"
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "NeuMesh"
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        col = self.layout.column()
         obj = context.active_object
+        col = self.layout.column()
+        job = jobs.active(self.bl_label)   # the running job of the operator with the panel's label
+        if job is not None:   # the modal operator redraws the sidebar on every progress step
+            text = f"{self.bl_label} {100 * job.fraction:.0f}% (Esc cancels)"
+            if hasattr(col, "progress"):
+                col.progress(factor=job.fraction, text=text)
+            else:
+                col.label(text=text, icon="SORTTIME")
         if obj is None or obj.type != "MESH" or not props.field_abspath(obj):
             col.label(text="Select an object with a field", icon="INFO")
             return
+        self.draw_edit(context, col, obj)
+
+
+class NEUMESH_PT_edit(_FieldPanel, bpy.types.Panel):
+    """Parent panel of the edit tools; shows the active object's edit history."""
+
+    bl_label = "Edit field"
+
+    def draw_edit(self, context, col, obj):
         chain = edit_chain(obj)
+        width = text_width(context)
         if chain:
-            col.label(text=f"Shows: {os.path.basename(chain[-1][1])}")
+            wrapped_label(col, f"Shows: {os.path.basename(chain[-1][1])}", width, context=context)
             if len(chain) > 1:
-                col.label(text="Edits: " + ", ".join(op for op, _ in chain[1:]))
+                wrapped_label(col, "Edits: " + ", ".join(op for op, _ in chain[1:]), width, context=context)
         row = col.row(align=True)
         row.operator("neumesh.undo_edit", icon="LOOP_BACK")
         row.operator("neumesh.revert_field", text="Revert", icon="FILE_REFRESH")
 
 
-class EditSubPanel:
-    """Base of the panels under *Edit field*: the active object must carry a field;
-    subclasses implement ``draw_edit(context, layout, obj)``."""
+class EditSubPanel(_FieldPanel):
+    """Base of the panels under *Edit field*; subclasses implement ``draw_edit(context, layout, obj)``."""
 
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "NeuMesh"
     bl_parent_id = "NEUMESH_PT_edit"
-    bl_options = {"DEFAULT_CLOSED"}
-
-    def draw(self, context):
-        obj = context.active_object
-        col = self.layout.column()
-        if obj is None or obj.type != "MESH" or not props.field_abspath(obj):
-            col.label(text="Select an object with a field", icon="INFO")
-            return
-        self.draw_edit(context, col, obj)
 
 
 classes = (NEUMESH_OT_undo_edit, NEUMESH_OT_revert_field, NEUMESH_PT_edit)

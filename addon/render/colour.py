@@ -3,9 +3,12 @@
 A field reproduces its training photos' pixel values (display-referred sRGB); the engine hands
 Blender their scene-linear decoding. Blender's default view transform (Filmic in 3.x, AgX in 4.x/5.x)
 tone-maps that again, so renders look flat and the white background turns grey. The first time a
-scene's render engine becomes NeuMesh (in the interface: a message-bus subscription on
-``RenderSettings.engine``), its view transform is set to 'Standard' with no look; after that the
-scene's settings are the user's. The Render properties panel says when the settings differ from
+scene's render engine is NeuMesh, its view transform is set to 'Standard' with no look; after that
+the scene's settings are the user's. "The first time" is caught wherever it happens: in the
+interface (a message-bus subscription on ``RenderSettings.engine``), when a file whose engine is
+NeuMesh is opened (``load_post``), and before any render (``render_pre``: an engine given on the
+command line, ``blender -b file.blend -E NEUMESH -a``, or set by a script), so F12, ``-a`` and the
+viewport show the same pixels. A render with other settings says so in the log. The Render properties panel says when the settings differ from
 the photographic ones, with a button (:class:`NEUMESH_OT_photo_colour`) that sets them.
 """
 from __future__ import annotations
@@ -54,6 +57,15 @@ def engine_selected(scene) -> bool:
     return changed
 
 
+@persistent
+def _render_pre(scene, *_args):
+    """Before a render (F12, -a, -f, a script's render): the photographic view the first time."""
+    try:
+        engine_selected(scene if isinstance(scene, bpy.types.Scene) else bpy.context.scene)
+    except Exception as exc:  # noqa: BLE001 - never stop a render over a convenience
+        print(f"NeuMesh: colour management not set: {exc}")
+
+
 def _on_engine_changed(*_args):
     try:
         engine_selected(bpy.context.scene)
@@ -70,6 +82,11 @@ def subscribe():
 @persistent
 def _load_post(*_args):
     subscribe()  # a file load drops message-bus subscriptions
+    for scene in bpy.data.scenes:   # a file saved with NeuMesh chosen by a script (no message then)
+        try:
+            engine_selected(scene)
+        except Exception as exc:  # noqa: BLE001
+            print(f"NeuMesh: colour management of scene '{scene.name}' not set: {exc}")
 
 
 class NEUMESH_OT_photo_colour(bpy.types.Operator):
@@ -86,15 +103,22 @@ class NEUMESH_OT_photo_colour(bpy.types.Operator):
         return {"FINISHED"}
 
 
+def _handlers():
+    h = bpy.app.handlers
+    return ((h.load_post, _load_post), (h.render_pre, _render_pre))
+
+
 def register():
     bpy.utils.register_class(NEUMESH_OT_photo_colour)
     subscribe()
-    if _load_post not in bpy.app.handlers.load_post:
-        bpy.app.handlers.load_post.append(_load_post)
+    for handlers, fn in _handlers():
+        if fn not in handlers:
+            handlers.append(fn)
 
 
 def unregister():
-    if _load_post in bpy.app.handlers.load_post:
-        bpy.app.handlers.load_post.remove(_load_post)
+    for handlers, fn in _handlers():
+        if fn in handlers:
+            handlers.remove(fn)
     bpy.msgbus.clear_by_owner(_OWNER)
     bpy.utils.unregister_class(NEUMESH_OT_photo_colour)

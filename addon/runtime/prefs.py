@@ -6,40 +6,18 @@ import os
 import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
-from . import deps
-
-ADDON_ID = __package__  # "neumesh" (legacy add-on) or "bl_ext.<repo>.neumesh" (extension)
+from . import blas, core, deps, install, text
+from .jobs import redraw
+from .settings import ADDON_ID, extra_paths, get_prefs
 
 _status_cache: dict = {"statuses": None, "blas": None}
-
-
-def get_prefs():
-    """The add-on preferences, or None when the add-on is not enabled through the preferences."""
-    try:
-        addon = bpy.context.preferences.addons.get(ADDON_ID)
-    except Exception:
-        return None
-    return addon.preferences if addon is not None else None
-
-
-def extra_paths() -> list[str]:
-    """Dependency folders from the preferences: the existing environment first, then our own folder."""
-    out = []
-    p = get_prefs()
-    if p is not None and p.env_path.strip():
-        out.append(bpy.path.abspath(p.env_path.strip()))
-    try:
-        own = deps.addon_deps_dir(ADDON_ID, create=False)
-        if os.path.isdir(own):
-            out.append(own)
-    except Exception:
-        pass
-    return out
 
 
 def refresh_paths_and_status(do_import=False):
     deps.configure_sys_path(extra_paths())
     _status_cache["statuses"] = deps.check_dependencies(do_import=do_import)
+    if do_import:
+        core.prepare_torch()   # torch may have been imported just now: its BLAS, the exit-scan guard
     return _status_cache["statuses"]
 
 
@@ -88,7 +66,7 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
         for s in statuses:
             row = box.row()
             icon = "CHECKMARK" if s.found else ("ERROR" if s.required else "INFO")
-            what = s.version if s.found else (s.error + ("" if s.required else " (optional)"))
+            what = s.version if s.found else (s.error + ("" if s.required else f" (for {used_by(s.dist)})"))
             row.label(text=f"{s.dist}", icon=icon)
             row.label(text=what)
         miss = [s.dist for s in statuses if s.required and not s.found]
@@ -99,8 +77,8 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
             box.label(text="All required dependencies found.", icon="CHECKMARK")
         row = box.row()
         row.operator("neumesh.check_dependencies", icon="FILE_REFRESH")
-        job = deps.current_install()
-        running = job is not None and job.state == "RUNNING"
+        job = install.current_install()
+        running = job is not None and job.running
         sub = row.row()
         sub.enabled = not running
         sub.operator("neumesh.install_dependencies", icon="IMPORT")
@@ -112,7 +90,8 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
         box.prop(self, "env_path")
         if job is not None:
             icon = {"RUNNING": "SORTTIME", "DONE": "CHECKMARK", "ERROR": "ERROR"}.get(job.state, "INFO")
-            box.label(text=f"pip: {job.state.lower()} {job.message}", icon=icon)
+            text.wrapped_label(box, f"pip: {job.state.lower()} {job.message}", text.text_width(context), icon=icon,
+                               context=context)
             box.prop(self, "show_log")
             if self.show_log:
                 col = box.column(align=True)
@@ -121,8 +100,6 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
         self._draw_speed(layout, context)
         row = layout.row()
         row.prop(self, "torch_threads")
-        from . import core
-
         row.label(text=f"{core.wanted_threads()} in use" + (" (all cores)" if self.torch_threads == 0 else ""))
         row = layout.row()
         row.prop(self, "preview_start")
@@ -130,8 +107,6 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
 
     def _draw_speed(self, layout, context):
         """Box 'Speed': torch's matrix-multiply rate and BLAS in this Blender, with the remedy if slow."""
-        from . import text
-
         st = _status_cache.get("blas")
         box = layout.box()
         if st is None:
@@ -147,6 +122,29 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
         box.operator("neumesh.copy_launcher", icon="COPYDOWN")
 
 
+def used_by(dist: str) -> str:
+    """The features that need distribution ``dist``, for the preferences' list ('optional' if none)."""
+    feats = next((d[4] for d in deps.DEPENDENCIES if d[1] == dist), ())
+    return ", ".join(deps.FEATURES.get(f, f) for f in feats) or "optional"
+
+
+def draw_missing(layout, feature: str, context) -> bool:
+    """Where ``feature`` (a key of ``deps.FEATURES``) lacks Python packages: a box naming them in full
+    and a button that installs exactly those. Returns whether anything is missing."""
+    missing = deps.missing_for(feature)
+    if not missing:
+        return False
+    box = layout.box()
+    text.wrapped_label(box, f"{deps.FEATURES.get(feature, feature)} needs {', '.join(missing)}",
+                       text.text_width(context), icon="ERROR", context=context)
+    job = install.current_install()
+    row = box.row()
+    row.enabled = job is None or not job.running
+    op = row.operator("neumesh.install_dependencies", text=deps.install_label(missing), icon="IMPORT")
+    op.packages = " ".join(missing)
+    return True
+
+
 def speed_status(measure: bool = True):
     """torch's BLAS in this Blender (see blas.py): which library its matrix multiplies call, the rate
     measured here, the launcher command when it is the slow one. None without torch."""
@@ -154,8 +152,6 @@ def speed_status(measure: bool = True):
 
     if "torch" not in sys.modules:
         return None
-    from . import blas, core
-
     st = blas.status(measure=measure)
     core.prepare_torch()  # measuring may have made torch import more modules
     _status_cache["blas"] = st
@@ -210,8 +206,6 @@ class NEUMESH_OT_copy_launcher(bpy.types.Operator):
     bl_label = "Copy launcher command"
 
     def execute(self, context):
-        from . import blas
-
         st = _status_cache.get("blas") or {}
         cmd = st.get("remedy") or blas.preload_command()
         context.window_manager.clipboard = cmd
@@ -220,25 +214,45 @@ class NEUMESH_OT_copy_launcher(bpy.types.Operator):
 
 
 class NEUMESH_OT_install_dependencies(bpy.types.Operator):
-    """Install torch 2.13, numpy<2, scipy, pykdtree, trimesh, safetensors and pillow with Blender's own
-    Python (pip) into a folder owned by the add-on. Needs network access (several hundred MB)"""
+    """Install what Blender's Python lacks of torch 2.13, numpy, scipy, pykdtree, trimesh, safetensors,
+    pillow, scikit-learn, scikit-image and xatlas, with Blender's own Python (pip), into a folder owned by
+    the add-on (never a numpy over Blender's own). Needs network access (several hundred MB)"""
 
     bl_idname = "neumesh.install_dependencies"
     bl_label = "Install dependencies"
 
     wait: BoolProperty(default=False, options={"HIDDEN", "SKIP_SAVE"})
+    packages: StringProperty(default="", options={"HIDDEN", "SKIP_SAVE"},
+                             description="space-separated dependency names to install when missing "
+                                         "(default: every missing one)")
     requirements: StringProperty(default="", options={"HIDDEN", "SKIP_SAVE"},
-                                 description="space-separated requirements (default: the pinned set)")
+                                 description="space-separated pip arguments instead of the planned set")
+
+    @classmethod
+    def description(cls, context, props):
+        if props is not None and props.packages:
+            return f"Install {props.packages} with Blender's own Python into the add-on's folder"
+        return cls.__doc__
 
     def execute(self, context):
         import shlex
 
-        prefs = get_prefs()
-        extra = shlex.split(prefs.pip_extra_args) if prefs is not None else []
-        reqs = shlex.split(self.requirements) if self.requirements.strip() else list(deps.PIP_REQUIREMENTS)
+        p = get_prefs()
+        extra = shlex.split(p.pip_extra_args) if p is not None else []
         try:
+            refresh_paths_and_status()
+            if self.requirements.strip():
+                reqs = shlex.split(self.requirements)
+                keep_out = ["numpy"] if deps.own_numpy_version() else []
+            else:
+                wanted = self.packages.split() if self.packages.strip() else None
+                reqs, keep_out = deps.install_plan(wanted, _status_cache["statuses"])
+            if not reqs:
+                self.report({"INFO"}, "NeuMesh: nothing to install; Blender's Python has "
+                                      + (self.packages if self.packages.strip() else "every dependency"))
+                return {"FINISHED"}
             target = deps.addon_deps_dir(ADDON_ID, create=True)
-            job = deps.start_install(target, reqs, extra)
+            job = install.start_install(target, reqs, extra, keep_out=keep_out)
         except Exception as exc:
             self.report({"ERROR"}, f"NeuMesh: cannot start pip: {exc}")
             return {"CANCELLED"}
@@ -246,7 +260,7 @@ class NEUMESH_OT_install_dependencies(bpy.types.Operator):
             job.join()
             return self._finish(job)
         bpy.app.timers.register(_poll_install, first_interval=0.5)
-        self.report({"INFO"}, "NeuMesh: installing dependencies in the background (see add-on preferences)")
+        self.report({"INFO"}, f"NeuMesh: installing {' '.join(reqs)} in the background (see add-on preferences)")
         return {"FINISHED"}
 
     def _finish(self, job):
@@ -259,23 +273,13 @@ class NEUMESH_OT_install_dependencies(bpy.types.Operator):
 
 
 def _poll_install():
-    job = deps.current_install()
-    _redraw_preferences()
-    if job is None or job.state != "RUNNING":
+    job = install.current_install()
+    redraw(bpy.context)
+    if job is None or not job.running:
         refresh_paths_and_status()
-        _redraw_preferences()
+        redraw(bpy.context)
         return None
     return 0.5
-
-
-def _redraw_preferences():
-    try:
-        for win in bpy.context.window_manager.windows:
-            for area in win.screen.areas:
-                if area.type == "PREFERENCES":
-                    area.tag_redraw()
-    except Exception:
-        pass
 
 
 classes = (NEUMESH_AP_preferences, NEUMESH_OT_check_dependencies, NEUMESH_OT_copy_launcher,

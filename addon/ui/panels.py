@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import bpy
 
-from . import colour, operators, worker
-from .text import labelled as _labelled, text_width, wrapped_label
+from ..render import colour, images
+from ..runtime import prefs
+from ..train import worker
+from ..runtime.text import job_status, labelled as _labelled, text_width, wrapped_label
 
 SCAFFOLD_HELP = ("The scaffold is the mesh the field is stored on: every vertex keeps the learned codes "
                  "of the surface around it, so moving or bending the mesh moves the field with it. Build "
@@ -24,59 +26,58 @@ class _Sidebar:
     bl_category = "NeuMesh"
 
 
-class NEUMESH_PT_data(_Sidebar, bpy.types.Panel):
-    bl_label = "Dataset"
-    bl_description = "The photos and their cameras that a field is trained on"
+class _Step(_Sidebar):
+    """A step of the workflow: one setting with its label above it, more settings, then
+    ``draw_step(context, col, settings)``."""
+
+    labelled_prop = ("", "")
+    props: tuple = ()   # (property, text or None)
 
     def draw(self, context):
         s = context.scene.neumesh
         col = self.layout.column()
-        _labelled(col, s, "dataset_path", "Dataset folder")
-        col.prop(s, "downscale")
+        _labelled(col, s, *self.labelled_prop)
+        for prop, text in self.props:
+            col.prop(s, prop, **({} if text is None else {"text": text}))
+        self.draw_step(context, col, s)
+
+
+class NEUMESH_PT_data(_Step, bpy.types.Panel):
+    bl_label = "Dataset"
+    bl_description = "The photos and their cameras that a field is trained on"
+    labelled_prop, props = ("dataset_path", "Dataset folder"), (("downscale", None),)
+
+    def draw_step(self, context, col, s):
         op = col.operator("neumesh.import_dataset", text="Import Cameras", icon="OUTLINER_OB_CAMERA")
         op.directory = s.dataset_path
         op.downscale = s.downscale
-        col.label(text=f"{len(operators.dataset_cameras())} dataset camera(s)")
+        col.label(text=f"{len(images.dataset_cameras())} dataset camera(s)")
 
 
-class NEUMESH_PT_scaffold(_Sidebar, bpy.types.Panel):
+class NEUMESH_PT_scaffold(_Step, bpy.types.Panel):
     bl_label = "Scaffold"
     bl_description = SCAFFOLD_HELP
+    labelled_prop, props = ("scaffold_method", "Method"), (("scaffold_vertices", "Vertices"),)
 
-    def draw(self, context):
-        s = context.scene.neumesh
-        col = self.layout.column()
-        _labelled(col, s, "scaffold_method", "Method")
-        col.prop(s, "scaffold_vertices", text="Vertices")
+    def draw_step(self, context, col, s):
+        prefs.draw_missing(col, "scaffold", context)
         col.operator("neumesh.build_scaffold", text="Build from Photos", icon="MESH_ICOSPHERE")
         col.operator("neumesh.import_mesh", text="Import Mesh", icon="IMPORT")
 
 
-class NEUMESH_PT_train(_Sidebar, bpy.types.Panel):
+class NEUMESH_PT_train(_Step, bpy.types.Panel):
     bl_label = "Training"
     bl_description = "Train the field of a scaffold mesh on the dataset, in the background"
+    labelled_prop, props = ("train_object", "Scaffold mesh"), (("train_steps", None),)
 
-    def draw(self, context):
-        s = context.scene.neumesh
-        col = self.layout.column()
-        _labelled(col, s, "train_object", "Scaffold mesh")
-        col.prop(s, "train_steps")
+    def draw_step(self, context, col, s):
         job = worker.current()
-        width = text_width(context)
-        if job is not None and job.running:
-            for i, line in enumerate(job.status_lines()):
-                wrapped_label(col, line, width, icon="SORTTIME" if i == 0 else "NONE", context=context)
-            if hasattr(col, "progress"):
-                col.progress(factor=job.fraction, text=f"{job.step}/{job.total_steps}")
-            col.operator("neumesh.train_cancel", icon="CANCEL")
-        else:
+        if job is None or not job.running:
             row = col.row(align=True)
             row.operator("neumesh.train", text="Train", icon="PLAY").resume = False
             row.operator("neumesh.train", text="Resume", icon="FF").resume = True
-            if job is not None:
-                icon = {"DONE": "CHECKMARK", "ERROR": "ERROR"}.get(job.state, "INFO")
-                for i, line in enumerate(job.status_lines()):
-                    wrapped_label(col, line, width, icon=icon if i == 0 else "NONE", context=context)
+        if job is not None:
+            job_status(col, job, context, cancel="neumesh.train_cancel")
 
 
 class NEUMESH_PT_field(_Sidebar, bpy.types.Panel):

@@ -48,14 +48,9 @@ def all_cores() -> int:
 
 def wanted_threads() -> int:
     """torch threads from the add-on preference *CPU threads* (0, or no preferences: all cores)."""
-    n = 0
-    try:
-        from . import prefs
+    from . import settings
 
-        p = prefs.get_prefs()
-        n = int(p.torch_threads) if p is not None else 0
-    except Exception:  # noqa: BLE001 - no Blender context (tests of the core side)
-        n = 0
+    n = settings.torch_threads()
     return n if n > 0 else all_cores()
 
 
@@ -89,7 +84,7 @@ def torch_work(threads: int | None = None):
 
 
 def _import():
-    pkg = __package__
+    pkg = __package__.rpartition(".")[0] if __package__ else ""   # the add-on package (above runtime/)
     vendored = pkg + ".neumesh_core" if pkg else None
     if vendored and importlib.util.find_spec(vendored) is not None:
         return importlib.import_module(vendored)
@@ -101,13 +96,11 @@ def get():
     global _nm
     if _nm is not None:
         return _nm
-    from . import deps
+    from . import deps, settings
 
     try:
-        from . import prefs
-
-        deps.configure_sys_path(prefs.extra_paths())
-    except Exception:
+        deps.configure_sys_path(settings.extra_paths())
+    except Exception:  # noqa: BLE001 - no Blender context
         pass
     missing = deps.missing_required()
     if missing:
@@ -168,6 +161,18 @@ def guard_torch_namespaces() -> int:
         except Exception:  # noqa: BLE001
             pass
     return n
+
+
+def require(feature: str) -> None:
+    """Raise :class:`errors.UserError` naming, in full, the Python packages that ``feature`` (a key of
+    ``deps.FEATURES``: "bake", "semantics", ...) needs and Blender's Python cannot import, before a job
+    starts (a job would otherwise die in its thread on the first import)."""
+    from . import deps
+    from .errors import UserError
+
+    missing = deps.missing_for(feature)
+    if missing:
+        raise UserError(deps.missing_message(feature, missing))
 
 
 def available() -> bool:

@@ -14,8 +14,11 @@ running Blender has, not by its version number.
 from __future__ import annotations
 
 import bpy
+from bpy.app.handlers import persistent
 
-from . import props
+from ..runtime.errors import UserError
+from ..scene import props
+from . import colour
 
 FIELDS_COLLECTION = "NeuMesh Fields"
 NODE_SCENE = "NeuMesh Scene Layer"
@@ -25,10 +28,6 @@ NODE_OUTPUT = "NeuMesh Output"
 _COPIED = ("resolution_x", "resolution_y", "resolution_percentage", "pixel_aspect_x", "pixel_aspect_y",
            "use_border", "use_crop_to_border", "border_min_x", "border_max_x", "border_min_y", "border_max_y",
            "fps", "fps_base")
-
-
-class CompositeError(RuntimeError):
-    pass
 
 
 def compositor_tree(scene, create: bool = True):
@@ -172,10 +171,25 @@ def sync_companion(scene, companion):
         companion.collection.objects.link(companion.camera)
 
 
+def cycles_denoising_check(scene) -> str:
+    """Cycles with denoising on fails the render in a build without a denoiser ("Build without
+    OpenImageDenoiser": Debian's Blender 3.4, whose Cycles offers no denoiser at all). There denoising is
+    switched off; returns what was done ('' when nothing had to be)."""
+    cy = getattr(scene, "cycles", None)
+    if scene.render.engine != "CYCLES" or cy is None or not getattr(cy, "use_denoising", False):
+        return ""
+    built = getattr(bpy.app.build_options, "openimagedenoise", None)
+    if getattr(cy, "denoiser", "") and built is not False:
+        return ""   # a denoiser this build has
+    cy.use_denoising = False
+    return ("this Blender's Cycles has no denoiser (built without OpenImageDenoise): Render properties > "
+            "Sampling > Denoise switched off, else Cycles stops the render")
+
+
 def set_up(scene) -> dict:
     """Make (or update) the companion scene and the main scene's compositor tree; what was done."""
     if scene.camera is None:
-        raise CompositeError("the scene has no camera: set one (Scene properties > Camera) first")
+        raise UserError("the scene has no camera: set one (Scene properties > Camera) first")
     objects = field_objects(scene)
     companion = scene.neumesh.composite_scene
     if companion is not None and companion is scene:
@@ -183,7 +197,7 @@ def set_up(scene) -> dict:
     if not objects and companion is not None:
         objects = field_objects(companion)
     if not objects:
-        raise CompositeError("no object with a NeuMesh field in the scene: load one first (Load Field)")
+        raise UserError("no object with a NeuMesh field in the scene: load one first (Load Field)")
     switched = ""
     if scene.render.engine == "NEUMESH":
         scene.render.engine = "CYCLES"
@@ -192,6 +206,8 @@ def set_up(scene) -> dict:
         companion = bpy.data.scenes.get(companion_name(scene)) or bpy.data.scenes.new(companion_name(scene))
         scene.neumesh.composite_scene = companion
     companion.render.engine = "NEUMESH"
+    colour.engine_selected(companion)   # its own view never shows; photographic, so its renders don't warn
+    denoise = cycles_denoising_check(scene)
     coll = _fields_collection(scene, companion, objects)
     sync_companion(scene, companion)
     for vl in scene.view_layers:
@@ -212,6 +228,7 @@ def set_up(scene) -> dict:
     tree.links.new(image, out)
     scene.render.use_compositing = True
     return {"companion": companion.name, "objects": [o.name for o in objects], "engine": scene.render.engine,
+            "denoising": denoise,
             "switched": switched}
 
 
@@ -227,18 +244,42 @@ class NEUMESH_OT_composite_with_scene(bpy.types.Operator):
     def execute(self, context):
         try:
             done = set_up(context.scene)
-        except CompositeError as exc:
+        except UserError as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
         msg = (f"NeuMesh: {len(done['objects'])} field object(s) render in scene '{done['companion']}', "
                f"Z-combined with this scene's {done['engine'].replace('BLENDER_', '').title()} render")
         if done["switched"]:
             msg += " (this scene's engine was NeuMesh: now Cycles)"
+        if done["denoising"]:
+            self.report({"WARNING"}, f"NeuMesh: {done['denoising']}")
         self.report({"INFO"}, msg)
         return {"FINISHED"}
 
 
+@persistent
+def _render_pre(scene, *_args):
+    """Before a render of a scene composited with its fields: Cycles without a denoiser renders."""
+    try:
+        if isinstance(scene, bpy.types.Scene) and scene.neumesh.composite_scene is not None:
+            done = cycles_denoising_check(scene)
+            if done:
+                print(f"NeuMesh: scene '{scene.name}': {done}")
+    except Exception as exc:  # noqa: BLE001 - never stop a render over a convenience
+        print(f"NeuMesh: {exc}")
+
+
 classes = (NEUMESH_OT_composite_with_scene,)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
 
 
-register, unregister = bpy.utils.register_classes_factory(classes)
+def register():
+    _register_classes()
+    if _render_pre not in bpy.app.handlers.render_pre:
+        bpy.app.handlers.render_pre.append(_render_pre)
+
+
+def unregister():
+    if _render_pre in bpy.app.handlers.render_pre:
+        bpy.app.handlers.render_pre.remove(_render_pre)
+    _unregister_classes()

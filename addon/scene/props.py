@@ -7,6 +7,9 @@ import bpy
 from bpy.app.handlers import persistent
 from bpy.props import BoolProperty, EnumProperty, IntProperty, PointerProperty, StringProperty
 
+from ..runtime.errors import UserError
+from ..runtime.jobs import redraw
+
 
 def field_abspath(obj) -> str:
     """Absolute path of the field file of ``obj`` ('' if none). '//' paths resolve against the .blend;
@@ -55,6 +58,18 @@ def missing_field_message(obj) -> str:
         else:
             msg += f" (= {os.path.normpath(bpy.path.abspath(p))})"
     return msg
+
+
+def field_path_of(obj) -> str:
+    """The object's field file (absolute); :class:`UserError` when it has none or it is missing."""
+    if obj is None or obj.type != "MESH":
+        raise UserError("select a mesh object that carries a NeuMesh field")
+    path = field_abspath(obj)
+    if not path:
+        raise UserError(f"object '{obj.name}' has no NeuMesh field; load or train one first")
+    if not os.path.isfile(path):
+        raise UserError(missing_field_message(obj))
+    return path
 
 
 def has_field(obj) -> bool:
@@ -192,8 +207,16 @@ def _save_post(*_args):
 def _load_post(*_args):
     """After opening a .blend: a '//' field path that does not resolve from the file's folder, whose
     location recorded at the last save exists, is made relative to the new folder (a Save As to
-    another folder in Blender 3.x, see :func:`_save_pre`)."""
+    another folder in Blender 3.x, see :func:`_save_pre`). The sidebar is redrawn once the file's
+    windows exist (else its panels overlap until the mouse moves over them)."""
     _relink(only_missing=True)
+    if not bpy.app.background:
+        bpy.app.timers.register(_redraw_after_load, first_interval=0.1)
+
+
+def _redraw_after_load():
+    redraw(bpy.context)
+    return None
 
 
 def _relink(only_missing: bool):

@@ -11,7 +11,7 @@ fit, lens, shift and pixel aspect are all honoured exactly the way Blender proje
 """
 from __future__ import annotations
 
-from ._np import np
+from ..runtime._np import np
 
 
 

@@ -1,14 +1,15 @@
 """The NEUMESH render engine: F12 / `blender -b -a` renders and a progressive rendered viewport."""
 from __future__ import annotations
 
-import threading
 import time
 import weakref
 
 import bpy
-from ._np import np
-
-from . import camera, core, render, sync
+from ..runtime._np import np
+from ..runtime import settings, text
+from ..scene import camera
+from . import colour, fields, frame
+from .preview import PreviewRenderer
 
 LAST_ERROR = {"message": ""}
 MOD_PASS = "NeuMesh Mod"   # the render pass of the rendered modification colour
@@ -17,127 +18,6 @@ LAST_RENDER: dict = {}
 # the last message drawn in a viewport: its wrapped lines, the widest one's right end, the region's width
 # and the part of it that the sidebar does not cover (pixels)
 VIEWPORT_MESSAGE = {"lines": [], "widest": 0.0, "region_width": 0, "visible_width": 0}
-
-
-def _user_message(exc) -> str:
-    if isinstance(exc, (sync.TopologyError, camera.CameraError, FileNotFoundError, core.CoreUnavailable)):
-        return str(exc)
-    types = core.error_types()
-    if types and isinstance(exc, types):
-        return str(exc)
-    return f"{type(exc).__name__}: {exc}"
-
-
-class PreviewRenderer:
-    """Renders a viewport request at increasing resolutions (1/8, 1/4, ...) in a background thread.
-
-    ``request()`` supersedes (cancels) the render in progress. ``latest`` holds (serial, level, rgba)
-    where rgba is scene-linear premultiplied (h,w,4) float32. ``on_image`` is called from the thread.
-
-    The first image must come quickly (``first_budget_s``): the renderer remembers the seconds per
-    pixel of its last image, and when the first configured level would take longer than the budget it
-    starts one or more coarser levels first (halving the resolution, at most 1/``max_divisor``), so a
-    camera move or a deformation shows something within the budget on heavy fields and big viewports.
-    """
-
-    def __init__(self, divisors=(8, 4, 2), on_image=None, first_budget_s: float = 0.1, max_divisor: int = 32):
-        self.divisors = tuple(divisors)
-        self.first_budget_s = float(first_budget_s)
-        self.max_divisor = int(max_divisor)
-        self.seconds_per_pixel = None   # measured on the last image rendered
-        self.on_image = on_image
-        self._cv = threading.Condition()
-        self._pending = None
-        self._serial = 0
-        self._stop = False
-        self.latest = None
-        self.error = ""
-        self.busy = False
-        self.timings: list[tuple[int, float]] = []  # (divisor, seconds since request)
-        self._thread = threading.Thread(target=self._loop, name="neumesh-preview", daemon=True)
-        self._thread.start()
-
-    def request(self, items, K, c2w, width, height, transparent=False):
-        with self._cv:
-            self._serial += 1
-            self._pending = (self._serial, items, K, c2w, int(width), int(height), bool(transparent),
-                             time.perf_counter())
-            self._cv.notify_all()
-            return self._serial
-
-    def stop(self):
-        with self._cv:
-            self._stop = True
-            self._serial += 1
-            self._cv.notify_all()
-
-    def wait(self, serial, divisor=None, timeout=60.0) -> bool:
-        """Block until the image of ``serial`` at ``divisor`` (default: the last level) exists."""
-        divisor = divisor or self.divisors[-1]
-        t_end = time.perf_counter() + timeout
-        while time.perf_counter() < t_end:
-            lt = self.latest
-            if lt is not None and lt[0] >= serial and (lt[0] > serial or lt[1] <= divisor):
-                return True
-            if self.error and not self.busy:
-                return False
-            time.sleep(0.002)
-        return False
-
-    def levels(self, width: int, height: int) -> tuple:
-        """The divisors a request of ``width`` x ``height`` renders, coarsest first."""
-        first = self.divisors[0]
-        rate = self.seconds_per_pixel
-        if rate is None:
-            return self.divisors
-        d = first
-        while d < self.max_divisor and rate * max(1, width // d) * max(1, height // d) > self.first_budget_s:
-            d *= 2
-        return (d,) + self.divisors if d > first else self.divisors
-
-    def _loop(self):
-        while True:
-            with self._cv:
-                while self._pending is None and not self._stop:
-                    self._cv.wait()
-                if self._stop:
-                    return
-                job, self._pending = self._pending, None
-            serial, items, K, c2w, W, H, transparent, t0 = job
-            self.busy = True
-            self.timings = []
-            try:
-                for div in self.levels(W, H):
-                    w, h = max(1, W // div), max(1, H // div)
-                    Ks = render.scale_K(K, W, H, w, h)
-                    t_level = time.perf_counter()
-
-                    def prog(_f, serial=serial):
-                        return self._serial == serial and not self._stop
-
-                    rgba = render.render_items(items, Ks, c2w, w, h, transparent, progress=prog)
-                    if self._serial != serial:
-                        break
-                    self.seconds_per_pixel = (time.perf_counter() - t_level) / (w * h)
-                    self.latest = (serial, div, render.to_scene_linear(rgba, transparent))
-                    self.timings.append((div, time.perf_counter() - t0))
-                    self.error = ""
-                    if self.on_image is not None:
-                        self.on_image()
-            except Exception as exc:  # noqa: BLE001 - shown in the viewport
-                if type(exc).__name__ != "Cancelled":
-                    self.error = _user_message(exc)
-            finally:
-                self.busy = False
-
-
-def _prefs_divisors():
-    from . import prefs
-
-    p = prefs.get_prefs()
-    start, final = (8, 2) if p is None else (int(p.preview_start), int(p.preview_final))
-    divs = [d for d in (8, 4, 2, 1) if final <= d <= start]
-    return tuple(divs or [final])
 
 
 class NeuMeshRenderEngine(bpy.types.RenderEngine):
@@ -172,13 +52,19 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
         transparent = bool(scene.render.film_transparent)
         LAST_ERROR["message"] = ""
         LAST_RENDER.clear()
+        issues = colour.photo_colour_issues(scene)
+        if issues:   # the pixels are right, but what Blender shows and saves is tone-mapped
+            note = (f"NeuMesh: scene '{scene.name}': {', '.join(issues)}: the field's photo colours come out "
+                    "flat with a grey background; Render properties > NeuMesh > Use Photo Colours")
+            print(note)
+            self.report({"WARNING"}, note)
         try:
             cam = scene.camera
             K, c2w, W, H = camera.camera_K_c2w(cam, scene, depsgraph, W, H)
             col, row, w, h = camera.border_rect(scene, W, H)   # Render Region: only that part
             K = camera.crop_K(K, col, row)
-            items = render.collect(depsgraph, for_render=True)
-            occluder_z = render.holdout_z(depsgraph, K, c2w, w, h)
+            items = fields.collect(depsgraph, for_render=True)
+            occluder_z = frame.holdout_z(depsgraph, K, c2w, w, h)
             t1 = time.perf_counter()
             if not items:
                 self.report({"WARNING"}, "NeuMesh: no object with a field in the scene (Object properties > "
@@ -189,13 +75,13 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
                 self.update_progress(float(f))
                 return not self.test_break()
 
-            passes = render.render_passes(items, K, c2w, w, h, transparent, progress=prog,
+            passes = frame.render_passes(items, K, c2w, w, h, transparent, progress=prog,
                                           supersample=scene.neumesh.render_samples, occluder_z=occluder_z)
             t2 = time.perf_counter()
         except Exception as exc:  # noqa: BLE001 - reported to the user, no (wrong) image written
             if type(exc).__name__ == "Cancelled":
                 return
-            msg = prefixed(_user_message(exc))
+            msg = prefixed(fields.user_message(exc))
             LAST_ERROR["message"] = msg
             print(msg)
             if hasattr(self, "error_set"):
@@ -218,7 +104,7 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
         t5 = time.perf_counter()
         LAST_RENDER.update(collect_s=t1 - t0, render_s=t2 - t1, colour_s=t3 - t2, handoff_s=t4 - t3,
                            end_result_s=t5 - t4, total_s=t5 - t0, handoff=how, size=(w, h),
-                           passes=names, **render.LAST_TIMINGS)
+                           passes=names, **frame.LAST_TIMINGS)
 
     def update_render_passes(self, scene=None, renderlayer=None):
         """The passes this engine writes, for the compositor's Render Layers node: Combined (its
@@ -232,11 +118,11 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
     # ------------------------------------------------------------------ viewport
     def view_update(self, context, depsgraph):
         try:
-            self._items = render.collect(depsgraph, for_render=False)
+            self._items = fields.collect(depsgraph, for_render=False)
             self._error = ""
         except Exception as exc:  # noqa: BLE001 - drawn in the viewport
             self._items = []
-            self._error = _user_message(exc)
+            self._error = fields.user_message(exc)
         self._generation += 1
 
     def _ensure_preview(self):
@@ -248,7 +134,7 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
                 if e is not None:
                     e._dirty = True
 
-            self._preview = PreviewRenderer(_prefs_divisors(), on_image=on_image)
+            self._preview = PreviewRenderer(settings.preview_divisors(), on_image=on_image)
             _PollRedraw.add(self)
         return self._preview
 
@@ -298,8 +184,6 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
         """The error in the viewport, "NeuMesh: ..." wrapped to the region's width."""
         try:
             import blf
-
-            from . import text
 
             scale = text.ui_scale(context)
             px = 13 * scale
@@ -412,4 +296,4 @@ def unregister():
     for p in compatible_panels():
         p.COMPAT_ENGINES.discard("NEUMESH")
     bpy.utils.unregister_class(NeuMeshRenderEngine)
-    render.clear_cache()
+    fields.clear_cache()

@@ -14,10 +14,13 @@ from __future__ import annotations
 import bpy
 from bpy.props import StringProperty
 
-from ._np import np
-from . import camera, core, render
-from .text import text_width, wrapped_label
-from .edits import EditError, EditOperator, EditSubPanel, edit_copy
+from ..runtime._np import np
+from ..runtime import core
+from ..runtime.text import text_width, wrapped_label
+from ..scene import camera, props
+from ..render import fields, frame
+from ..runtime.errors import UserError
+from .base import EditOperator, EditSubPanel, edit_copy
 
 PAINT_IMAGE = "NeuMesh Paint"
 _KEYS = ("neumesh_K", "neumesh_c2w", "neumesh_size", "neumesh_original", "neumesh_camera")
@@ -50,7 +53,7 @@ def _view(context):
     scene = context.scene
     cam = scene.camera
     if cam is None:
-        raise EditError("the scene has no camera; add one (or set Scene > Camera) and paint on its view")
+        raise UserError("the scene has no camera; add one (or set Scene > Camera) and paint on its view")
     depsgraph = context.evaluated_depsgraph_get()
     W, H = camera.render_size(scene)
     K, c2w, W, H = camera.camera_K_c2w(cam, scene, depsgraph, W, H)
@@ -92,11 +95,11 @@ class NEUMESH_OT_paint_view(bpy.types.Operator):
     def execute(self, context):
         try:
             cam, depsgraph, K, c2w, W, H = _view(context)
-            items = render.collect(depsgraph, for_render=True)
+            items = fields.collect(depsgraph, for_render=True)
             if not items:
-                raise EditError("no object with a field is in the scene; load or train a field first")
-            rgba = render.render_items(items, K, c2w, W, H, transparent=False)
-        except (EditError, core.CoreUnavailable) as exc:
+                raise UserError("no object with a field is in the scene; load or train a field first")
+            rgba = frame.render_items(items, K, c2w, W, H, transparent=False)
+        except (UserError, core.CoreUnavailable) as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
         except Exception as exc:  # noqa: BLE001 - topology errors, missing files ...
@@ -122,15 +125,15 @@ class NEUMESH_OT_paint_view(bpy.types.Operator):
 
 
 def paint_image_view(img):
-    """(K, c2w, W, H, original pixels) stored with a paint image; :class:`EditError` when it is not one."""
+    """(K, c2w, W, H, original pixels) stored with a paint image; :class:`UserError` when it is not one."""
     if img is None:
-        raise EditError(f"there is no image '{PAINT_IMAGE}'; press Paint on view first")
+        raise UserError(f"there is no image '{PAINT_IMAGE}'; press Paint on view first")
     if any(k not in img for k in _KEYS):
-        raise EditError(f"image '{img.name}' was not made by Paint on view; press Paint on view and paint on "
+        raise UserError(f"image '{img.name}' was not made by Paint on view; press Paint on view and paint on "
                         "that image")
     orig = bpy.data.images.get(img["neumesh_original"])
     if orig is None:
-        raise EditError(f"the unpainted render of '{img.name}' is gone; press Paint on view again")
+        raise UserError(f"the unpainted render of '{img.name}' is gone; press Paint on view again")
     K = np.asarray(img["neumesh_K"], np.float32).reshape(3, 3)
     c2w = np.asarray(img["neumesh_c2w"], np.float32).reshape(4, 4)
     W, H = (int(x) for x in img["neumesh_size"])
@@ -154,49 +157,46 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
         img = bpy.data.images.get(self.image)
         K, c2w, W, H, orig = paint_image_view(img)
         if tuple(img.size) != (W, H) or tuple(orig.size) != (W, H):
-            raise EditError(f"'{img.name}' is {img.size[0]}x{img.size[1]} but the view was rendered at {W}x{H}; "
+            raise UserError(f"'{img.name}' is {img.size[0]}x{img.size[1]} but the view was rendered at {W}x{H}; "
                             "paint on the image Paint on view made (do not resize it)")
         cam, depsgraph, K_now, c2w_now, W_now, H_now = _view(context)
         if cam.name != img["neumesh_camera"] or (W_now, H_now) != (W, H) or \
                 not np.allclose(c2w_now, c2w, atol=1e-5) or not np.allclose(K_now, K, rtol=1e-5):
-            raise EditError("the camera or the render size changed since Paint on view; put them back, or press "
+            raise UserError("the camera or the render size changed since Paint on view; put them back, or press "
                             "Paint on view again (and paint again)")
         layer = nm.edit.paint_layer(_image_pixels(img)[..., :3], _image_pixels(orig)[..., :3])
         if layer[..., 3].max() <= 0:
-            raise EditError(f"nothing is painted on '{img.name}'; paint on it in the Image Editor first")
-        items = render.collect(depsgraph, for_render=True)
+            raise UserError(f"nothing is painted on '{img.name}'; paint on it in the Image Editor first")
+        items = fields.collect(depsgraph, for_render=True)
         if not items:
-            raise EditError("no object with a field is in the scene")
-        from . import identity, props
+            raise UserError("no object with a field is in the scene")
 
-        targets, fields, plans = [], [], []
+        targets, posed, plans = [], [], []
         for it in items:
             obj = bpy.data.objects.get(it.key.split("#")[0])
             if it.field is None:                     # the object's own field, vertex by vertex
-                field = edit_copy(render.get_field(it.key, it.path))
-                field.set_vertices(it.vertices)      # paint lands on the surface as it is posed now
+                field = fields.posed_copy(it)        # paint lands on the surface as it is posed now
                 targets.append((obj, field, it.path))
                 plans.append(None)
-                fields.append(field)
+                posed.append(field)
                 continue
-            shown = edit_copy(it.field)              # a field remapped onto the object's mesh
-            shown.set_vertices(it.vertices)
-            fields.append(shown)
+            shown = fields.posed_copy(it)            # a field remapped onto the object's mesh
+            posed.append(shown)
             own = props.field_abspath(obj)
             if it.path != own:                       # joined in from another field: shown, not edited
                 targets.append((obj, None, it.path))
                 plans.append("skip")
                 continue
-            source = edit_copy(render.get_field(obj.name_full, own))
-            d = render._DERIVED[it.key]
-            ids = identity._remap().resolve_ids(source, d.vid, d.rest)
+            source = edit_copy(fields.get_field(obj.name_full, own))
+            d = fields._DERIVED[it.key]
+            ids = nm.resolve_ids(source, d.vid, d.rest)
             targets.append((obj, source, own))
             plans.append((source, ids))
 
         def run(progress):
-            recs = nm.edit.paint_fields(fields, K, c2w, W, H, layer, progress=progress)
+            recs = nm.edit.paint_fields(posed, K, c2w, W, H, layer, progress=progress)
             out = []
-            for rec, plan, shown in zip(recs, plans, fields):
+            for rec, plan, shown in zip(recs, plans, posed):
                 if rec is None or plan is None:
                     out.append(rec)
                 elif plan == "skip":

@@ -11,10 +11,12 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, FloatProperty, PointerProperty, StringProperty
 
-from ._np import np
-from . import core, props
-from .edits import EditError, EditOperator, EditSubPanel, edit_copy, field_for_edit, region_of
-from .text import labelled, labelled_search
+from ..runtime._np import np
+from ..runtime import classes_factory, core
+from ..scene import identity, props, sync
+from ..runtime.errors import UserError
+from .base import EditOperator, EditSubPanel, edit_copy, field_for_edit, region_of
+from ..runtime.text import labelled, labelled_search
 
 
 def _mesh_with_field(obj):
@@ -44,25 +46,23 @@ def selected_pairs(target, source, target_field=None, source_field=None) -> np.n
     if source == target:
         h = selection_history(target)
         if len(h) % 2:
-            raise EditError(f"correspondences: {len(h)} vertices are selected on '{target.name}'; select "
+            raise UserError(f"correspondences: {len(h)} vertices are selected on '{target.name}'; select "
                             "pairs in order (a source vertex, then its target vertex), at least 3 pairs")
         pairs = np.stack([h[0::2], h[1::2]], 1)
     else:
         hs, ht = selection_history(source), selection_history(target)
         if len(hs) != len(ht):
-            raise EditError(f"correspondences: {len(hs)} vertices selected on '{source.name}' but {len(ht)} on "
+            raise UserError(f"correspondences: {len(hs)} vertices selected on '{source.name}' but {len(ht)} on "
                             f"'{target.name}'; select the same number, in matching order, on both (Edit Mode)")
         pairs = np.stack([hs, ht], 1) if len(hs) else np.zeros((0, 2), np.int64)
     if len(pairs) < 3:
-        raise EditError(f"correspondences: {len(pairs)} pairs selected; select at least 3 (or turn off "
+        raise UserError(f"correspondences: {len(pairs)} pairs selected; select at least 3 (or turn off "
                         "'Use selected pairs' for the automatic alignment)")
     if target_field is not None and source_field is not None:
-        from . import identity
-
         pairs = np.stack([identity.vertex_ids(source, source_field, pairs[:, 0]),
                           identity.vertex_ids(target, target_field, pairs[:, 1])], 1)
         if (pairs < 0).any():
-            raise EditError("correspondences: some selected vertices are new (made by subdivision or extrusion) "
+            raise UserError("correspondences: some selected vertices are new (made by subdivision or extrusion) "
                             "and belong to no field vertex; pick vertices of the original mesh")
     return pairs
 
@@ -70,14 +70,12 @@ def selected_pairs(target, source, target_field=None, source_field=None) -> np.n
 def corner_uvs(obj, uv_map: str, field=None):
     """The mesh's UV map as per-corner (vertex, uv) pairs (seams keep each side's UV); with ``field``
     the corners' vertices are field vertex ids (corners of new vertices are left out)."""
-    from . import identity, sync
-
     nm = core.get()
     me = obj.data
     if not uv_map:
-        raise EditError(f"choose a UV map of '{obj.name}'")
+        raise UserError(f"choose a UV map of '{obj.name}'")
     if me.uv_layers.get(uv_map) is None:
-        raise EditError(f"'{obj.name}' has no UV map '{uv_map}'; unwrap it (U) or choose another")
+        raise UserError(f"'{obj.name}' has no UV map '{uv_map}'; unwrap it (U) or choose another")
     uv = sync.uv_loops(me, uv_map)
     n = len(me.loops)
     vi = np.empty(n, dtype=np.int32)
@@ -93,7 +91,7 @@ def _source_field(obj, target_obj, target_field):
     if obj is None or obj == target_obj:
         return target_obj, None
     if not _mesh_with_field(obj):
-        raise EditError(f"'{obj.name}' has no NeuMesh field; choose an object that carries one")
+        raise UserError(f"'{obj.name}' has no NeuMesh field; choose an object that carries one")
     field, _ = field_for_edit(obj)
     return obj, field
 
@@ -119,7 +117,44 @@ class NeuMeshEditSettings(bpy.types.PropertyGroup):
                               description="How many times the template repeats across the target's UV square")
 
 
-class NEUMESH_OT_swap_texture(EditOperator, bpy.types.Operator):
+class _FromPanel(EditOperator):
+    """Invoked from its panel, an operator takes what the panel shows (``Scene.neumesh_edit``) for the
+    properties a script left empty: ``from_panel`` = ``((operator property, panel property), ...)``;
+    an object property gives its name."""
+
+    from_panel: tuple = ()
+
+    @classmethod
+    def poll(cls, context):
+        return _mesh_with_field(context.active_object)
+
+    def invoke(self, context, event):
+        s = context.scene.neumesh_edit
+        for mine, theirs in self.from_panel:
+            value = getattr(s, theirs)
+            if isinstance(value, bpy.types.ID) or value is None:
+                value = value.name if value is not None else ""
+            if not getattr(self, mine) or isinstance(value, float):
+                setattr(self, mine, value)
+        return EditOperator.invoke(self, context, event)
+
+    def _regions(self, context, other: str, other_group: str, what: str):
+        """(target, its field, its file, the other object (source or template), that object's field or
+        None when it is the target, the target group's field rows, the other group's field rows)."""
+        target = context.active_object
+        if target is not None and target.mode == "EDIT":
+            bpy.ops.object.mode_set(mode="OBJECT")   # vertex groups and selection as the user left them
+        field, path = field_for_edit(target)
+        obj = bpy.data.objects.get(other) if other else None
+        if other and obj is None:
+            raise UserError(f"{what} object '{other}' does not exist")
+        obj, other_field = _source_field(obj, target, field)
+        t_idx = region_of(target, self.target_group, field, "target")
+        s_idx = region_of(obj, other_group, other_field or field, what)
+        return target, field, path, obj, other_field, t_idx, s_idx
+
+
+class NEUMESH_OT_swap_texture(_FromPanel, bpy.types.Operator):
     """Give a vertex group the texture of another object's (or this object's) vertex group: aligned
     automatically or by selected vertex pairs; the source's decoder comes along. Saved as a new field
     file beside the current one (Undo edit / Ctrl+Z go back)"""
@@ -135,31 +170,13 @@ class NEUMESH_OT_swap_texture(EditOperator, bpy.types.Operator):
     use_pairs: BoolProperty(name="Use selected pairs", default=False)
     nonrigid: BoolProperty(name="Non-rigid fit", default=True,
                            description="Bend the source region onto the target's shape (ARAP ICP)")
-
-    @classmethod
-    def poll(cls, context):
-        return _mesh_with_field(context.active_object)
-
-    def invoke(self, context, event):
-        s = context.scene.neumesh_edit
-        self.target_group = self.target_group or s.swap_target_group
-        self.source_object = self.source_object or (s.swap_source.name if s.swap_source else "")
-        self.source_group = self.source_group or s.swap_source_group
-        self.use_pairs = self.use_pairs or s.swap_use_pairs
-        return EditOperator.invoke(self, context, event)
+    from_panel = (("target_group", "swap_target_group"), ("source_object", "swap_source"),
+                  ("source_group", "swap_source_group"), ("use_pairs", "swap_use_pairs"))
 
     def prepare(self, context):
         nm = core.get()
-        target = context.active_object
-        if target is not None and target.mode == "EDIT":
-            bpy.ops.object.mode_set(mode="OBJECT")   # vertex groups and selection as the user left them
-        field, path = field_for_edit(target)
-        src_obj = bpy.data.objects.get(self.source_object) if self.source_object else None
-        if self.source_object and src_obj is None:
-            raise EditError(f"source object '{self.source_object}' does not exist")
-        src_obj, src_field = _source_field(src_obj, target, field)
-        t_idx = region_of(target, self.target_group, field, "target")
-        s_idx = region_of(src_obj, self.source_group, src_field or field, "source")
+        target, field, path, src_obj, src_field, t_idx, s_idx = self._regions(
+            context, self.source_object, self.source_group, "source")
         pairs = selected_pairs(target, src_obj, field, src_field or field) if self.use_pairs else None
         work = edit_copy(field)
         source = edit_copy(src_field) if src_field is not None else None
@@ -175,7 +192,7 @@ class NEUMESH_OT_swap_texture(EditOperator, bpy.types.Operator):
         return f"residual {i.get('residual', 0):.2f} edge lengths, {i.get('seconds', 0):.1f} s"
 
 
-class NEUMESH_OT_fill_texture(EditOperator, bpy.types.Operator):
+class NEUMESH_OT_fill_texture(_FromPanel, bpy.types.Operator):
     """Tile the texture of a template vertex group over a target vertex group through their UV maps.
     Saved as a new field file beside the current one (Undo edit / Ctrl+Z go back)"""
 
@@ -190,33 +207,14 @@ class NEUMESH_OT_fill_texture(EditOperator, bpy.types.Operator):
     template_group: StringProperty(name="Template group", default="")
     template_uv: StringProperty(name="Template UV map", default="")
     scale: FloatProperty(name="Scale", default=1.0, min=0.01, soft_max=16.0)
-
-    @classmethod
-    def poll(cls, context):
-        return _mesh_with_field(context.active_object)
-
-    def invoke(self, context, event):
-        s = context.scene.neumesh_edit
-        self.target_group = self.target_group or s.fill_target_group
-        self.target_uv = self.target_uv or s.fill_target_uv
-        self.template_object = self.template_object or (s.fill_template.name if s.fill_template else "")
-        self.template_group = self.template_group or s.fill_template_group
-        self.template_uv = self.template_uv or s.fill_template_uv
-        self.scale = s.fill_scale
-        return EditOperator.invoke(self, context, event)
+    from_panel = (("target_group", "fill_target_group"), ("target_uv", "fill_target_uv"),
+                  ("template_object", "fill_template"), ("template_group", "fill_template_group"),
+                  ("template_uv", "fill_template_uv"), ("scale", "fill_scale"))
 
     def prepare(self, context):
         nm = core.get()
-        target = context.active_object
-        if target is not None and target.mode == "EDIT":
-            bpy.ops.object.mode_set(mode="OBJECT")
-        field, path = field_for_edit(target)
-        tmpl_obj = bpy.data.objects.get(self.template_object) if self.template_object else None
-        if self.template_object and tmpl_obj is None:
-            raise EditError(f"template object '{self.template_object}' does not exist")
-        tmpl_obj, tmpl_field = _source_field(tmpl_obj, target, field)
-        t_idx = region_of(target, self.target_group, field, "target")
-        s_idx = region_of(tmpl_obj, self.template_group, tmpl_field or field, "template")
+        target, field, path, tmpl_obj, tmpl_field, t_idx, s_idx = self._regions(
+            context, self.template_object, self.template_group, "template")
         t_uv = corner_uvs(target, self.target_uv, field)
         s_uv = corner_uvs(tmpl_obj, self.template_uv, tmpl_field or field)
         work = edit_copy(field)
@@ -261,13 +259,5 @@ classes = (NeuMeshEditSettings, NEUMESH_OT_swap_texture, NEUMESH_OT_fill_texture
            NEUMESH_PT_fill)
 
 
-def register():
-    for c in classes:
-        bpy.utils.register_class(c)
-    bpy.types.Scene.neumesh_edit = PointerProperty(type=NeuMeshEditSettings)
-
-
-def unregister():
-    del bpy.types.Scene.neumesh_edit
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+register, unregister = classes_factory(classes, (
+    (bpy.types.Scene, "neumesh_edit", lambda: PointerProperty(type=NeuMeshEditSettings)),))

@@ -26,9 +26,14 @@ import warnings
 import bpy
 from bpy.props import EnumProperty, FloatProperty, IntProperty
 
-from ._np import np
-from . import core, render
-from .edits import EditError, EditJob, EditSubPanel, JobModal, edit_copy, field_path_of
+from ..runtime._np import np
+from ..runtime import classes_factory, core, prefs
+from ..render import fields, frame
+from ..runtime.errors import UserError
+from ..runtime.jobs import Job, JobModal
+from ..scene import sync
+from ..scene.props import field_path_of
+from .base import EditSubPanel, edit_copy
 
 SHADING_ITEMS = (
     ("EMISSION", "Emission", "Texture as emission (strength 1), black base colour: looks like the field "
@@ -97,8 +102,6 @@ def make_image(name: str, texture: np.ndarray):
 def decimated_mesh(vertices: np.ndarray, faces: np.ndarray, ratio: float):
     """(vertices (V',3) float32, faces (F',3) int64): the mesh through Blender's Decimate modifier
     (collapse, ``ratio`` of the faces, triangulated) on a temporary object, which is removed again."""
-    from . import sync
-
     tmp = sync.new_mesh_object("NeuMesh decimate (temporary)", vertices, faces)
     data = tmp.data
     try:
@@ -128,8 +131,6 @@ def build_object(name: str, result, shading: str, collection=None):
     """The baked object: the baked mesh's vertices (world space: the field's, or the decimated copy's),
     its faces, UV map ``UV_NAME``, the image and the material; a per-vertex colour attribute when the
     bake has vertex colours."""
-    from . import sync
-
     n_field = int(result.vertex_index.max()) + 1 if len(result.vertex_index) else 0
     verts = np.zeros((n_field, 3), np.float32)
     verts[result.vertex_index] = result.vertices
@@ -141,7 +142,7 @@ def build_object(name: str, result, shading: str, collection=None):
     if result.vertex_colors is not None and hasattr(me, "color_attributes"):
         attr = me.color_attributes.new(COLOR_NAME, "FLOAT_COLOR", "POINT")
         rgba = np.ones((n_field, 4), np.float32)
-        rgba[:, :3] = render.srgb_to_linear(result.vertex_colors[:n_field])
+        rgba[:, :3] = frame.srgb_to_linear(result.vertex_colors[:n_field])
         attr.data.foreach_set("color", rgba.ravel())
     img = make_image(f"{name}_texture", result.texture)
     mat = make_material(f"{name}_material", img, shading)
@@ -176,17 +177,15 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
         try:
             path = field_path_of(obj)
             nm = core.get()
-            field, _ = render.object_field(obj, context.evaluated_depsgraph_get())
+            core.require("bake")
+            field, _ = fields.object_field(obj, context.evaluated_depsgraph_get())
             field = edit_copy(field)      # posed as it renders now; the thread works on its own copy
-        except (EditError, core.CoreUnavailable, ValueError) as exc:
+        except (UserError, core.CoreUnavailable, ValueError) as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return None
         except Exception as exc:  # noqa: BLE001 - topology errors, missing files...
             self.report({"ERROR"}, f"NeuMesh: bake failed: {exc}")
             return None
-        import importlib
-
-        bake = importlib.import_module(nm.__name__ + ".bake")
         res, dirs = int(self.resolution), int(self.directions)
         self._source = (obj.name_full, path)
         mesh = None
@@ -203,10 +202,10 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
                 return None
 
         def run(progress):
-            r = bake.bake_texture(field, resolution=res, directions=dirs, progress=progress, mesh=mesh)
+            r = nm.bake_texture(field, resolution=res, directions=dirs, progress=progress, mesh=mesh)
             r.info["field_path"] = path
             return r
-        return EditJob("bake", run)
+        return Job("bake", run)
 
     def _finish(self, context, job):
         if job.cancelled:
@@ -218,12 +217,12 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
         name, _ = self._source
         src = bpy.data.objects.get(name)
         coll = src.users_collection[0] if src is not None and src.users_collection else None
-        obj = build_object(f"{name}_baked", job.record, self.shading, coll)
+        obj = build_object(f"{name}_baked", job.result, self.shading, coll)
         for o in context.view_layer.objects:
             o.select_set(False)
         obj.select_set(True)
         context.view_layer.objects.active = obj
-        r = job.record
+        r = job.result
         self.report({"INFO"}, f"NeuMesh: baked '{name}' into '{obj.name}' ({r.resolution}x{r.resolution} "
                               f"texture, {r.info.get('charts', 0)} charts, {len(r.faces)} faces, "
                               f"{r.seconds:.1f} s)")
@@ -238,6 +237,7 @@ class NEUMESH_PT_bake(EditSubPanel, bpy.types.Panel):
 
     def draw_edit(self, context, col, obj):
         s = context.window_manager
+        prefs.draw_missing(col, "bake", context)
         col.prop(s, "neumesh_bake_resolution")
         col.prop(s, "neumesh_bake_decimate")
         col.prop(s, "neumesh_bake_shading", text="")
@@ -250,23 +250,13 @@ class NEUMESH_PT_bake(EditSubPanel, bpy.types.Panel):
 classes = (NEUMESH_OT_bake_material, NEUMESH_PT_bake)
 
 
-_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
-
-
-def register():
-    bpy.types.WindowManager.neumesh_bake_resolution = IntProperty(
-        name="Texture size", default=1024, min=64, max=8192, description="Baked texture width and height (pixels)")
-    bpy.types.WindowManager.neumesh_bake_shading = EnumProperty(name="Shading", items=SHADING_ITEMS,
-                                                                default="EMISSION")
-    bpy.types.WindowManager.neumesh_bake_decimate = FloatProperty(
+WM = bpy.types.WindowManager
+register, unregister = classes_factory(classes, (
+    (WM, "neumesh_bake_resolution", lambda: IntProperty(
+        name="Texture size", default=1024, min=64, max=8192, description="Baked texture width and height (pixels)")),
+    (WM, "neumesh_bake_shading", lambda: EnumProperty(name="Shading", items=SHADING_ITEMS, default="EMISSION")),
+    (WM, "neumesh_bake_decimate", lambda: FloatProperty(
         name="Decimate ratio", default=1.0, min=0.001, max=1.0, precision=3,
         description="Bake onto a copy of the scaffold reduced by Blender's Decimate modifier to this fraction "
-                    "of its faces (1 = the scaffold itself)")
-    _register_classes()
-
-
-def unregister():
-    _unregister_classes()
-    for p in ("neumesh_bake_resolution", "neumesh_bake_shading", "neumesh_bake_decimate"):
-        if hasattr(bpy.types.WindowManager, p):
-            delattr(bpy.types.WindowManager, p)
+                    "of its faces (1 = the scaffold itself)")),
+))

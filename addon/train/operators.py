@@ -1,17 +1,18 @@
-"""Operators: import a dataset as cameras, scaffold / mesh import, training, field loading, rendering
-to image files."""
+"""Operators: import a dataset as cameras, scaffold / mesh import, training, field loading."""
 from __future__ import annotations
 
 import os
 
 import bpy
-from ._np import np
+from ..runtime._np import np
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
-from . import camera, core, identity, props, render, sync, worker
-
-DATASET_COLLECTION = "NeuMesh Dataset"
-
+from ..runtime import core, jobs
+from ..runtime.errors import UserError
+from ..scene import camera, identity, props, sync
+from ..render import fields
+from ..render.images import DATASET_COLLECTION, dataset_cameras  # noqa: F401 (ui, tests)
+from . import worker
 
 def _report_exc(op, exc, what):
     msg = f"NeuMesh: {what}: {exc}" if not isinstance(exc, core.CoreUnavailable) else f"NeuMesh: {exc}"
@@ -43,13 +44,6 @@ def _image_from_array(name: str, img: np.ndarray):
     im.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())
     im.pack()
     return im
-
-
-def dataset_cameras(scene=None):
-    coll = bpy.data.collections.get(DATASET_COLLECTION)
-    if coll is None:
-        return []
-    return sorted((o for o in coll.objects if o.type == "CAMERA"), key=lambda o: o.name)
 
 
 class NEUMESH_OT_import_dataset(bpy.types.Operator):
@@ -182,17 +176,11 @@ class NEUMESH_OT_build_scaffold(bpy.types.Operator):
             return {"CANCELLED"}
         try:
             nm = core.get()
-        except core.CoreUnavailable as exc:
-            return _report_exc(self, exc, "")
-        try:
-            import importlib
-
-            scaffold = importlib.import_module(nm.__name__ + ".reconstruct")
-            build, cfg_cls = scaffold.build_scaffold, scaffold.ScaffoldConfig
-        except (ImportError, AttributeError) as exc:
-            self.report({"ERROR"}, "NeuMesh: this neumesh_core has no scaffold builder "
-                                   f"(neumesh_core.reconstruct.build_scaffold: {exc}); import a mesh instead")
+            core.require("scaffold")
+        except (core.CoreUnavailable, UserError) as exc:
+            self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
+        build, cfg_cls = nm.build_scaffold, nm.ScaffoldConfig
         wm = context.window_manager
         wm.progress_begin(0, 100)
         try:
@@ -279,67 +267,37 @@ class NEUMESH_OT_train(bpy.types.Operator):
             return _report_exc(self, exc, "cannot start training")
         if self.wait:
             job.join()
-            finish_training()
+            jobs.finish(job, _attach_trained)
             if job.state in ("DONE", "CANCELLED"):
                 self.report({"INFO"}, job.status_text())
                 return {"FINISHED"}
             self.report({"ERROR"}, job.status_text())
             return {"CANCELLED"}
-        if not bpy.app.timers.is_registered(_train_timer):
-            bpy.app.timers.register(_train_timer, first_interval=0.25)
+        global _watch
+        _watch = jobs.watch(job, _attach_trained)
         self.report({"INFO"}, f"NeuMesh: training '{obj.name}' -> {field_path}")
         return {"FINISHED"}
 
 
+_watch = None   # the timer following the training (jobs.watch)
+
+
 def finish_training():
-    """Main thread, after the thread ended: attach the saved field to its object, refresh caches."""
-    job = worker.current()
-    if job is None or job.running or getattr(job, "_finished_handled", False):
-        return
-    job._finished_handled = True
+    """Main thread, after the thread ended: attach the saved field to its object (once)."""
+    jobs.finish(worker.current(), _attach_trained)
+
+
+def _attach_trained(job):
     if job.state in ("DONE", "CANCELLED") and os.path.isfile(job.field_path):
         obj = bpy.data.objects.get(job.object_name)
         if obj is not None:
             props.set_field_path(obj, job.field_path)
             try:   # the trained mesh is the field's scaffold: mark its vertices with their ids
-                field = render.get_field(obj.name_full, job.field_path)
+                field = fields.get_field(obj.name_full, job.field_path)
                 if len(obj.data.vertices) == field.num_vertices:
                     identity.attach(bpy.context, obj, field, job.field_path)
             except Exception as exc:  # noqa: BLE001 - the field still renders by vertex order
                 print(f"NeuMesh: could not mark the vertices of '{obj.name}': {exc}")
-    _set_status(None)
-    _redraw_all()
-
-
-def _train_timer():
-    job = worker.current()
-    if job is None:
-        return None
-    _set_status(job.status_text() if job.running else None)
-    _redraw_all()
-    if job.running:
-        return 0.25
-    finish_training()
-    return None
-
-
-def _set_status(text):
-    try:
-        ws = bpy.context.workspace
-        if ws is not None:
-            ws.status_text_set(text)
-    except Exception:
-        pass
-
-
-def _redraw_all():
-    try:
-        for win in bpy.context.window_manager.windows:
-            for area in win.screen.areas:
-                if area.type in ("VIEW_3D", "PROPERTIES"):
-                    area.tag_redraw()
-    except Exception:
-        pass
 
 
 class NEUMESH_OT_train_cancel(bpy.types.Operator):
@@ -398,62 +356,8 @@ class NEUMESH_OT_load_field(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NEUMESH_OT_render_images(bpy.types.Operator):
-    """Render the scene camera or every imported dataset camera with NeuMesh to PNG files"""
-
-    bl_idname = "neumesh.render_images"
-    bl_label = "Render to images"
-
-    directory: StringProperty(subtype="DIR_PATH", default="", options={"SKIP_SAVE"},
-                              description="Output folder (default: scene setting)")
-    cameras: EnumProperty(items=[("SCENE", "Scene setting", ""), ("ACTIVE", "Scene camera", ""),
-                                 ("DATASET", "Dataset cameras", "")], default="SCENE", options={"SKIP_SAVE"})
-    camera: StringProperty(name="Camera", default="", options={"SKIP_SAVE"},
-                           description="Name of one camera object to render (overrides 'cameras')")
-
-    def execute(self, context):
-        scene = context.scene
-        s = scene.neumesh
-        out_dir = bpy.path.abspath(self.directory or s.output_dir)
-        mode = s.render_cameras if self.cameras == "SCENE" else self.cameras
-        cams = dataset_cameras() if mode == "DATASET" else [scene.camera]
-        if self.camera:
-            cam = bpy.data.objects.get(self.camera)
-            if cam is None or cam.type != "CAMERA":
-                self.report({"ERROR"}, f"NeuMesh: no camera object named '{self.camera}'")
-                return {"CANCELLED"}
-            cams = [cam]
-        if not cams or cams[0] is None:
-            self.report({"ERROR"}, "NeuMesh: no camera to render (set the scene camera or import a dataset)")
-            return {"CANCELLED"}
-        transparent = bool(scene.render.film_transparent)
-        try:
-            nm = core.get()
-            os.makedirs(out_dir, exist_ok=True)
-            depsgraph = context.evaluated_depsgraph_get()
-            items = render.collect(depsgraph, for_render=True)
-            wm = context.window_manager
-            wm.progress_begin(0, len(cams))
-            written = []
-            for i, cam in enumerate(cams):
-                K, c2w, W, H = camera.camera_K_c2w(cam, scene, depsgraph)
-                rgba = render.render_items(items, K, c2w, W, H, transparent, supersample=s.render_samples)
-                if transparent:  # PNG wants straight alpha
-                    a = rgba[..., 3:4]
-                    rgba = np.concatenate([np.where(a > 1e-6, rgba[..., :3] / np.maximum(a, 1e-6), 0), a], -1)
-                path = os.path.join(out_dir, bpy.path.clean_name(cam.name) + ".png")
-                nm.save_image(path, np.clip(rgba, 0, 1))
-                written.append(path)
-                wm.progress_update(i + 1)
-            wm.progress_end()
-        except Exception as exc:  # noqa: BLE001
-            return _report_exc(self, exc, "render failed")
-        self.report({"INFO"}, f"NeuMesh: wrote {len(written)} image(s) to {out_dir}")
-        return {"FINISHED"}
-
-
 classes = (NEUMESH_OT_import_dataset, NEUMESH_OT_import_mesh, NEUMESH_OT_build_scaffold, NEUMESH_OT_train,
-           NEUMESH_OT_train_cancel, NEUMESH_OT_load_field, NEUMESH_OT_render_images)
+           NEUMESH_OT_train_cancel, NEUMESH_OT_load_field)
 
 
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
@@ -464,8 +368,7 @@ def register():
 
 
 def unregister():
-    if bpy.app.timers.is_registered(_train_timer):
-        bpy.app.timers.unregister(_train_timer)
+    jobs.stop_timer(_watch)
     job = worker.current()
     if job is not None and job.running:
         job.cancel()
