@@ -98,6 +98,7 @@ class CaptureJob(jobs.Job):
         self.poses_config = poses_config
         self.undistort = bool(undistort)
         self.stage = "read"
+        self.stages: list = []   # every stage the run went through, in order
         self.registered = 0
         self.report = None
 
@@ -132,6 +133,8 @@ class CaptureJob(jobs.Job):
 
             def on_poses(p):
                 self.stage, self.message, self.registered = p.stage, p.message, p.registered
+                if not self.stages or self.stages[-1] != p.stage:
+                    self.stages.append(p.stage)
                 return self._part(lo, 0.9, p.fraction)
 
             self.report = nm.estimate_poses(images, self.folder, cfg, on_poses, sequential=sequential)
