@@ -273,3 +273,23 @@ def test_semantics_and_bake_work_or_name_their_missing_packages(addon_zip, tmp_p
         assert "Bake to material needs the Python package xatlas" in f["bake"] and not f["baked"], f
     else:
         assert f["bake"] == ["FINISHED"] and f["baked"], f
+
+
+def test_import_cameras_of_a_colmap_capture_in_real_blender(addon_zip, tmp_path):
+    """Issue 48 point 3 in the real binary: a COLMAP folder (written here) imports as cameras with their
+    photos, the sparse points drawn as points by the Mesh to Points node group (built with the 3.x
+    node-group API there, the 4+ one in bpy 5), and the NeuMesh Box."""
+    _need_torch()
+    pytest.importorskip("pycolmap")
+    from tests.data.test_capture import write_colmap
+
+    if "pycolmap" not in os.listdir(TORCH_DIR):
+        pytest.skip("pycolmap is not in the blender's torch folder (scripts/setup_blender.sh installs it)")
+    root = str(tmp_path / "cap")
+    write_colmap(root, "PINHOLE", n=5, points=30)
+    env = _env(tmp_path)
+    f = _facts(_run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_capture.py"),
+                     "--", addon_zip, root], env, timeout=300))
+    assert f["result"] == ["FINISHED"] and f["cameras"] == 5 and f["backgrounds"] == 5, f
+    assert f["points"] == 30 and f["colour"] == "Color" and f["modifiers"] == ["NODES"], f
+    assert "Radius" in f["node_inputs"] and f["box"] is not None, f

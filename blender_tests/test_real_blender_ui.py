@@ -90,3 +90,32 @@ def test_sidebar_in_a_real_window(addon_zip, trained_field, tiny_dataset, tmp_pa
         crop = Image.open(f["screenshot"]).convert("RGB").crop(
             (max(0, x - 430), WINDOW[1] - (y + h) - 40, x + w + 10, WINDOW[1] - y))
         crop.save(os.path.join(keep, "addon_sidebar.png"), optimize=True)
+
+
+def test_poses_esc_and_import_undo_in_a_real_window(addon_zip, tmp_path):
+    """Issue 48 point 3 as a person uses it: Poses from Photos runs modally and Esc cancels it (nothing
+    imported); Import Cameras of a COLMAP folder runs modally, and Ctrl+Z / Ctrl+Shift+Z remove and
+    bring back its cameras, points and box."""
+    if "pycolmap" not in os.listdir(TORCH_DIR):
+        pytest.skip("pycolmap is not in the blender's torch folder (scripts/setup_blender.sh installs it)")
+    from tests.data.test_capture import write_colmap
+    from tests.reconstruct.test_poses import write_cube_photos
+
+    photos, cap = str(tmp_path / "photos"), str(tmp_path / "cap")
+    write_cube_photos(photos, n=12)
+    write_colmap(cap, "PINHOLE", n=5, points=30)
+    env = _env(tmp_path)
+    env["NEUMESH_CACHE"] = str(tmp_path / "cache")
+    r = subprocess.run([XVFB, "-a", "-s", "-screen 0 %dx%dx24" % WINDOW, BLENDER, "--factory-startup",
+                        "--enable-event-simulate", "--python", os.path.join(HERE, "real_blender_capture_ui.py"),
+                        "--", addon_zip, photos, cap], env=env, capture_output=True, text=True, timeout=400)
+    log = r.stdout + r.stderr
+    f = _facts(r.stdout)
+    assert r.returncode == 0 and f["errors"] == [], (f["errors"], log[-3000:])
+    assert f["poses_invoke"] == ["RUNNING_MODAL"] and f["poses_state"] == "CANCELLED", f
+    assert f["fractions"] == sorted(f["fractions"]) and f["fractions"][-1] < 1.0
+    assert f["after_cancel"] == {"cameras": 0, "points": False, "box": False}, f
+    assert f["import_invoke"] == ["RUNNING_MODAL"], f
+    assert f["imported"] == {"cameras": 5, "points": True, "box": True}, f
+    assert f["after_undo"] == {"cameras": 0, "points": False, "box": False}, f
+    assert f["after_redo"] == f["imported"], f
