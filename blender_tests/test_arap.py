@@ -175,3 +175,26 @@ def test_animation_render_follows_keyed_handle(addon, trained_field, tmp_path):
     K, c2w = manual_K_c2w(cam, W, H)
     ref = nm.render_camera(field, K, c2w, W, H, background=(1.0, 1.0, 1.0))
     assert np.abs(b[..., :3] - ref.rgb).max() <= 1.5 / 255
+
+
+def test_drag_solves_in_a_thread_on_the_preview_cage(addon):
+    """The viewport path: a moved Empty queues a solve in the object's drag thread (here on a cage of
+    40 of the bar's vertices); the timer writes it into the live key."""
+    import mathutils
+
+    obj, V, anchors, handles = _bar(addon)
+    obj.neumesh_arap.preview_vertices = 40
+    bpy.ops.neumesh.arap_add()
+    e = _empty(obj)
+    arap = addon.edit.arap
+    e.matrix_world = mathutils.Matrix.Translation((0, 0, 0.2)) @ e.matrix_world
+    assert arap.drag(obj) is True
+    arap.wait_for_drags()
+    assert arap.drag(obj) is False   # nothing moved since
+    W = _evaluated(obj)
+    np.testing.assert_allclose(W[handles], V[handles] + [0, 0, 0.2], atol=1e-4)
+    np.testing.assert_allclose(W[anchors], V[anchors], atol=1e-5)
+    middle = np.nonzero(np.abs(V[:, 0]) < 0.2)[0]
+    assert 0.02 < (W[middle, 2] - V[middle, 2]).mean() < 0.18
+    t = arap.TIMINGS[obj.name_full]
+    assert t["mode"] == "drag" and t["cage"] and t["move_to_preview_s"] >= t["solve_s"] > 0

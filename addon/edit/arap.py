@@ -14,48 +14,29 @@ with *Frame iterations*, on the full mesh unless *Cage in renders* is on), so `b
 keyframed animation, and the same frame always gives the same shape.  The solver (the factorised system)
 is cached per object and rebuilt when the groups, the Basis or the resolution change (*Refresh* re-reads
 the vertex groups).  *Apply as shape key* bakes the current pose into a shape key "ARAP pose" and removes
-the live setup, like a modifier's *Apply as shape key*.
+the live setup, like a modifier's *Apply as shape key*.  In the viewport a drag's solve runs in a
+thread per object (the newest Empty transforms win; a timer writes the result), so the interface stays
+live while a big scaffold solves; scripts and renders (``bpy.app.background``) solve in place.  The
+operators, settings and panel are in :mod:`.arap_ops`.
 """
 from __future__ import annotations
 
+import threading
 import time
 
 import bpy
 from bpy.app.handlers import persistent
-from bpy.props import BoolProperty, IntProperty, PointerProperty, StringProperty
 
 from ..runtime._np import np
-from ..runtime import classes_factory, core
+from ..runtime import core
 from ..runtime.errors import UserError
 from ..scene import sync
-from .base import EditSubPanel
 
 LIVE_KEY = "NeuMesh ARAP"
 APPLIED_KEY = "ARAP pose"
 
 _SOLVERS: dict = {}   # object name -> {"key": cache key, "preview"/"full": ArapSolver, "last": transforms}
 TIMINGS: dict = {}    # object name -> last solve's figures (setup_s, solve_s, write_s, mode)
-
-
-class NeuMeshArapSettings(bpy.types.PropertyGroup):
-    enabled: BoolProperty(name="ARAP deform", default=False)
-    anchor_group: StringProperty(name="Anchor group", default="Anchor")
-    handle_prefix: StringProperty(name="Handle groups", default="Handle",
-                                  description="Every vertex group whose name starts with this is a handle")
-    handle_groups: StringProperty(default="", options={"HIDDEN"})   # "\n"-joined, in the Empties' order
-    handle_empties: StringProperty(default="", options={"HIDDEN"})  # "\n"-joined Empty names
-    centroids: StringProperty(default="", options={"HIDDEN"})       # flat floats, local rest centroids
-    preview_vertices: IntProperty(
-        name="Preview", default=30000, min=0, soft_max=200000,
-        description="Solve on a cage of about this many vertices while dragging and carry the result to "
-                    "every vertex (0: the full mesh). Smaller is faster")
-    iterations: IntProperty(name="Iterations", default=4, min=1, max=100,
-                            description="Local-global iterations per move while dragging")
-    frame_iterations: IntProperty(name="Frame iterations", default=30, min=1, max=500,
-                                  description="Iterations of a solve from rest on a frame change or render")
-    cage_in_renders: BoolProperty(name="Cage in renders", default=False,
-                                  description="Solve frame changes and renders on the preview cage too")
-    generation: IntProperty(default=0, options={"HIDDEN"})   # bumped by Refresh: rebuild the solver
 
 
 # ------------------------------------------------------------------------------------------ state
@@ -102,9 +83,9 @@ def read_groups(obj, s):
     return anchors, handles, names
 
 
-def _entry(obj, s, rest, full: bool):
-    """The cached solver of ``obj`` (built when missing or out of date)."""
-    nm = core.get()
+def _entry(obj, s, rest, full: bool, build: bool = True):
+    """(entry, solver) of ``obj``'s cache; the solver is factorised here when missing and ``build``
+    (else None: :func:`_factorise` builds it, e.g. in the drag thread)."""
     name = obj.name_full
     key = (len(rest), s.generation, s.anchor_group, s.handle_groups, s.preview_vertices,
            float(np.abs(rest).sum()))
@@ -113,16 +94,24 @@ def _entry(obj, s, rest, full: bool):
         anchors, handles, names = read_groups(obj, s)
         if names != _list(s.handle_groups):
             raise UserError("the handle groups changed since ARAP deform was added: press Refresh")
-        ent = _SOLVERS[name] = {"key": key, "groups": (anchors, handles), "last": None}
+        ent = _SOLVERS[name] = {"key": key, "groups": (anchors, handles), "last": None, "rest": rest,
+                                "faces": sync.mesh_triangles(obj.data), "lock": threading.Lock()}
     which = "full" if full or s.preview_vertices == 0 or s.preview_vertices >= len(rest) else "preview"
-    if which not in ent:
-        anchors, handles = ent["groups"]
-        cfg = nm.deform.ArapConfig(cage_vertices=0 if which == "full" else s.preview_vertices)
-        with core.torch_work():
-            ent[which] = nm.deform.ArapSolver(rest, sync.mesh_triangles(obj.data),
-                                              anchors, handles, cfg)
-        TIMINGS.setdefault(name, {})[f"setup_{which}_s"] = ent[which].setup_seconds
-    return ent, ent[which]
+    ent.setdefault("cfg", {})[which] = (0 if which == "full" else s.preview_vertices)
+    if which not in ent and build:
+        _factorise(name, ent, which)
+    return ent, ent.get(which), which
+
+
+def _factorise(name, ent, which):
+    nm = core.get()
+    anchors, handles = ent["groups"]
+    with core.torch_work():
+        solver = nm.deform.ArapSolver(ent["rest"], ent["faces"], anchors, handles,
+                                      nm.deform.ArapConfig(cage_vertices=ent["cfg"][which]))
+    ent[which] = solver
+    TIMINGS.setdefault(name, {})[f"setup_{which}_s"] = solver.setup_seconds
+    return solver
 
 
 def handle_transforms(obj, s, depsgraph=None) -> np.ndarray:
@@ -155,34 +144,118 @@ def _write_live(obj, V: np.ndarray) -> None:
     obj.data.update()
 
 
+def _unchanged(ent, moved, from_rest) -> bool:
+    last = ent["last"]   # (transforms, solved from rest) of the last solve
+    return last is not None and last[0] == moved and (last[1] or not from_rest)
+
+
 def solve(obj, depsgraph=None, from_rest: bool = False, force: bool = False):
-    """Re-solve ``obj``'s ARAP deform for the Empties' current transforms and write the live shape key.
-    ``from_rest``: a frame change / render (deterministic; *Frame iterations*); else a drag (warm start,
-    *Iterations*, preview cage).  Returns the ArapResult, or None when nothing moved since the last solve."""
+    """Re-solve ``obj``'s ARAP deform for the Empties' current transforms and write the live shape key,
+    in this thread. ``from_rest``: a frame change / render (deterministic; *Frame iterations*); else a
+    drag (warm start, *Iterations*, preview cage).  Returns the ArapResult, or None when nothing moved
+    since the last solve (a frame change still re-solves a dragged pose from rest)."""
     s = obj.neumesh_arap
     t0 = time.perf_counter()
     M = handle_transforms(obj, s, depsgraph)
-    rest = _rest(obj)
-    ent, solver = _entry(obj, s, rest, full=from_rest and not s.cage_in_renders)
+    ent, solver, _ = _entry(obj, s, _rest(obj), full=from_rest and not s.cage_in_renders)
     moved = M.round(7).tobytes()
-    last = ent["last"]   # (transforms, solved from rest) of the last solve
-    if not force and last is not None and last[0] == moved and (last[1] or not from_rest):
-        return None   # nothing moved (a frame change still re-solves a dragged pose from rest)
-    nm = core.get()
-    try:
-        with core.torch_work():
-            res = solver.solve(solver.targets_from_transforms(M),
-                               iterations=s.frame_iterations if from_rest else s.iterations,
-                               warm_start=not from_rest)
-    except nm.DeformError as exc:
-        raise UserError(str(exc)) from exc
+    if not force and _unchanged(ent, moved, from_rest):
+        return None
+    with ent["lock"]:
+        res = _solve_with(solver, M, s.frame_iterations if from_rest else s.iterations, from_rest)
     t1 = time.perf_counter()
     _write_live(obj, res.vertices)
     ent["last"] = (moved, from_rest)
     TIMINGS.setdefault(obj.name_full, {}).update(
         mode="frame" if from_rest else "drag", solve_s=t1 - t0, write_s=time.perf_counter() - t1,
-        cage=solver.cage is not None)
+        move_to_preview_s=time.perf_counter() - t0, cage=solver.cage is not None)
     return res
+
+
+def _solve_with(solver, M, iterations, from_rest):
+    nm = core.get()
+    try:
+        with core.torch_work():
+            return solver.solve(solver.targets_from_transforms(M), iterations=iterations,
+                                warm_start=not from_rest)
+    except nm.DeformError as exc:
+        raise UserError(str(exc)) from exc
+
+
+# ------------------------------------------------------------------------ drags in a background thread
+_DRAGS: dict = {}   # object name -> {"want": (M, t_seen), "thread", "done": (V, t_seen, moved) or None}
+
+
+def drag(obj, depsgraph=None) -> bool:
+    """A handle moved in the viewport: queue a solve in the object's drag thread (factorising first
+    when needed); the newest transforms win, the result is written by a timer.  True when queued."""
+    s = obj.neumesh_arap
+    t_seen = time.perf_counter()
+    M = handle_transforms(obj, s, depsgraph)
+    ent, _solver, which = _entry(obj, s, _rest(obj), full=False, build=False)
+    moved = M.round(7).tobytes()
+    if _unchanged(ent, moved, False):
+        return False
+    name = obj.name_full
+    d = _DRAGS.setdefault(name, {"thread": None, "done": None, "error": None})
+    d["want"] = (M, t_seen, moved, s.iterations)
+    d["ent"], d["which"] = ent, which
+    _start(name, d)
+    if not bpy.app.timers.is_registered(_apply_drags):
+        bpy.app.timers.register(_apply_drags, first_interval=0.02)
+    return True
+
+
+def _start(name, d) -> None:
+    if d["thread"] is None or not d["thread"].is_alive():
+        d["thread"] = threading.Thread(target=_drag_worker, args=(name, d["ent"], d["which"], d),
+                                       daemon=True, name="neumesh-arap-drag")
+        d["thread"].start()
+
+
+def _drag_worker(name, ent, which, d):
+    try:
+        solver = ent.get(which) or _factorise(name, ent, which)
+        while d.get("want") is not None:
+            M, t_seen, moved, iters = d.pop("want")
+            with ent["lock"]:
+                t0 = time.perf_counter()
+                res = _solve_with(solver, M, iters, False)
+            d["done"] = (res.vertices, t_seen, moved, time.perf_counter() - t0, solver.cage is not None)
+    except Exception as exc:  # noqa: BLE001 - reported by the timer, in the main thread
+        d["error"] = exc
+
+
+def _apply_drags():
+    """Timer: write finished drag solves into their objects; keeps polling while a thread runs."""
+    busy = False
+    for name, d in list(_DRAGS.items()):
+        done, d["done"] = d["done"], None
+        obj = bpy.data.objects.get(name)
+        if done is not None and obj is not None and name in _SOLVERS:
+            V, t_seen, moved, solve_s, cage = done
+            _write_live(obj, V)
+            _SOLVERS[name]["last"] = (moved, False)
+            TIMINGS.setdefault(name, {}).update(mode="drag", solve_s=solve_s, cage=cage,
+                                                move_to_preview_s=time.perf_counter() - t_seen)
+        if d.get("error") is not None:
+            print(f"NeuMesh ARAP '{name}': {d.pop('error')}")
+            d.pop("want", None)
+        elif d.get("want") is not None:   # queued just as the thread finished its loop
+            _start(name, d)
+        busy = busy or (d["thread"] is not None and d["thread"].is_alive()) or d["done"] is not None
+    return 0.02 if busy else None
+
+
+def wait_for_drags(timeout: float = 600.0) -> None:
+    """Block until every drag thread finished and its result is written (scripts, tests, benchmarks)."""
+    end = time.perf_counter() + timeout
+    while time.perf_counter() < end:
+        for d in list(_DRAGS.values()):
+            if d["thread"] is not None:
+                d["thread"].join(max(0.0, end - time.perf_counter()))
+        if _apply_drags() is None:
+            return
 
 
 def _arap_objects(scene):
@@ -208,176 +281,11 @@ def on_depsgraph_update(scene, depsgraph=None):
         return
     if not any(isinstance(u.id, bpy.types.Object) for u in depsgraph.updates):
         return
-    _run(scene, depsgraph, from_rest=False)
-
-
-# -------------------------------------------------------------------------------------- operators
-def _active_mesh(context):
-    obj = context.active_object
-    if obj is None or obj.type != "MESH":
-        raise UserError("select the mesh object to deform (the one with the Anchor and Handle groups)")
-    return obj
-
-
-def _make_empties(context, obj, s, handles, names) -> None:
-    rest = _rest(obj)
-    old = _list(s.handle_empties)
-    empties, cents = [], []
-    for n, h in zip(names, handles):
-        c = rest[h].mean(0)
-        ename = f"{obj.name} {n}"
-        e = bpy.data.objects.get(ename) if ename in old else None
-        if e is None:
-            e = bpy.data.objects.new(ename, None)
-            e.empty_display_type = "SPHERE"
-            e.empty_display_size = max(float(np.ptp(rest, 0).max()) * 0.05, 1e-3)
-            (obj.users_collection[0] if obj.users_collection else context.scene.collection).objects.link(e)
-            e.parent = obj
-            e.matrix_parent_inverse.identity()
-            e.location = c
-        empties.append(e.name)
-        cents.extend(float(x) for x in c)
-    for en in old:
-        if en not in empties and bpy.data.objects.get(en) is not None:
-            bpy.data.objects.remove(bpy.data.objects[en])
-    s.handle_groups, s.handle_empties = "\n".join(names), "\n".join(empties)
-    s.centroids = " ".join(f"{x:.9g}" for x in cents)
-
-
-class _ArapOperator:
-    bl_options = {"REGISTER", "UNDO"}
-
-    def execute(self, context):
+    if bpy.app.background:   # scripts and renders: solve here, the result is there when the call returns
+        _run(scene, depsgraph, from_rest=False)
+        return
+    for obj in _arap_objects(scene):   # the viewport: the solve runs beside the interface
         try:
-            return self.run(context)
-        except UserError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-
-
-class NEUMESH_OT_arap_add(_ArapOperator, bpy.types.Operator):
-    """Deform the active object as rigidly as possible: the 'Anchor' group stays, each 'Handle' group
-    follows its Empty (move, rotate, scale or keyframe it)"""
-
-    bl_idname, bl_label = "neumesh.arap_add", "Add ARAP deform"
-
-    def run(self, context):
-        obj = _active_mesh(context)
-        if obj.mode != "OBJECT":
-            bpy.ops.object.mode_set(mode="OBJECT")
-        s = obj.neumesh_arap
-        _anchors, handles, names = read_groups(obj, s)
-        if obj.data.shape_keys is None:
-            obj.shape_key_add(name="Basis", from_mix=False)
-        _make_empties(context, obj, s, handles, names)
-        s.enabled = True
-        s.generation += 1
-        _SOLVERS.pop(obj.name_full, None)
-        solve(obj, context.evaluated_depsgraph_get(), from_rest=True, force=True)
-        self.report({"INFO"}, f"ARAP deform: {len(names)} handle Empt{'y' if len(names) == 1 else 'ies'} "
-                              f"({', '.join(names)}); move them with G/R/S")
-        return {"FINISHED"}
-
-
-class NEUMESH_OT_arap_refresh(_ArapOperator, bpy.types.Operator):
-    """Read the Anchor and Handle groups again (after editing them) and re-solve"""
-
-    bl_idname, bl_label = "neumesh.arap_refresh", "Refresh"
-
-    def run(self, context):
-        return NEUMESH_OT_arap_add.run(self, context)
-
-
-def _remove_setup(obj) -> None:
-    s = obj.neumesh_arap
-    for en in _list(s.handle_empties):
-        if bpy.data.objects.get(en) is not None:
-            bpy.data.objects.remove(bpy.data.objects[en])
-    keys = obj.data.shape_keys
-    if keys and keys.key_blocks.get(LIVE_KEY) is not None:
-        obj.shape_key_remove(keys.key_blocks[LIVE_KEY])
-    s.enabled = False
-    s.handle_groups = s.handle_empties = s.centroids = ""
-    _SOLVERS.pop(obj.name_full, None)
-
-
-class NEUMESH_OT_arap_apply(_ArapOperator, bpy.types.Operator):
-    """Bake the current ARAP pose into a shape key ('ARAP pose') and remove the live deform and its
-    Empties"""
-
-    bl_idname, bl_label = "neumesh.arap_apply", "Apply as shape key"
-
-    def run(self, context):
-        obj = _active_mesh(context)
-        keys = obj.data.shape_keys
-        kb = keys.key_blocks.get(LIVE_KEY) if keys else None
-        if not obj.neumesh_arap.enabled or kb is None:
-            raise UserError(f"'{obj.name}' has no ARAP deform to apply: press Add ARAP deform first")
-        arr = np.empty(len(kb.data) * 3, np.float32)
-        kb.data.foreach_get("co", arr)
-        new = obj.shape_key_add(name=APPLIED_KEY, from_mix=False)
-        new.data.foreach_set("co", arr)
-        new.value = 1.0
-        _remove_setup(obj)
-        obj.data.update()
-        self.report({"INFO"}, f"ARAP pose applied as shape key '{new.name}'")
-        return {"FINISHED"}
-
-
-class NEUMESH_OT_arap_remove(_ArapOperator, bpy.types.Operator):
-    """Remove the ARAP deform (its shape key and Empties): the object goes back to its rest shape"""
-
-    bl_idname, bl_label = "neumesh.arap_remove", "Remove"
-
-    def run(self, context):
-        obj = _active_mesh(context)
-        _remove_setup(obj)
-        obj.data.update()
-        return {"FINISHED"}
-
-
-class NEUMESH_PT_arap(EditSubPanel, bpy.types.Panel):
-    bl_label = "ARAP deform"
-
-    def draw_edit(self, context, col, obj):
-        s = obj.neumesh_arap
-        col.prop_search(s, "anchor_group", obj, "vertex_groups", text="Anchor")
-        col.prop(s, "handle_prefix", text="Handles")
-        col.prop(s, "preview_vertices")
-        row = col.row(align=True)
-        row.prop(s, "iterations")
-        row.prop(s, "frame_iterations", text="Frame")
-        col.prop(s, "cage_in_renders")
-        if not s.enabled:
-            col.operator("neumesh.arap_add", icon="MOD_MESHDEFORM")
-            return
-        t = TIMINGS.get(obj.name_full, {})
-        if "solve_s" in t:
-            col.label(text=f"Last solve {t['solve_s']:.2f} s ({'cage' if t.get('cage') else 'full'})")
-        row = col.row(align=True)
-        row.operator("neumesh.arap_refresh", icon="FILE_REFRESH")
-        row.operator("neumesh.arap_remove", icon="X")
-        col.operator("neumesh.arap_apply", icon="SHAPEKEY_DATA")
-
-
-classes = (NeuMeshArapSettings, NEUMESH_OT_arap_add, NEUMESH_OT_arap_refresh, NEUMESH_OT_arap_apply,
-           NEUMESH_OT_arap_remove, NEUMESH_PT_arap)
-_register, _unregister = classes_factory(
-    classes, ((bpy.types.Object, "neumesh_arap", lambda: PointerProperty(type=NeuMeshArapSettings)),))
-_HANDLERS = ((bpy.app.handlers.frame_change_post, on_frame_change),
-             (bpy.app.handlers.depsgraph_update_post, on_depsgraph_update))
-
-
-def register():
-    _register()
-    for lst, fn in _HANDLERS:
-        if fn not in lst:
-            lst.append(fn)
-
-
-def unregister():
-    for lst, fn in _HANDLERS:
-        if fn in lst:
-            lst.remove(fn)
-    _SOLVERS.clear()
-    _unregister()
+            drag(obj, depsgraph)
+        except Exception as exc:  # noqa: BLE001
+            print(f"NeuMesh ARAP '{obj.name}': {exc}")
