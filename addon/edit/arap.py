@@ -157,11 +157,12 @@ def solve(obj, depsgraph=None, from_rest: bool = False, force: bool = False):
     s = obj.neumesh_arap
     t0 = time.perf_counter()
     M = handle_transforms(obj, s, depsgraph)
-    ent, solver, _ = _entry(obj, s, _rest(obj), full=from_rest and not s.cage_in_renders)
+    ent, solver, which = _entry(obj, s, _rest(obj), full=from_rest and not s.cage_in_renders, build=False)
     moved = M.round(7).tobytes()
     if not force and _unchanged(ent, moved, from_rest):
         return None
     with ent["lock"]:
+        solver = ent.get(which) or _factorise(obj.name_full, ent, which)
         res = _solve_with(solver, M, s.frame_iterations if from_rest else s.iterations, from_rest)
     t1 = time.perf_counter()
     _write_live(obj, res.vertices)
@@ -213,9 +214,33 @@ def _start(name, d) -> None:
         d["thread"].start()
 
 
+def prepare_preview(obj) -> threading.Thread | None:
+    """Factorise ``obj``'s preview (drag) solver in a background thread, so that the first drag does not
+    wait for it (started by *Add ARAP deform*); None when there is nothing to build."""
+    s = obj.neumesh_arap
+    ent, solver, which = _entry(obj, s, _rest(obj), full=False, build=False)
+    if solver is not None:
+        return None
+
+    def build():
+        try:
+            with ent["lock"]:
+                if which not in ent:
+                    _factorise(obj_name, ent, which)
+        except Exception as exc:  # noqa: BLE001 - the first drag builds it again and reports
+            print(f"NeuMesh ARAP '{obj_name}': {exc}")
+
+    obj_name = obj.name_full
+    job = threading.Thread(target=build, daemon=True, name="neumesh-arap-prepare")
+    job.start()
+    ent["prepare"] = job
+    return job
+
+
 def _drag_worker(name, ent, which, d):
     try:
-        solver = ent.get(which) or _factorise(name, ent, which)
+        with ent["lock"]:
+            solver = ent.get(which) or _factorise(name, ent, which)
         while d.get("want") is not None:
             M, t_seen, moved, iters = d.pop("want")
             with ent["lock"]:
