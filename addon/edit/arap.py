@@ -173,6 +173,21 @@ def solve(obj, depsgraph=None, from_rest: bool = False, force: bool = False):
     return res
 
 
+def start(obj, depsgraph=None):
+    """The first solve after *Add ARAP deform* / *Refresh*: with every Empty where it was made, the
+    solution is the rest shape, written without solving (factorising waits for the first move);
+    otherwise a solve from rest."""
+    s = obj.neumesh_arap
+    M = handle_transforms(obj, s, depsgraph)
+    if not np.allclose(M, np.eye(4), atol=1e-7):
+        return solve(obj, depsgraph, from_rest=True, force=True)
+    rest = _rest(obj)
+    ent, _solver, _which = _entry(obj, s, rest, full=True, build=False)
+    _write_live(obj, rest)
+    ent["last"] = (M.round(7).tobytes(), True)
+    return None
+
+
 def _solve_with(solver, M, iterations, from_rest):
     nm = core.get()
     try:

@@ -10,7 +10,7 @@ from ..runtime._np import np
 from ..runtime import classes_factory
 from ..runtime.errors import UserError
 from .arap import (APPLIED_KEY, LIVE_KEY, TIMINGS, _DRAGS, _SOLVERS, _apply_drags, _list, _rest,
-                   on_depsgraph_update, on_frame_change, prepare_preview, read_groups, solve,
+                   on_depsgraph_update, on_frame_change, prepare_preview, read_groups, start,
                    wait_for_drags)
 from .base import EditSubPanel
 
@@ -100,7 +100,7 @@ class NEUMESH_OT_arap_add(_ArapOperator, bpy.types.Operator):
         wait_for_drags()
         _SOLVERS.pop(obj.name_full, None)
         _DRAGS.pop(obj.name_full, None)
-        solve(obj, context.evaluated_depsgraph_get(), from_rest=True, force=True)
+        start(obj, context.evaluated_depsgraph_get())
         prepare_preview(obj)   # the drag's cage, factorised beside the interface
         self.report({"INFO"}, f"ARAP deform: {len(names)} handle Empt{'y' if len(names) == 1 else 'ies'} "
                               f"({', '.join(names)}); move them with G/R/S")
