@@ -50,6 +50,7 @@ def test_moving_the_empty_moves_handles_and_keeps_anchors(addon):
     e = _empty(obj)
     np.testing.assert_allclose(np.array(e.matrix_world.translation), V[handles].mean(0), atol=1e-5)
     np.testing.assert_allclose(_evaluated(obj), V, atol=1e-4)   # at rest: the rest shape
+    assert addon.edit.arap.TIMINGS[obj.name_full]["mode"] == "rest"   # written without a solve
     e.location.z += 0.3
     bpy.context.view_layer.update()   # depsgraph_update_post -> solve
     W = _evaluated(obj)

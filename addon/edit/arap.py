@@ -185,6 +185,7 @@ def start(obj, depsgraph=None):
     ent, _solver, _which = _entry(obj, s, rest, full=True, build=False)
     _write_live(obj, rest)
     ent["last"] = (M.round(7).tobytes(), True)
+    TIMINGS.setdefault(obj.name_full, {})["mode"] = "rest"
     return None
 
 

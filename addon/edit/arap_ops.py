@@ -94,7 +94,9 @@ class NEUMESH_OT_arap_add(_ArapOperator, bpy.types.Operator):
         _anchors, handles, names = read_groups(obj, s)
         if obj.data.shape_keys is None:
             obj.shape_key_add(name="Basis", from_mix=False)
+        s.enabled = False   # no handler runs while the Empties are made
         _make_empties(context, obj, s, handles, names)
+        context.view_layer.update()   # the new Empties' matrix_world
         s.enabled = True
         s.generation += 1
         wait_for_drags()
