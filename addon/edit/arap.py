@@ -231,22 +231,25 @@ def _start(name, d) -> None:
 
 
 def prepare_preview(obj) -> threading.Thread | None:
-    """Factorise ``obj``'s preview (drag) solver in a background thread, so that the first drag does not
-    wait for it (started by *Add ARAP deform*); None when there is nothing to build."""
+    """Factorise ``obj``'s drag solver in a background thread and solve it once at rest (a first solve
+    without a previous one starts on a coarse cage, seconds on a big scaffold), so that the first drag
+    waits for neither (started by *Add ARAP deform*); None when it is ready already."""
     s = obj.neumesh_arap
-    ent, solver, which = _entry(obj, s, _rest(obj), full=False, build=False)
-    if solver is not None:
+    ent, _solver, which = _entry(obj, s, _rest(obj), full=False, build=False)
+    if ent.get(f"primed_{which}"):
         return None
+    obj_name = obj.name_full
 
     def build():
         try:
             with ent["lock"]:
-                if which not in ent:
-                    _factorise(obj_name, ent, which)
+                solver = ent.get(which) or _factorise(obj_name, ent, which)
+                if not ent.get(f"primed_{which}"):
+                    _solve_with(solver, np.eye(4), 1, False)
+                    ent[f"primed_{which}"] = True
         except Exception as exc:  # noqa: BLE001 - the first drag builds it again and reports
             print(f"NeuMesh ARAP '{obj_name}': {exc}")
 
-    obj_name = obj.name_full
     job = threading.Thread(target=build, daemon=True, name="neumesh-arap-prepare")
     job.start()
     ent["prepare"] = job
