@@ -270,5 +270,13 @@ def draw_panel(cls, context):
     import types
 
     rec = Recorder()
-    cls.draw(types.SimpleNamespace(layout=rec, bl_label=getattr(cls, "bl_label", "")), context)
+
+    class _Panel:   # the panel's methods bound to a stand-in with a recording layout
+        layout = rec
+
+        def __getattr__(self, name):
+            value = getattr(cls, name)
+            return types.MethodType(value, self) if isinstance(value, types.FunctionType) else value
+
+    cls.draw(_Panel(), context)
     return rec.labels, rec.operators
