@@ -20,7 +20,7 @@ from bpy.props import StringProperty
 
 from ..runtime._np import np
 from ..runtime import core
-from ..runtime.text import text_width, wrapped_label
+from ..runtime.text import text_width, ui_scale, wrapped_label
 from ..scene import camera, props
 from ..render import fields, frame
 from ..runtime.errors import UserError
@@ -338,10 +338,10 @@ class NEUMESH_OT_cancel_paint(bpy.types.Operator):
 
 
 def _draw_actions(layout, img, header=False):
-    row = layout.row(align=True)
-    op = row.operator("neumesh.apply_paint", text="Apply" if header else "Apply painting", icon="CHECKMARK")
+    box = layout.row(align=True) if header else layout.column(align=True)   # sidebar: one button a row
+    op = box.operator("neumesh.apply_paint", text="Apply" if header else "Apply painting", icon="CHECKMARK")
     op.image = img.name
-    op = row.operator("neumesh.cancel_paint", text="Cancel" if header else "Cancel painting", icon="CANCEL")
+    op = box.operator("neumesh.cancel_paint", text="Cancel" if header else "Cancel painting", icon="CANCEL")
     op.image = img.name
 
 
@@ -362,7 +362,8 @@ class NEUMESH_PT_paint_image(bpy.types.Panel):
 
         img = _paint_space_image(context)
         col = self.layout.column()
-        width = text_width(context)
+        # the Image Editor's sidebar keeps its tab strip and scroll bar inside the region: a wider margin
+        width = max(40.0, text_width(context) - 40 * ui_scale(context))
         job = jobs.active(NEUMESH_OT_apply_paint.bl_label)
         if job is not None and job.running:
             col.label(text=f"Applying {100 * job.fraction:.0f}% (Esc cancels)", icon="SORTTIME")
