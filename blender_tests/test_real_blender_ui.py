@@ -124,3 +124,27 @@ def test_paint_on_view_opens_its_image_editor_inside_the_main_window(addon_zip, 
     if keep:
         os.makedirs(keep, exist_ok=True)
         shutil.copy(f["screenshot"], os.path.join(keep, "paint.png"))
+
+
+def test_sculpt_mode_preview_reaches_the_last_level_after_a_stroke(addon_zip, trained_field, tiny_dataset,
+                                                                   tmp_path):
+    """Issue 47.8 in the real window: a Grab stroke in Sculpt Mode with the Rendered viewport; once the
+    stroke ends, the preview reaches its last (finest) level and further updates do not restart it."""
+    if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
+        pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
+    env = _env(tmp_path)
+    out = tmp_path / "ui"
+    r = subprocess.run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_ui.py"),
+                        "--", "setup", addon_zip, trained_field, tiny_dataset, str(out)], env=env,
+                       capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
+    r = subprocess.run([XVFB, "-a", "-s", "-screen 0 %dx%dx24" % WINDOW, BLENDER, str(out / "ui.blend"),
+                        "--enable-event-simulate", "--python", os.path.join(HERE, "real_blender_sculpt.py"), "--",
+                        "sculpt", str(out)], env=env, capture_output=True, text=True, timeout=500)
+    log = r.stdout + r.stderr
+    f = _facts(r.stdout)
+    print("sculpt facts:", f)
+    assert r.returncode == 0 and f["errors"] == [], (f["errors"], log[-3000:])
+    assert f["first_done"] and f["mode"] == "SCULPT"
+    assert f["after_done"], f                       # the finest level after the stroke
+    assert f["restarts_idle"] == 0 and f["idle_done"], f
