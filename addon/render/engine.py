@@ -118,7 +118,7 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
     # ------------------------------------------------------------------ viewport
     def view_update(self, context, depsgraph):
         """A depsgraph update: collect the fields again; the preview restarts (coarse first) only when
-        what they show changed (sculpt mode sends updates while nothing moves: see same_items)."""
+        what they show changed (see same_items)."""
         try:
             items = fields.collect(depsgraph, for_render=False)
             error = ""

@@ -10,9 +10,9 @@ from . import fields, frame
 
 def same_items(old, new) -> bool:
     """Do two lists of collected items (``fields.collect``) show the same picture: the same objects and
-    field files, the same remapped fields and equal vertex positions?  Sculpt mode (and other modes)
-    sends depsgraph updates while nothing the field shows changes; the viewport restarts its
-    progressive preview only when this is False, so it reaches full resolution once the stroke stops."""
+    field files, the same remapped fields and equal vertex positions?  Depsgraph updates come for
+    many things the field does not show (selection, tools, paint modes); the viewport restarts its
+    progressive preview only when this is False, so such updates never keep it coarse."""
     if old is None or new is None or len(old) != len(new):
         return False
     for a, b in zip(old, new):
