@@ -225,3 +225,58 @@ def combine_expected(cyc, zc, fld, zf):
     out = straight(fg) * a + straight(bg) * (1 - a)
     out[..., 3] = np.maximum(fg[..., 3], bg[..., 3])
     return out
+
+
+class Recorder:
+    """A stand-in for a panel's ``layout``: records every label's text and every operator's idname
+    (rows, columns, boxes and splits record into the same lists), so a test can read what a panel
+    draws without a window.  ``draw_panel(cls, context)`` runs ``cls.draw`` on one."""
+
+    def __init__(self, labels=None, operators=None):
+        self.labels = [] if labels is None else labels
+        self.operators = [] if operators is None else operators
+        self.enabled = True
+        self.alert = False
+        self.scale_y = 1.0
+        self.active = True
+        self.use_property_split = False
+        self.use_property_decorate = False
+
+    def _child(self, *a, **k):
+        return Recorder(self.labels, self.operators)
+
+    column = row = box = split = column_flow = grid_flow = _child
+
+    def label(self, text="", **k):
+        self.labels.append(text)
+
+    def operator(self, idname, text="", **k):
+        self.operators.append(idname)
+        import types
+        return types.SimpleNamespace()
+
+    def prop(self, *a, **k):
+        pass
+
+    prop_search = separator = progress = template_list = prop_enum = menu = popover = prop
+
+    @property
+    def text(self):
+        return " ".join(self.labels)
+
+
+def draw_panel(cls, context):
+    """(labels, operator idnames) that panel class ``cls`` draws in ``context``."""
+    import types
+
+    rec = Recorder()
+
+    class _Panel:   # the panel's methods bound to a stand-in with a recording layout
+        layout = rec
+
+        def __getattr__(self, name):
+            value = getattr(cls, name)
+            return types.MethodType(value, self) if isinstance(value, types.FunctionType) else value
+
+    cls.draw(_Panel(), context)
+    return rec.labels, rec.operators

@@ -212,6 +212,60 @@ def test_composite_with_scene_occludes_both_ways_and_survives_reload(addon, trai
     np.testing.assert_allclose(again, got, atol=1e-5)
 
 
+def test_field_object_stays_editable_in_the_artists_scene(addon, trained_field, tmp_path):
+    """Issue 47.6: after Composite with Scene the field object is still in the main scene's view layer
+    (visible, selectable; the edit panels draw their tools for it), its edit collection is off in renders
+    (Cycles does not render the scaffold), the companion scene renders it; a bake goes to the artist's
+    active collection, never to the edit collection; an older file's layout (excluded collection) is
+    changed to this one."""
+    from helpers import draw_panel
+
+    comp_mod = addon.render.composite
+    obj, cam, scene = _scene(addon, trained_field)
+    bar_through_field()
+    cycles_fast(scene, samples=2)
+    # the earlier layout: the fields collection linked in the main scene and excluded there
+    old = bpy.data.collections.new(comp_mod.FIELDS_COLLECTION)
+    scene.collection.children.link(old)
+    scene.view_layers[0].layer_collection.children[old.name].exclude = True
+    assert bpy.ops.neumesh.composite_with_scene() == {"FINISHED"}
+    comp = scene.neumesh.composite_scene
+    vl = bpy.context.view_layer
+    edit = bpy.data.collections[comp_mod.EDIT_COLLECTION]
+    assert old.name not in scene.collection.children              # moved out of the main scene
+    assert obj.name in vl.objects and obj.visible_get(view_layer=vl) and edit.hide_render
+    assert obj.name in comp.objects and not bpy.data.collections[comp_mod.FIELDS_COLLECTION].hide_render
+    assert set(obj.users_collection) == {edit, bpy.data.collections[comp_mod.FIELDS_COLLECTION]}
+    vl.objects.active = obj
+    obj.select_set(True)
+    labels, ops = draw_panel(bpy.types.NEUMESH_PT_edit, bpy.context)
+    assert "neumesh.undo_edit" in ops and not any("Select an object" in t for t in labels)
+    assert "neumesh.select_by_click" in draw_panel(bpy.types.NEUMESH_PT_semantics, bpy.context)[1]
+    # the main scene's Cycles layer has no scaffold: its depth is the bar's alone
+    zc = render_pass(comp_mod, scene, "Depth", tmp_path / "zc.exr")[..., 0]
+    obj.hide_render = True
+    try:
+        bar_only = render_pass(comp_mod, scene, "Depth", tmp_path / "bar.exr")[..., 0]
+    finally:
+        obj.hide_render = False
+    assert np.array_equal(zc < 1e9, bar_only < 1e9)
+    fld = render_pass(comp_mod, comp, "Image", tmp_path / "fld.exr")
+    assert fld[..., 3].max() > 0.9                                # the companion still renders the field
+    # a bake lands in the artist's active collection; with the edit collection active, in the scene's
+    mine = bpy.data.collections.new("props")
+    scene.collection.children.link(mine)
+    vl.active_layer_collection = vl.layer_collection.children["props"]
+    assert addon.edit.bake.output_collection(bpy.context) is mine
+    vl.active_layer_collection = vl.layer_collection.children[edit.name]
+    assert addon.edit.bake.output_collection(bpy.context) is scene.collection
+    # with nothing selected the panel's message is wrapped, not cut
+    vl.objects.active = None
+    labels, _ = draw_panel(bpy.types.NEUMESH_PT_paint, bpy.context)
+    labels, _ = draw_panel(bpy.types.NEUMESH_PT_bake, bpy.context)
+    assert " ".join(labels).split() == "Select an object with a field".split() or \
+        any("Select an" in t for t in labels)
+
+
 def test_each_view_layer_renders_its_own_visible_fields(addon, trained_field, tmp_path):
     """Per-view-layer visibility: a second view layer that excludes the field's collection renders
     nothing of it; the first still shows it (each layer's passes go to its own render layer)."""

@@ -305,6 +305,57 @@ def test_progressive_preview_starts_coarser_when_the_first_level_would_be_slow(a
         pv.stop()
 
 
+def test_preview_reaches_full_resolution_after_sculpt_style_updates_stop(addon, trained_field):
+    """Issue 47.8: sculpt mode sends depsgraph updates while nothing moves.  The viewport (view_update,
+    then view_draw's request when the generation changed) restarts the progressive preview only when
+    the vertices change: during the stroke each update restarts it; once the stroke stops, further
+    updates leave the render alone and the preview reaches the last (full) level."""
+    import types
+
+    obj = _field_object(trained_field)
+    bpy.context.scene.render.engine = "NEUMESH"
+    cam = add_camera((0.0, -4.6, 0.8), lens=35.0)
+    bpy.context.view_layer.objects.active = obj
+    bpy.ops.object.mode_set(mode="SCULPT")
+    engine = types.SimpleNamespace(_items=[], _error="", _generation=0)
+    view_update = addon.render.engine.NeuMeshRenderEngine.view_update
+    K, c2w = manual_K_c2w(cam, 96, 80)
+    pv = addon.render.preview.PreviewRenderer(divisors=(8, 4, 2))
+    sent = {"gen": None, "serial": 0, "requests": 0}
+
+    def update():   # what Blender does on a depsgraph update and the redraw after it
+        dg = bpy.context.evaluated_depsgraph_get()
+        dg.update()
+        view_update(engine, bpy.context, dg)
+        if engine._generation != sent["gen"]:
+            sent["gen"] = engine._generation
+            sent["serial"] = pv.request(engine._items, K, c2w, 96, 80)
+            sent["requests"] += 1
+
+    try:
+        co = np.empty(len(obj.data.vertices) * 3, np.float32)
+        obj.data.vertices.foreach_get("co", co)
+        for i in range(4):                      # a Grab stroke: every update moves vertices
+            co[0::3] += 0.002
+            obj.data.vertices.foreach_set("co", co)
+            obj.data.update()
+            update()
+        assert sent["requests"] == 4            # each moved pose restarts the preview
+        moved = engine._items[0].vertices.copy()
+        for _ in range(40):                     # the stroke stopped; sculpt mode keeps sending updates
+            obj.update_tag()
+            update()
+        assert sent["requests"] == 4            # ... which do not restart it
+        assert pv.wait(sent["serial"], divisor=2, timeout=120), pv.error
+        assert pv.latest[0] == sent["serial"] and pv.latest[1] == 2      # the final level, of the last pose
+        assert np.allclose(engine._items[0].vertices, moved)
+        # an error (and its end) still restarts the preview
+        assert not addon.render.preview.same_items(engine._items, [])
+    finally:
+        pv.stop()
+        bpy.ops.object.mode_set(mode="OBJECT")
+
+
 def test_render_images_operator_writes_dataset_cameras(addon, trained_field, tiny_dataset, tmp_path):
     assert bpy.ops.neumesh.import_dataset(directory=tiny_dataset, max_cameras=3) == {"FINISHED"}
     _field_object(trained_field)

@@ -101,3 +101,42 @@ def test_bad_paint_input_changes_nothing(addon, trained_field, tmp_path):
     with pytest.raises(RuntimeError, match="camera or the render size changed"):
         bpy.ops.neumesh.apply_paint()
     assert addon.scene.props.field_abspath(obj) == str(tmp_path / "A.neumesh")
+
+
+def test_apply_and_cancel_sit_in_the_image_editor_showing_the_paint(addon, trained_field, tmp_path):
+    """Issue 47.5: the Image Editor that shows the paint image has a NeuMesh sidebar panel and header
+    buttons with Apply / Cancel (for that image); Cancel discards both images and applies nothing.
+    (Opening an Image Editor inside the main window is checked in the real window: test_real_blender_ui.)"""
+    import types
+
+    from helpers import Recorder, draw_panel
+
+    paint = addon.edit.paint
+    (obj,), cam = _scene(trained_field, tmp_path)
+    panel = bpy.types.NEUMESH_PT_paint_image
+    space = types.SimpleNamespace(type="IMAGE_EDITOR", image=None)
+    ctx = types.SimpleNamespace(space_data=space)
+    assert not panel.poll(ctx)                                   # no paint image yet
+    labels, ops = draw_panel(bpy.types.NEUMESH_PT_paint, bpy.context)
+    assert "neumesh.paint_view" in ops and "neumesh.cancel_paint" in ops
+    assert bpy.ops.neumesh.paint_view() == {"FINISHED"}
+    img = bpy.data.images[paint.PAINT_IMAGE]
+    space.image = bpy.data.images[paint.ORIGINAL_IMAGE]
+    assert not panel.poll(ctx)                                   # another image: no panel
+    space.image = img
+    assert panel.poll(ctx)
+    rec = Recorder()
+    paint.draw_image_header(types.SimpleNamespace(layout=rec), ctx)
+    assert rec.operators == ["neumesh.apply_paint", "neumesh.cancel_paint"]
+    # cancel: both images go, the field is untouched
+    _paint(addon, (16, 22), (18, 30), (1.0, 0.0, 0.0))
+    assert bpy.ops.neumesh.cancel_paint() == {"FINISHED"}
+    assert paint.PAINT_IMAGE not in bpy.data.images and paint.ORIGINAL_IMAGE not in bpy.data.images
+    assert addon.scene.props.field_abspath(obj) == str(tmp_path / "A.neumesh")
+    with pytest.raises(RuntimeError, match="no paint image"):
+        bpy.ops.neumesh.cancel_paint()
+    # and the whole round from the image editor's buttons: paint again, apply
+    assert bpy.ops.neumesh.paint_view() == {"FINISHED"}
+    _paint(addon, (16, 22), (18, 30), (1.0, 0.0, 0.0))
+    assert bpy.ops.neumesh.apply_paint(image=paint.PAINT_IMAGE) == {"FINISHED"}
+    assert addon.scene.props.field_abspath(obj).endswith("A.edit-001.neumesh")

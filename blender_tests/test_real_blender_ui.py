@@ -145,3 +145,61 @@ def test_arap_drag_and_undo_with_real_key_presses(addon_zip, tmp_path):
     assert f["timings_after_move"]["mode"] == "drag"
     handle_back, anchor_back = f["undone"]
     assert handle_back < 1e-3 and anchor_back < 1e-4, f
+
+
+def test_paint_on_view_opens_its_image_editor_inside_the_main_window(addon_zip, trained_field, tiny_dataset,
+                                                                     tmp_path):
+    """Issue 47.5 in the real window: Paint on view splits the 3D View (no new window); that Image
+    Editor shows the paint image in Paint mode with the NeuMesh sidebar panel (Apply / Cancel) drawn;
+    Cancel painting closes it again and removes the paint images."""
+    if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
+        pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
+    env = _env(tmp_path)
+    out = tmp_path / "ui"
+    r = subprocess.run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_ui.py"),
+                        "--", "setup", addon_zip, trained_field, tiny_dataset, str(out)], env=env,
+                       capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
+    r = subprocess.run([XVFB, "-a", "-s", "-screen 0 %dx%dx24" % WINDOW, BLENDER, str(out / "ui.blend"),
+                        "--enable-event-simulate", "--python", os.path.join(HERE, "real_blender_paint.py"), "--",
+                        "paint", str(out)], env=env, capture_output=True, text=True, timeout=300)
+    log = r.stdout + r.stderr
+    f = _facts(r.stdout)
+    assert r.returncode == 0 and f["errors"] == [], (f["errors"], log[-3000:])
+    assert "Traceback" not in log, log[-4000:]
+    assert f["paint_view"] == ["FINISHED"] and f["cancel"] == ["FINISHED"]
+    assert f["windows_after"] == f["windows_before"] == 1                  # no new window
+    assert "IMAGE_EDITOR" not in f["areas_before"] and "IMAGE_EDITOR" in f["areas_after"]
+    assert len(f["areas_after"]) == len(f["areas_before"]) + 1              # half of the 3D View
+    assert f["image"] == "NeuMesh Paint" and f["ui_mode"] == "PAINT"
+    assert f["panel_drawn"] >= 1 and f["sidebar_width"] > 50               # Apply / Cancel beside the paint
+    assert sorted(f["areas_cancelled"]) == sorted(f["areas_before"])        # Cancel closed it again
+    assert not any(n.startswith("NeuMesh Paint") for n in f["images"])
+    keep = os.environ.get("NEUMESH_UI_SCREENSHOT_DIR")
+    if keep:
+        os.makedirs(keep, exist_ok=True)
+        shutil.copy(f["screenshot"], os.path.join(keep, "paint.png"))
+
+
+def test_sculpt_mode_preview_reaches_the_last_level_after_a_stroke(addon_zip, trained_field, tiny_dataset,
+                                                                   tmp_path):
+    """Issue 47.8 in the real window: a Grab stroke in Sculpt Mode with the Rendered viewport; once the
+    stroke ends, the preview reaches its last (finest) level and further updates do not restart it."""
+    if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
+        pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
+    env = _env(tmp_path)
+    out = tmp_path / "ui"
+    r = subprocess.run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_ui.py"),
+                        "--", "setup", addon_zip, trained_field, tiny_dataset, str(out)], env=env,
+                       capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
+    r = subprocess.run([XVFB, "-a", "-s", "-screen 0 %dx%dx24" % WINDOW, BLENDER, str(out / "ui.blend"),
+                        "--enable-event-simulate", "--python", os.path.join(HERE, "real_blender_sculpt.py"), "--",
+                        "sculpt", str(out)], env=env, capture_output=True, text=True, timeout=500)
+    log = r.stdout + r.stderr
+    f = _facts(r.stdout)
+    print("sculpt facts:", f)
+    assert r.returncode == 0 and f["errors"] == [], (f["errors"], log[-3000:])
+    assert f["first_done"] and f["mode"] == "SCULPT"
+    assert f["after_done"], f                       # the finest level after the stroke
+    assert f["restarts_idle"] == 0 and f["idle_done"], f

@@ -10,7 +10,7 @@ import bpy
 import numpy as np
 import pytest
 
-from helpers import add_camera
+from helpers import add_camera, draw_panel
 
 W, H = 64, 64
 
@@ -210,3 +210,52 @@ def test_click_after_deleting_part_of_the_mesh_selects_mesh_vertices(addon, part
     gt = np.nonzero(labels[kept] == 1)[0]
     inter = len(np.intersect1d(got, gt))
     assert inter / len(got) > 0.9 and inter / len(gt) > 0.8
+
+
+def test_shape_options_reach_the_core_and_cache_beside_the_field(addon, parts_data, monkeypatch):
+    """Select by click's redo panel has Shape weight and Stop at creases; they reach the core's
+    SelectConfig, and the shape features are cached in the field's folder (geometry_cache)."""
+    _, _, sem, _ = parts_data
+    obj, cam = _scene(sem)
+    head = _click_on(addon, cam, 1)
+    nm = addon.runtime.core.get()
+    rna = bpy.ops.neumesh.select_by_click.get_rna_type().properties
+    assert "colour + shape" in rna["threshold"].description
+    assert rna["geometry"].name == "Shape weight" and rna["creases"].name == "Stop at creases"
+    seen = []
+    real = nm.semantics.select_region
+
+    def spy(field, view, pixel, cfg=None, context=None, **kw):
+        seen.append((cfg.geometry, cfg.creases, context.geometry_cache))
+        return real(field, view, pixel, cfg, context=context, **kw)
+
+    monkeypatch.setattr(nm.semantics, "select_region", spy)
+    addon.edit.select._CONTEXTS.clear()
+    assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="shape", geometry=0.3,
+                                           creases=False) == {"FINISHED"}
+    folder = os.path.dirname(sem)
+    assert seen == [(pytest.approx(0.3), False, folder)]
+    assert any(f.startswith("neumesh-geometry-") and f.endswith(".npz") for f in os.listdir(folder))
+    assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="colour", geometry=0.0,
+                                           creases=False) == {"FINISHED"}
+    assert len(_group(obj, "colour")) > 0
+
+
+def test_panel_says_selection_is_colour_only_without_robust_laplacian(addon, monkeypatch):
+    """robust-laplacian is in the add-on's one dependency list (feature 'shape', what setup_blender.sh
+    installs too); when it is missing the Semantics panel offers it and says selection uses colour only."""
+    deps = addon.runtime.deps
+    assert "robust-laplacian" in deps.full_requirements((3, 4, 0))
+    assert deps.missing_for("shape") == []           # installed here
+    panel = bpy.types.NEUMESH_PT_semantics
+    labels, _ = draw_panel(panel, bpy.context)
+    assert not any("colour only" in t for t in labels)
+    real = deps.missing_for
+    monkeypatch.setattr(deps, "missing_for", lambda f, s=None: ["robust-laplacian"] if f == "shape" else real(f, s))
+    labels, ops = draw_panel(panel, bpy.context)
+    text = " ".join(labels)
+    assert "Shape-aware selection needs robust-laplacian" in text and "colour only" in text
+    assert "neumesh.install_dependencies" in ops and "neumesh.select_by_click" in ops
+    assert "robust-laplacian" in addon.edit.select.shape_note({"geometry": "geometric features need "
+                                                                           "robust-laplacian"})
+    assert addon.edit.select.shape_note({}) == ""

@@ -216,7 +216,7 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
             return {"CANCELLED"}
         name, _ = self._source
         src = bpy.data.objects.get(name)
-        coll = src.users_collection[0] if src is not None and src.users_collection else None
+        coll = output_collection(context)
         obj = build_object(f"{name}_baked", job.result, self.shading, coll)
         for o in context.view_layer.objects:
             o.select_set(False)
@@ -230,6 +230,18 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
             self.report({"WARNING"}, f"NeuMesh: {r.info['missed_texels']} texels lie farther than the field "
                                      "radius from the field (filled from their neighbours)")
         return {"FINISHED"}
+
+
+def output_collection(context):
+    """Where a baked object goes: the artist's active collection (Outliner) in the scene they work in;
+    the scene's own collection when that one is excluded, hidden from render (the field objects' edit
+    collection after Composite with Scene) or not part of the scene."""
+    scene = context.scene
+    lc = context.view_layer.active_layer_collection
+    coll = lc.collection if lc is not None else None
+    if coll is None or lc.exclude or coll.hide_render or coll is scene.collection:
+        return scene.collection
+    return coll
 
 
 class NEUMESH_PT_bake(EditSubPanel, bpy.types.Panel):

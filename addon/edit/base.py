@@ -264,7 +264,8 @@ class _FieldPanel:
             else:
                 col.label(text=text, icon="SORTTIME")
         if obj is None or obj.type != "MESH" or not props.field_abspath(obj):
-            col.label(text="Select an object with a field", icon="INFO")
+            wrapped_label(col, "Select an object with a field", text_width(context), icon="INFO",
+                          context=context)
             return
         self.draw_edit(context, col, obj)
 

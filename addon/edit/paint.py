@@ -3,7 +3,11 @@ fields in view (``nm.edit.paint_fields``; see ``neumesh_core/edit/paint.py``).
 
 *Paint on view* renders the scene camera with the core into an image ("NeuMesh Paint"), keeps the
 unpainted render beside it ("NeuMesh Paint (unpainted)") and the view (K, camera-to-world, size) in
-the image's custom properties, and opens it in an Image Editor in Paint mode.  *Apply painting* reads
+the image's custom properties, and opens it in an Image Editor in Paint mode: an Image Editor of the
+main window when there is one, else the largest 3D View is split and its new half becomes one (a new
+window only when neither can be done).  That editor's sidebar (tab NeuMesh) and header carry *Apply
+painting* and *Cancel painting*, where the painting happens; Cancel discards the paint image and closes
+the editor the add-on opened.  *Apply painting* reads
 the painted image, takes the pixels that differ from the unpainted render as paint, and changes the
 modification colours of the fields those pixels' rays hit (each field object that changes gets an
 edited file beside its own; undo as for every edit).  The camera and the image size must be those of
@@ -16,13 +20,14 @@ from bpy.props import StringProperty
 
 from ..runtime._np import np
 from ..runtime import core
-from ..runtime.text import text_width, wrapped_label
+from ..runtime.text import text_width, ui_scale, wrapped_label
 from ..scene import camera, props
 from ..render import fields, frame
 from ..runtime.errors import UserError
 from .base import EditOperator, EditSubPanel, edit_copy
 
 PAINT_IMAGE = "NeuMesh Paint"
+ORIGINAL_IMAGE = PAINT_IMAGE + " (unpainted)"
 _KEYS = ("neumesh_K", "neumesh_c2w", "neumesh_size", "neumesh_original", "neumesh_camera")
 
 
@@ -60,12 +65,40 @@ def _view(context):
     return cam, depsgraph, np.asarray(K, np.float32), np.asarray(c2w, np.float32), int(W), int(H)
 
 
+OPENED_KEY = "neumesh_opened_area"   # on the paint image: the add-on split a 3D View for it
+
+
+def _split_view(context):
+    """Split the largest 3D View of the window in two (side by side); the new right half, or None."""
+    window, screen = context.window, context.screen
+    views = [a for a in screen.areas if a.type == "VIEW_3D"]
+    if window is None or not views:
+        return None
+    area = max(views, key=lambda a: a.width * a.height)
+    before = set(screen.areas[:])
+    region = next((r for r in area.regions if r.type == "WINDOW"), None)
+    with context.temp_override(window=window, screen=screen, area=area, region=region):
+        bpy.ops.screen.area_split(direction="VERTICAL", factor=0.5)
+    new = [a for a in screen.areas if a not in before]
+    return new[0] if new else None
+
+
 def _open_in_image_editor(context, img) -> None:
-    """Show ``img`` in an Image Editor in Paint mode (an existing one, else a new window)."""
+    """Show ``img`` in an Image Editor of the main window in Paint mode, its sidebar open on the NeuMesh
+    tab (Apply / Cancel): an existing Image Editor, else half of the largest 3D View; a new window only
+    when the screen has neither."""
     screen = getattr(context, "screen", None)
     if screen is None or bpy.app.background:
         return
     area = next((a for a in screen.areas if a.type == "IMAGE_EDITOR"), None)
+    if area is None:
+        try:
+            area = _split_view(context)
+        except Exception:  # noqa: BLE001 - a new window below
+            area = None
+        if area is not None:
+            area.type = "IMAGE_EDITOR"
+            img[OPENED_KEY] = True
     if area is None:
         try:
             bpy.ops.wm.window_new()
@@ -75,6 +108,10 @@ def _open_in_image_editor(context, img) -> None:
             return
     space = area.spaces.active
     space.image = img
+    try:
+        space.show_region_ui = True
+    except Exception:  # noqa: BLE001
+        pass
     try:
         space.ui_mode = "PAINT"
     except Exception:  # noqa: BLE001 - older Blender: mode on the space
@@ -107,7 +144,7 @@ class NEUMESH_OT_paint_view(bpy.types.Operator):
             return {"CANCELLED"}
         rgb = np.clip(rgba[..., :3], 0, 1)
         opaque = np.concatenate([rgb, np.ones((H, W, 1), np.float32)], -1)
-        original = _new_image(PAINT_IMAGE + " (unpainted)", W, H)
+        original = _new_image(ORIGINAL_IMAGE, W, H)
         _set_pixels(original, opaque)
         original.pack()
         original.use_fake_user = True
@@ -120,7 +157,8 @@ class NEUMESH_OT_paint_view(bpy.types.Operator):
         img["neumesh_original"] = original.name
         img["neumesh_camera"] = cam.name
         _open_in_image_editor(context, img)
-        self.report({"INFO"}, f"NeuMesh: paint on '{img.name}' ({W}x{H}) in the Image Editor, then Apply painting")
+        self.report({"INFO"}, f"NeuMesh: paint on '{img.name}' ({W}x{H}) in the Image Editor, then Apply painting "
+                              "(its sidebar, tab NeuMesh, or its header)")
         return {"FINISHED"}
 
 
@@ -244,11 +282,114 @@ class NEUMESH_PT_paint(EditSubPanel, bpy.types.Panel):
         wrapped_label(col, "1. Render the camera view to paint on", width, context=context)
         col.operator("neumesh.paint_view", icon="BRUSH_DATA")
         wrapped_label(col, "2. Paint on it in the Image Editor", width, context=context)
-        wrapped_label(col, "3. Apply the paint to the fields", width, context=context)
-        col.operator("neumesh.apply_paint", icon="CHECKMARK")
+        wrapped_label(col, "3. Apply the paint to the fields (here, or in the Image Editor's sidebar and header)",
+                      width, context=context)
+        row = col.row(align=True)
+        row.operator("neumesh.apply_paint", icon="CHECKMARK")
+        row.enabled = is_paint_image(bpy.data.images.get(PAINT_IMAGE))
+        sub = col.row()
+        sub.enabled = row.enabled
+        sub.operator("neumesh.cancel_paint", icon="CANCEL")
 
 
-classes = (NEUMESH_OT_paint_view, NEUMESH_OT_apply_paint, NEUMESH_PT_paint)
+def is_paint_image(img) -> bool:
+    return img is not None and all(k in img for k in _KEYS)
 
 
-register, unregister = bpy.utils.register_classes_factory(classes)
+def _paint_space_image(context):
+    space = getattr(context, "space_data", None)
+    img = getattr(space, "image", None) if space is not None and space.type == "IMAGE_EDITOR" else None
+    return img if is_paint_image(img) else None
+
+
+class NEUMESH_OT_cancel_paint(bpy.types.Operator):
+    """Discard the Paint on view image (nothing is applied) and close the Image Editor Paint on view
+    opened"""
+
+    bl_idname = "neumesh.cancel_paint"
+    bl_label = "Cancel painting"
+    bl_options = {"REGISTER"}
+
+    image: StringProperty(name="Image", default=PAINT_IMAGE, description="The paint image to discard")
+
+    def execute(self, context):
+        img = bpy.data.images.get(self.image)
+        if not is_paint_image(img):
+            self.report({"ERROR"}, f"NeuMesh: there is no paint image '{self.image}' to cancel")
+            return {"CANCELLED"}
+        opened = bool(img.get(OPENED_KEY, False))
+        closed = 0
+        for window in context.window_manager.windows:
+            for area in list(window.screen.areas):
+                if area.type != "IMAGE_EDITOR" or area.spaces.active.image != img:
+                    continue
+                if opened and len(window.screen.areas) > 1:
+                    with context.temp_override(window=window, screen=window.screen, area=area):
+                        bpy.ops.screen.area_close()
+                    closed += 1
+                else:
+                    area.spaces.active.image = None
+        orig = bpy.data.images.get(img.get("neumesh_original", ""))
+        bpy.data.images.remove(img)
+        if orig is not None:
+            bpy.data.images.remove(orig)
+        self.report({"INFO"}, "NeuMesh: painting cancelled; nothing was applied")
+        return {"FINISHED"}
+
+
+def _draw_actions(layout, img, header=False):
+    box = layout.row(align=True) if header else layout.column(align=True)   # sidebar: one button a row
+    op = box.operator("neumesh.apply_paint", text="Apply" if header else "Apply painting", icon="CHECKMARK")
+    op.image = img.name
+    op = box.operator("neumesh.cancel_paint", text="Cancel" if header else "Cancel painting", icon="CANCEL")
+    op.image = img.name
+
+
+class NEUMESH_PT_paint_image(bpy.types.Panel):
+    """The Image Editor's sidebar while it shows the Paint on view image: apply or cancel there."""
+
+    bl_label = "NeuMesh paint"
+    bl_space_type = "IMAGE_EDITOR"
+    bl_region_type = "UI"
+    bl_category = "NeuMesh"
+
+    @classmethod
+    def poll(cls, context):
+        return _paint_space_image(context) is not None
+
+    def draw(self, context):
+        from ..runtime import jobs
+
+        img = _paint_space_image(context)
+        col = self.layout.column()
+        # the Image Editor's sidebar keeps its tab strip and scroll bar inside the region: a wider margin
+        width = max(40.0, text_width(context) - 40 * ui_scale(context))
+        job = jobs.active(NEUMESH_OT_apply_paint.bl_label)
+        if job is not None and job.running:
+            col.label(text=f"Applying {100 * job.fraction:.0f}% (Esc cancels)", icon="SORTTIME")
+            return
+        wrapped_label(col, "Paint here, then apply the paint to the fields in view", width, context=context)
+        _draw_actions(col, img)
+        wrapped_label(col, "Keep the camera and render size as they are", width, icon="INFO", context=context)
+
+
+def draw_image_header(self, context):
+    """Appended to the Image Editor's header: Apply / Cancel while it shows the paint image."""
+    img = _paint_space_image(context)
+    if img is not None:
+        _draw_actions(self.layout, img, header=True)
+
+
+classes = (NEUMESH_OT_paint_view, NEUMESH_OT_apply_paint, NEUMESH_OT_cancel_paint, NEUMESH_PT_paint,
+           NEUMESH_PT_paint_image)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
+def register():
+    _register_classes()
+    bpy.types.IMAGE_HT_header.append(draw_image_header)
+
+
+def unregister():
+    bpy.types.IMAGE_HT_header.remove(draw_image_header)
+    _unregister_classes()

@@ -42,13 +42,28 @@ def _posed_field(obj, context):
 _PREPARING: dict = {}   # object name -> thread building its SelectionContext (see prepare_selection)
 
 
+def geometry_cache(obj):
+    """The folder of ``obj``'s field file: the core caches the scaffold's shape features there (one
+    file per scaffold, reused by every edited file beside it); None when the object has no field file."""
+    import os
+
+    path = props.field_abspath(obj)
+    return os.path.dirname(path) if path else None
+
+
+def shape_note(info: dict) -> str:
+    """'' when the selection used the shape; otherwise why it used colour alone (for the report)."""
+    return "colour only: the shape features need robust-laplacian (Install in the Semantics panel)" \
+        if info.get("geometry") else ""
+
+
 def _context_for(obj, field, nm):
     job = _PREPARING.pop(obj.name_full, None)
     if job is not None:
         job.join()   # the context started when the operator was invoked (usually done by the click)
     ctx = _CONTEXTS.get(obj.name_full)
     if ctx is None or not ctx.matches(field):
-        ctx = nm.semantics.SelectionContext(field)
+        ctx = nm.semantics.SelectionContext(field, geometry_cache=geometry_cache(obj))
         _CONTEXTS.clear()   # one object's features at a time (they can be large)
         _CONTEXTS[obj.name_full] = ctx
     return ctx
@@ -66,13 +81,14 @@ def prepare_selection(obj, context):
     except Exception:  # noqa: BLE001  (errors are reported by the click, with their message)
         return None
     name = obj.name_full
+    cache = geometry_cache(obj)
     ctx = _CONTEXTS.get(name)
     if (ctx is not None and ctx.matches(field)) or name in _PREPARING:
         return None
 
     def build():
         try:
-            c = nm.semantics.SelectionContext(field).prepare()
+            c = nm.semantics.SelectionContext(field, geometry_cache=cache).prepare()
         except Exception:  # noqa: BLE001  (rebuilt, with its error, on the click)
             return
         _CONTEXTS.clear()
@@ -147,8 +163,13 @@ class NEUMESH_OT_select_by_click(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     threshold: FloatProperty(name="Similarity", default=0.75, min=0.0, max=1.0, subtype="FACTOR",
-                             description="Cosine similarity to the clicked part's mean feature for a vertex to "
-                                         "join; lower grows further")
+                             description="Combined colour + shape similarity to the clicked part for a vertex "
+                                         "to join; lower grows further")
+    geometry: FloatProperty(name="Shape weight", default=0.5, min=0.0, max=1.0, subtype="FACTOR",
+                            description="How much the shape counts in the similarity (0: colour only); needs "
+                                        "robust-laplacian, else the selection uses colour alone")
+    creases: BoolProperty(name="Stop at creases", default=True,
+                          description="Never grow across a concave crease (a sharp inward bend of the surface)")
     group_name: StringProperty(name="Vertex group", default=DEFAULT_GROUP)
     mode: EnumProperty(name="Mode", items=[("REPLACE", "Replace", "The group becomes the clicked part"),
                                            ("ADD", "Add", "Add the clicked part to the group")], default="REPLACE")
@@ -243,7 +264,7 @@ class NEUMESH_OT_select_by_click(bpy.types.Operator):
             K, c2w, w, h = self._view(context)
             field, mesh_index = _posed_field(obj, context)
             ctx = _context_for(obj, field, nm)
-            cfg = nm.semantics.SelectConfig(threshold=self.threshold,
+            cfg = nm.semantics.SelectConfig(threshold=self.threshold, geometry=self.geometry, creases=self.creases,
                                             segmenter="features" if self.use_segmenter else None)
             sel = nm.semantics.select_region(field, (K, c2w, w, h), tuple(self.pixel), cfg, context=ctx)
         except (UserError, core.CoreUnavailable, camera.CameraError, sync.TopologyError) as exc:
@@ -255,8 +276,10 @@ class NEUMESH_OT_select_by_click(bpy.types.Operator):
         name = self.group_name.strip() or DEFAULT_GROUP
         picked = np.asarray(sel.vertices) if mesh_index is None else mesh_index[np.asarray(sel.vertices)]
         write_selection(obj, picked, name, replace=self.mode == "REPLACE")
-        self.report({"INFO"}, f"NeuMesh: {len(sel.vertices)} vertices in group '{name}' "
-                              f"({time.perf_counter() - t0:.2f}s)")
+        note = shape_note(sel.info)
+        self.report({"WARNING"} if note else {"INFO"},
+                    f"NeuMesh: {len(sel.vertices)} vertices in group '{name}' "
+                    f"({time.perf_counter() - t0:.2f}s){'; ' + note if note else ''}")
         return {"FINISHED"}
 
 

@@ -47,6 +47,8 @@ class NEUMESH_PT_semantics(bpy.types.Panel):
             job_status(col, job, context, cancel="neumesh.distil_cancel")
         col.separator()
         prefs.draw_missing(col, "select", context)
+        if prefs.draw_missing(col, "shape", context):   # selection still works, on colour alone
+            wrapped_label(col, "Without it Select by click uses colour only (no shape)", width, context=context)
         labelled(col, s, "group_name", "Selection group")
         wrapped_label(col, "The clicked part goes into this vertex group", width, context=context)
         op = col.operator("neumesh.select_by_click", icon="EYEDROPPER")

@@ -3,8 +3,11 @@ scene and Z-combined, in the main scene's compositor, with the main scene's Cycl
 
 Blender renders every scene that a Render Layers node of the compositor names, at the main scene's
 frame, resolution and render region, so ``blender -b file.blend -a`` renders both engines and combines
-them. The field objects move to a collection ("NeuMesh Fields") that the companion scene shows and the
-main scene's view layers exclude (else Cycles would render their scaffold meshes).
+them. The field objects stay in the artist's scene, selectable and editable (every edit panel, select
+by click and bake keep working there), in a collection "NeuMesh Fields (edit)" whose render visibility
+is off (else Cycles would render their scaffold meshes); the companion scene renders the same objects
+through its own collection "NeuMesh Fields".  Files set up by earlier versions (the collection
+excluded from the main scene's view layers) are changed to this layout when the operator runs again.
 
 Compositor API: Blender 5 keeps the tree in ``scene.compositing_node_group`` (a node group whose
 Group Output is the result), earlier versions in ``scene.node_tree`` with a Composite node; the Z
@@ -20,7 +23,8 @@ from ..runtime.errors import UserError
 from ..scene import props
 from . import colour
 
-FIELDS_COLLECTION = "NeuMesh Fields"
+FIELDS_COLLECTION = "NeuMesh Fields"            # the companion scene's: renders the fields
+EDIT_COLLECTION = "NeuMesh Fields (edit)"       # the artist's scene's: shown and editable, not rendered
 NODE_SCENE = "NeuMesh Scene Layer"
 NODE_FIELDS = "NeuMesh Field Layer"
 NODE_ZCOMBINE = "NeuMesh Z Combine"
@@ -121,18 +125,30 @@ def companion_name(scene) -> str:
     return f"{scene.name} NeuMesh"
 
 
+def _collection(name: str, parent):
+    coll = bpy.data.collections.get(name) or bpy.data.collections.new(name)
+    if coll.name not in parent.children:
+        parent.children.link(coll)
+    return coll
+
+
 def _fields_collection(scene, companion, objects):
-    """The collection of the field objects, a child of both scenes' master collections; the objects
-    leave the main scene's other collections (the companion scene shows them, the main one not)."""
-    coll = bpy.data.collections.get(FIELDS_COLLECTION) or bpy.data.collections.new(FIELDS_COLLECTION)
-    for parent in (scene.collection, companion.collection):
-        if coll.name not in parent.children:
-            parent.children.link(coll)
+    """The field objects in two collections: FIELDS_COLLECTION in the companion scene (rendered there
+    by the NEUMESH engine) and EDIT_COLLECTION in the main scene (visible in its viewport, selectable,
+    editable; render visibility off, so Cycles / EEVEE do not render the scaffold meshes).  The objects
+    leave the main scene's other collections.  Returns the companion's collection."""
+    coll = _collection(FIELDS_COLLECTION, companion.collection)
+    if coll.name in scene.collection.children:      # the earlier layout: linked in both, excluded here
+        scene.collection.children.unlink(coll)
+    coll.hide_render = False
+    edit = _collection(EDIT_COLLECTION, scene.collection)
+    edit.hide_render = True
     for ob in objects:
-        if ob.name not in coll.objects:
-            coll.objects.link(ob)
+        for c in (coll, edit):
+            if ob.name not in c.objects:
+                c.objects.link(ob)
         for c in list(ob.users_collection):
-            if c is not coll and (c is scene.collection or c.name in _all_children(scene.collection)):
+            if c not in (coll, edit) and (c is scene.collection or c.name in _all_children(scene.collection)):
                 c.objects.unlink(ob)
     return coll
 
@@ -143,16 +159,6 @@ def _all_children(coll) -> set:
         out.add(c.name)
         out |= _all_children(c)
     return out
-
-
-def _layer_collection(layer_coll, coll):
-    if layer_coll.collection is coll:
-        return layer_coll
-    for c in layer_coll.children:
-        found = _layer_collection(c, coll)
-        if found is not None:
-            return found
-    return None
 
 
 def sync_companion(scene, companion):
@@ -208,12 +214,9 @@ def set_up(scene) -> dict:
     companion.render.engine = "NEUMESH"
     colour.engine_selected(companion)   # its own view never shows; photographic, so its renders don't warn
     denoise = cycles_denoising_check(scene)
-    coll = _fields_collection(scene, companion, objects)
+    _fields_collection(scene, companion, objects)
     sync_companion(scene, companion)
     for vl in scene.view_layers:
-        lc = _layer_collection(vl.layer_collection, coll)
-        if lc is not None:
-            lc.exclude = True
         vl.use_pass_z = True
     for vl in companion.view_layers:
         vl.use_pass_z = True

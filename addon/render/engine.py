@@ -9,7 +9,7 @@ from ..runtime._np import np
 from ..runtime import settings, text
 from ..scene import camera
 from . import colour, fields, frame
-from .preview import PreviewRenderer
+from .preview import PreviewRenderer, same_items
 
 LAST_ERROR = {"message": ""}
 MOD_PASS = "NeuMesh Mod"   # the render pass of the rendered modification colour
@@ -117,13 +117,16 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
 
     # ------------------------------------------------------------------ viewport
     def view_update(self, context, depsgraph):
+        """A depsgraph update: collect the fields again; the preview restarts (coarse first) only when
+        what they show changed (see same_items)."""
         try:
-            self._items = fields.collect(depsgraph, for_render=False)
-            self._error = ""
+            items = fields.collect(depsgraph, for_render=False)
+            error = ""
         except Exception as exc:  # noqa: BLE001 - drawn in the viewport
-            self._items = []
-            self._error = fields.user_message(exc)
-        self._generation += 1
+            items, error = [], fields.user_message(exc)
+        if error or self._error or not same_items(self._items, items):
+            self._generation += 1
+        self._items, self._error = items, error
 
     def _ensure_preview(self):
         if self._preview is None:

@@ -8,6 +8,22 @@ import time
 from . import fields, frame
 
 
+def same_items(old, new) -> bool:
+    """Do two lists of collected items (``fields.collect``) show the same picture: the same objects and
+    field files, the same remapped fields and equal vertex positions?  Depsgraph updates come for
+    many things the field does not show (selection, tools, paint modes); the viewport restarts its
+    progressive preview only when this is False, so such updates never keep it coarse."""
+    if old is None or new is None or len(old) != len(new):
+        return False
+    for a, b in zip(old, new):
+        if a.key != b.key or a.path != b.path or a.field is not b.field:
+            return False
+        va, vb = a.vertices, b.vertices
+        if va is not vb and (va.shape != vb.shape or not (va == vb).all()):
+            return False
+    return True
+
+
 class PreviewRenderer:
     """Renders a viewport request at increasing resolutions (1/8, 1/4, ...) in a background thread.
 

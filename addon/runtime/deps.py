@@ -37,9 +37,12 @@ DEPENDENCIES = (
     ("xatlas", "xatlas", False, "xatlas", ("bake",)),                              # UV atlas
     ("pycolmap", "pycolmap", False, "pycolmap>=4", ("capture",)),                   # COLMAP folders, poses from photos
     ("cv2", "opencv-python-headless", False, "opencv-python-headless<4.12", ("capture",)),  # undistortion, video
+    # shape-aware selection (issue 51): the scaffold's Laplacian; without it selection uses colour alone
+    ("robust_laplacian", "robust-laplacian", False, "robust-laplacian", ("shape",)),
 )
 FEATURES = {"scaffold": "Build scaffold", "semantics": "Distil semantics", "select": "Select by click",
-            "edit": "Texture edits", "bake": "Bake to material", "capture": "Real captures (COLMAP, video)"}
+            "edit": "Texture edits", "bake": "Bake to material", "capture": "Real captures (COLMAP, video)",
+            "shape": "Shape-aware selection"}
 
 
 def numpy_requirement(blender_version=None) -> str:

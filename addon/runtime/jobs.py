@@ -181,7 +181,7 @@ class JobModal:
         if event.type == "TIMER":
             context.window_manager.progress_update(int(100 * job.fraction))
             set_status(context, f"NeuMesh: {self.edit_label} {100 * job.fraction:.0f}% (Esc cancels)")
-            redraw(context, ("VIEW_3D",))
+            redraw(context, ("VIEW_3D", "IMAGE_EDITOR"))
         if job.running:   # the viewport stays usable while the work runs; Esc is ours
             return {"RUNNING_MODAL"} if event.type == "ESC" else {"PASS_THROUGH"}
         wm = context.window_manager
@@ -189,7 +189,7 @@ class JobModal:
         wm.progress_end()
         set_status(context, None)
         result = self._finish(context, job)
-        redraw(context, ("VIEW_3D",))
+        redraw(context, ("VIEW_3D", "IMAGE_EDITOR"))
         return result
 
 
