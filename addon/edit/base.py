@@ -28,6 +28,7 @@ from ..runtime.text import text_width, wrapped_label
 from ..scene import identity, props, sync
 from ..scene.props import field_path_of
 from ..render import fields
+from ..render.engine import refresh_viewports
 
 
 def field_for_edit(obj):
@@ -181,6 +182,7 @@ class EditOperator(JobModal):
                 self.report({"ERROR"}, f"NeuMesh: could not save the edited field of '{name}': {exc}")
                 return {"CANCELLED"} if not saved else {"FINISHED"}
             changed += n
+        refresh_viewports(context)
         redraw(context, whole=True)
         done = [r for r in job.result if r is not None]
         if not saved:
@@ -218,6 +220,7 @@ def _point_back(op, context, which: str):
         return {"CANCELLED"}
     props.set_field_path(obj, target)
     _register(obj, fields.get_field(obj.name_full, target), target)
+    refresh_viewports(context)
     shown = "the trained field " if which == "root" else ""
     op.report({"INFO"}, f"NeuMesh: '{obj.name}' shows {shown}{os.path.basename(target)}")
     return {"FINISHED"}
@@ -295,4 +298,28 @@ class EditSubPanel(_FieldPanel):
 classes = (NEUMESH_OT_undo_edit, NEUMESH_OT_revert_field, NEUMESH_PT_edit)
 
 
-register, unregister = bpy.utils.register_classes_factory(classes)
+@bpy.app.handlers.persistent
+def _after_undo(*_args):
+    """Ctrl+Z / Ctrl+Shift+Z (and undo history jumps) change which file an object shows: the Rendered
+    viewport and the panels follow at once."""
+    refresh_viewports()
+
+
+_HANDLERS = ("undo_post", "redo_post")
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
+def register():
+    _register_classes()
+    for name in _HANDLERS:
+        lst = getattr(bpy.app.handlers, name)
+        if _after_undo not in lst:
+            lst.append(_after_undo)
+
+
+def unregister():
+    for name in _HANDLERS:
+        lst = getattr(bpy.app.handlers, name)
+        while _after_undo in lst:
+            lst.remove(_after_undo)
+    _unregister_classes()
