@@ -145,6 +145,15 @@ class EditOperator(JobModal):
     def prepare(self, context):  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def invoke(self, context, event):
+        """Invoked from the interface: an undo step of the state the edit starts from is pushed first, so
+        the redo panel (which undoes to the step before this operator's and calls :meth:`execute` with
+        the new options) starts from exactly that state, also when the scene was changed without an undo
+        step (a script, a timer): otherwise the redo undid those changes too (the object deselected, its
+        vertex groups gone) and the re-run failed without a word (issue 47.4)."""
+        push_undo_step(context, f"Before {self.bl_label}")
+        return JobModal.invoke(self, context, event)
+
     def _start(self, context):
         try:
             targets, fn = self.prepare(context)
@@ -195,6 +204,21 @@ class EditOperator(JobModal):
 
     def summary(self, record) -> str:
         return f"{record.info.get('seconds', 0.0):.1f} s"
+
+def push_undo_step(context, message: str) -> bool:
+    """Push an undo step of the current state (main thread, interface only); False where there is no
+    undo stack (background mode, a script run without a window)."""
+    if bpy.app.background or context.window is None:
+        return False
+    try:
+        with context.temp_override(window=context.window):
+            return "FINISHED" in bpy.ops.ed.undo_push(message=message)
+    except (RuntimeError, AttributeError, TypeError):   # poll failed / no temp_override before 3.2
+        try:
+            return "FINISHED" in bpy.ops.ed.undo_push(message=message)
+        except RuntimeError:
+            return False
+
 
 def _point_back(op, context, which: str):
     """Point the active object at the file its field was edited from (``which="parent"``) or at the
