@@ -151,7 +151,8 @@ class EditOperator(JobModal):
         the new options) starts from exactly that state, also when the scene was changed without an undo
         step (a script, a timer): otherwise the redo undid those changes too (the object deselected, its
         vertex groups gone) and the re-run failed without a word (issue 47.4)."""
-        push_undo_step(context, f"Before {self.bl_label}")
+        if "UNDO" in self.bl_options:
+            push_undo_step(context, f"Before {self.bl_label}")
         return JobModal.invoke(self, context, event)
 
     def _start(self, context):
