@@ -11,7 +11,7 @@ ADDON = os.path.join(ROOT, "addon")
 # the rooms from the bottom up; a room may import its own modules and the rooms before it
 ROOMS = ("runtime", "scene", "render", "train", "edit", "ui")
 # public sub-modules of neumesh_core (besides the names in neumesh_core.__all__)
-PUBLIC_SUBMODULES = {"edit", "semantics", "bake"}
+PUBLIC_SUBMODULES = {"edit", "semantics", "bake", "deform"}
 
 
 def addon_modules(root=ADDON) -> dict:

@@ -273,3 +273,48 @@ def test_semantics_and_bake_work_or_name_their_missing_packages(addon_zip, tmp_p
         assert "Bake to material needs the Python package xatlas" in f["bake"] and not f["baked"], f
     else:
         assert f["bake"] == ["FINISHED"] and f["baked"], f
+
+
+def test_import_cameras_of_a_colmap_capture_in_real_blender(addon_zip, tmp_path):
+    """Issue 48 point 3 in the real binary: a COLMAP folder (written here) imports as cameras with their
+    photos, the sparse points drawn as points by the Mesh to Points node group (built with the 3.x
+    node-group API there, the 4+ one in bpy 5), and the NeuMesh Box."""
+    _need_torch()
+    pytest.importorskip("pycolmap")
+    from tests.data.test_capture import write_colmap
+
+    if "pycolmap" not in os.listdir(TORCH_DIR):
+        pytest.skip("pycolmap is not in the blender's torch folder (scripts/setup_blender.sh installs it)")
+    root = str(tmp_path / "cap")
+    write_colmap(root, "PINHOLE", n=5, points=30)
+    env = _env(tmp_path)
+    f = _facts(_run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_capture.py"),
+                     "--", addon_zip, root], env, timeout=300))
+    assert f["result"] == ["FINISHED"] and f["cameras"] == 5 and f["backgrounds"] == 5, f
+    assert f["points"] == 30 and f["colour"] == "Color" and f["modifiers"] == ["NODES"], f
+    assert "Radius" in f["node_inputs"] and f["box"] is not None, f
+
+
+def test_real_blender_arap_deform_renders_keyed_handle(addon_zip, trained_field, tmp_path):
+    """Issue 52.1 in Debian's Blender 3.4: Add ARAP deform, a keyed handle Empty, then
+    `blender -b arap.blend -E NEUMESH -a`: frame 2 shows the bent field, frame 1 the rest."""
+    _need_torch()
+    env = _env(tmp_path)
+    out = tmp_path / "out"
+    log = _run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_arap.py"),
+                "--", addon_zip, trained_field, str(out)], env)
+    facts = _facts(log)
+    assert facts["arap_add"] == ["FINISHED"] and "NeuMesh ARAP" in facts["keys"], log[-3000:]
+    rest, V1, V2 = (np.load(out / n) for n in ("arap_rest.npy", "arap_verts_1.npy", "arap_verts_2.npy"))
+    anchors, handles = np.load(out / "arap_anchors.npy"), np.load(out / "arap_handles.npy")
+    np.testing.assert_allclose(V1, rest, atol=1e-4)
+    np.testing.assert_allclose(V2[anchors], rest[anchors], atol=1e-4)
+    assert np.abs(V2[handles] - rest[handles]).max() > 0.4
+    log = _run([BLENDER, "-b", str(out / "arap.blend"), "-E", "NEUMESH", "-o", str(out / "arap_####"),
+                "-s", "1", "-e", "2", "-a"], env)
+    assert "NeuMesh ARAP" not in log, log[-3000:]   # the handler printed no error
+    from PIL import Image
+
+    f1 = np.asarray(Image.open(out / "arap_0001.png").convert("RGB"), np.float32) / 255
+    f2 = np.asarray(Image.open(out / "arap_0002.png").convert("RGB"), np.float32) / 255
+    assert f1.std() > 0.02 and np.abs(f1 - f2).max() > 0.2

@@ -40,7 +40,7 @@ __version__ = "0.1.0"
 
 
 __all__ = [
-    "Cameras", "ScaffoldConfig", "axis_to_ray_depth", "bake", "bake_texture", "build_scaffold", "depth_buffer",
+    "Cameras", "ScaffoldConfig", "axis_to_ray_depth", "bake", "deform", "bake_texture", "build_scaffold", "depth_buffer",
     "field_key", "ray_to_axis_depth", "remap_field", "resolve_ids", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "DeformError", "EditError", "FieldConfig", "ImageSet",
     "Mesh", "NeuMeshError", "NeuMeshField", "NoSemanticsError", "RenderOutput", "RenderSettings", "Scene",
     "SelectionError", "TrainConfig", "TrainProgress", "TrainResult", "VertexMismatchError",

@@ -5,7 +5,7 @@ import os
 
 import bpy
 from bpy.app.handlers import persistent
-from bpy.props import BoolProperty, EnumProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from ..runtime.errors import UserError
 from ..runtime.jobs import redraw
@@ -119,7 +119,8 @@ class NeuMeshObjectSettings(bpy.types.PropertyGroup):
 
 class NeuMeshSceneSettings(bpy.types.PropertyGroup):
     dataset_path: StringProperty(name="Dataset", subtype="DIR_PATH", default="", **_REL,
-                                 description="NeRF-synthetic (transforms_*.json) or DTU (cameras.npz) folder")
+                                 description="NeRF-synthetic (transforms_*.json), DTU (cameras.npz), COLMAP "
+                                             "(sparse/0 + images) or transforms.json folder")
     downscale: IntProperty(name="Downscale", default=1, min=1, max=16,
                            description="Divide the dataset image resolution by this")
     scaffold_method: EnumProperty(
@@ -138,6 +139,11 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
                                    description="Vertex count the scaffold (the mesh the field is stored on) is "
                                                "resampled to: more vertices hold finer detail and cost memory "
                                                "and time (0 = the grid's own count)")
+    capture_source: StringProperty(name="Photos or video", subtype="FILE_PATH", default="", **_REL,
+                                   description="A folder of photos of the object, or a video file, whose "
+                                               "camera poses are estimated (needs pycolmap and opencv)")
+    capture_fps: FloatProperty(name="Frames per second", default=2.0, min=0.1, max=30.0,
+                               description="Frames kept per second of a video (the sharpest of each interval)")
     train_steps: IntProperty(name="Steps", default=2000, min=1, max=10_000_000)
     train_object: PointerProperty(name="Mesh", type=bpy.types.Object,
                                   poll=lambda self, o: o.type == "MESH",

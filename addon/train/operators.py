@@ -46,9 +46,23 @@ def _image_from_array(name: str, img: np.ndarray):
     return im
 
 
+def _is_capture(path: str) -> bool:
+    """A real capture (COLMAP or transforms.json) as the core detects it: ``nm.read_capture`` reads it
+    (cameras only, no pixels); any other folder (NeRF-synthetic, DTU, not a dataset) is not one. A
+    folder with sparse/ is one even when pycolmap is missing (Import Cameras then says to install it)."""
+    if os.path.isdir(os.path.join(path, "sparse")):
+        return True
+    try:
+        core.get().read_capture(path)
+    except Exception:  # noqa: BLE001 - load_scene below says what is wrong with the folder
+        return False
+    return True
+
+
 class NEUMESH_OT_import_dataset(bpy.types.Operator):
-    """Import a NeRF-synthetic (transforms_*.json) or DTU (cameras.npz) dataset as Blender cameras, each
-    with its photo as camera background image"""
+    """Import a dataset as Blender cameras, each with its photo as camera background image: NeRF-synthetic
+    (transforms_*.json), DTU (cameras.npz), or a real capture (COLMAP sparse/0 + images, transforms.json:
+    also its sparse points and a box around the object)"""
 
     bl_idname = "neumesh.import_dataset"
     bl_label = "Import dataset cameras"
@@ -62,11 +76,16 @@ class NEUMESH_OT_import_dataset(bpy.types.Operator):
     background_images: BoolProperty(name="Background images", default=True)
 
     def invoke(self, context, event):
+        self._invoked = True
         context.window_manager.fileselect_add(self)
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
         path = bpy.path.abspath(self.directory or context.scene.neumesh.dataset_path)
+        if _is_capture(path):   # COLMAP / transforms.json: cameras, photos, points, box in a job
+            mode = "INVOKE_DEFAULT" if getattr(self, "_invoked", False) else "EXEC_DEFAULT"
+            return bpy.ops.neumesh.import_capture(mode, directory=path, max_cameras=self.max_cameras,
+                                                  background_images=self.background_images)
         try:
             nm = core.get()
             ds = nm.load_scene(path, downscale=self.downscale, background="white")

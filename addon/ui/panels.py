@@ -11,7 +11,7 @@ import bpy
 
 from ..render import colour, images
 from ..runtime import prefs
-from ..train import worker
+from ..train import capture, worker
 from ..runtime.text import job_status, labelled as _labelled, text_width, wrapped_label
 
 SCAFFOLD_HELP = ("The scaffold is the mesh the field is stored on: every vertex keeps the learned codes "
@@ -52,6 +52,15 @@ class NEUMESH_PT_data(_Step, bpy.types.Panel):
         op.directory = s.dataset_path
         op.downscale = s.downscale
         col.label(text=f"{len(images.dataset_cameras())} dataset camera(s)")
+        col.separator()
+        _labelled(col, s, "capture_source", "Photos or video")
+        col.prop(s, "capture_fps", text="Video fps")
+        prefs.draw_missing(col, "capture", context)
+        job = capture.active_job()
+        if job is None:
+            col.operator("neumesh.poses_from_photos", text="Poses from Photos", icon="CON_CAMERASOLVER")
+        else:
+            job_status(col, job, context, cancel="neumesh.capture_cancel")
 
 
 class NEUMESH_PT_scaffold(_Step, bpy.types.Panel):

@@ -137,12 +137,12 @@ def build_cage(rest: np.ndarray, faces: np.ndarray, target: int, weights: str = 
 
 def _carry_weights(v, samples, cluster, cedges, clen, neighbours: int):
     import scipy.sparse as sp
-    from pykdtree.kdtree import KDTree
+    from ..field.knn import kd_tree
 
     n, m = len(v), len(samples)
     pc = np.ascontiguousarray(v[samples])
     k = int(min(neighbours, m))
-    _, idx = KDTree(pc).query(np.ascontiguousarray(v), k=k)
+    _, idx = kd_tree(pc).query(np.ascontiguousarray(v), k=k)
     idx = np.asarray(idx, np.int64).reshape(n, k)
     # allowed: the vertex's own cluster and the clusters next to it in the cage
     adj_keys = np.concatenate([cedges[:, 0] * m + cedges[:, 1], cedges[:, 1] * m + cedges[:, 0],

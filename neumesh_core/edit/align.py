@@ -73,9 +73,9 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True,
 
 
 def _nn(points: np.ndarray):
-    from pykdtree.kdtree import KDTree
+    from ..field.knn import kd_tree
 
-    return KDTree(np.ascontiguousarray(points, dtype=np.float64), leafsize=16)
+    return kd_tree(np.ascontiguousarray(points, dtype=np.float64))
 
 
 def _query(tree, x: np.ndarray, k: int = 1):

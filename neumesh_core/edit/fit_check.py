@@ -71,15 +71,15 @@ def fit_figures(source_points: np.ndarray, target_points: np.ndarray, target_edg
     (T,3).  ``target_edge``: the target region's mean edge length; ``source_edge``: the aligned source
     region's (None: the target's).  ``overlap_edges``: the radius that counts a target vertex as
     covered, in edge lengths."""
-    from pykdtree.kdtree import KDTree
+    from ..field.knn import kd_tree
 
     x = np.ascontiguousarray(source_points, dtype=np.float64)
     t = np.ascontiguousarray(target_points, dtype=np.float64)
     unit = max(float(target_edge), float(source_edge or 0.0), 1e-30)
     if not np.isfinite(x).all():
         return FitFigures(0.0, np.inf, np.inf, np.inf, unit)
-    d_t = np.asarray(KDTree(x, leafsize=16).query(t, k=1)[0], np.float64)
-    d_s = np.asarray(KDTree(t, leafsize=16).query(x, k=1)[0], np.float64)
+    d_t = np.asarray(kd_tree(x).query(t, k=1)[0], np.float64)
+    d_s = np.asarray(kd_tree(t).query(x, k=1)[0], np.float64)
     return FitFigures(overlap=float((d_t <= overlap_edges * unit).mean()), target_residual=float(d_t.mean() / unit),
                       source_residual=float(d_s.mean() / unit),
                       centroid_offset=float(np.linalg.norm(x.mean(0) - t.mean(0)) / unit), unit=unit)

@@ -49,6 +49,17 @@ class PaintConfig:
             raise EditError("hit_opacity must lie in (0, 1]")
 
 
+def _checked_layer(paint_rgba, width: int, height: int) -> np.ndarray:
+    """The painted view as float32 (H,W,4), or an EditError that says what went wrong."""
+    layer = np.asarray(paint_rgba, np.float32)
+    if layer.ndim != 3 or layer.shape[:2] != (height, width) or layer.shape[2] != 4:
+        raise EditError(f"the paint layer must be ({height}, {width}, 4) RGBA for this {width}x{height} view, "
+                        f"got {layer.shape}; was the camera or the image size changed since the render?")
+    if not np.isfinite(layer).all():
+        raise EditError("the paint layer holds NaN/inf values")
+    return layer
+
+
 def paint_layer(painted: np.ndarray, original: np.ndarray, threshold: float = 1.5 / 255) -> np.ndarray:
     """(H,W,4) straight-alpha paint layer from a painted image and the render it was painted on: alpha
     is 1 where any channel differs by more than ``threshold`` (a pixel quantised to 8 bits and back
@@ -120,12 +131,7 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
     if not fl:
         raise EditError("paint needs at least one field")
     t0 = time.perf_counter()
-    layer = np.asarray(paint_rgba, np.float32)
-    if layer.ndim != 3 or layer.shape[:2] != (height, width) or layer.shape[2] != 4:
-        raise EditError(f"the paint layer must be ({height}, {width}, 4) RGBA for this {width}x{height} view, "
-                        f"got {layer.shape}; was the camera or the image size changed since the render?")
-    if not np.isfinite(layer).all():
-        raise EditError("the paint layer holds NaN/inf values")
+    layer = _checked_layer(paint_rgba, width, height)
     alpha = np.clip(layer[..., 3], 0, 1).reshape(-1)
     painted = np.nonzero(alpha > 0)[0]
     if len(painted) == 0:
@@ -480,12 +486,7 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
         raise EditError("the field has no paint atlas; make one first (create_paint_atlas)")
     atlas.check(field)
     t0 = time.perf_counter()
-    layer = np.asarray(paint_rgba, np.float32)
-    if layer.ndim != 3 or layer.shape[:2] != (height, width) or layer.shape[2] != 4:
-        raise EditError(f"the paint layer must be ({height}, {width}, 4) RGBA for this {width}x{height} view, "
-                        f"got {layer.shape}; was the camera or the image size changed since the render?")
-    if not np.isfinite(layer).all():
-        raise EditError("the paint layer holds NaN/inf values")
+    layer = _checked_layer(paint_rgba, width, height)
     layer = np.clip(layer, 0, 1)
     alpha = layer[..., 3]
     ys, xs = np.nonzero(alpha > 0)

@@ -181,9 +181,9 @@ def swap_alignment(target, target_vertices, source=None, source_vertices=None, p
     _cancelled(progress, 0.0)
 
     # 1. similarity: both regions in their fields' rest frames (one frame: the fields' world space)
-    from pykdtree.kdtree import KDTree
+    from ..field.knn import kd_tree
 
-    tree = KDTree(np.ascontiguousarray(T_pts), leafsize=16)
+    tree = kd_tree(np.ascontiguousarray(T_pts))
     n_pairs = 0
     if pairs is not None:
         src_p, dst_p = _pairs_points(pairs, s_rest, t_rest)

@@ -22,14 +22,14 @@ def idw_neighbours(query: np.ndarray, points: np.ndarray, k: int = 4, tree=None)
     coincides with a point (distance below 1e-9 of the points' extent) takes that point alone, so a
     region transferred onto itself is copied exactly.
     """
-    from pykdtree.kdtree import KDTree
+    from .knn import kd_tree
 
     pts = np.ascontiguousarray(points, dtype=np.float64)
     q = np.ascontiguousarray(query, dtype=np.float64)
     if len(pts) == 0:
         raise EditError("the source region is empty")
     kk = min(int(k), len(pts))
-    tree = tree if tree is not None else KDTree(pts, leafsize=16)
+    tree = tree if tree is not None else kd_tree(pts)
     d, i = tree.query(q, k=kk)
     d = np.asarray(d, np.float64).reshape(len(q), kk)
     i = np.asarray(i, np.int64).reshape(len(q), kk)

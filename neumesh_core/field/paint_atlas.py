@@ -227,12 +227,12 @@ class PaintAtlas:
         key = (id(field), v.data_ptr(), v._version, f.data_ptr(), f._version)
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1:]
-        from pykdtree.kdtree import KDTree
+        from .knn import kd_tree
 
         Vn = self.lookup_vertices(field)
         F = f.cpu().numpy().astype(np.int64)
         cen = Vn[F].mean(1)
-        tree = KDTree(cen)
+        tree = kd_tree(cen)
         self._cache = (key, tree, Vn, F)
         return tree, Vn, F
 

@@ -47,12 +47,12 @@ def parent_weights(vertices: np.ndarray, normals: np.ndarray, coarse: np.ndarray
     ``exp(-(d/spacing)^2) * max(n_v . n_c, 0)``: smooth over the surface, and zero across a thin wall
     whose two sides face away from each other.  A vertex whose parents all face away gets no coarse
     contribution (all weights 0)."""
-    from pykdtree.kdtree import KDTree
+    from .knn import kd_tree
 
     v = np.ascontiguousarray(vertices, dtype=np.float32)
     c = np.ascontiguousarray(v[coarse])
     jj = min(j, len(coarse))
-    dist, idx = KDTree(c, leafsize=16).query(v, k=jj)
+    dist, idx = kd_tree(c).query(v, k=jj)
     dist = np.asarray(dist, np.float64).reshape(len(v), jj)
     idx = np.asarray(idx, np.int64).reshape(len(v), jj)
     facing = np.clip((normals[:, None, :] * normals[coarse][idx]).sum(-1), 0.0, 1.0)

@@ -127,12 +127,12 @@ def chamfer_distance(mesh_a: Mesh, mesh_b: Mesh, n_samples: int = 100_000, seed:
     Returns {"chamfer": (acc + comp)/2, "accuracy": mean dist a->b, "completeness": mean dist b->a,
     "p90_a_to_b", "p90_b_to_a"} in world units (L1-style mean of Euclidean distances, as DTU).
     """
-    from pykdtree.kdtree import KDTree
+    from ..field.knn import kd_tree
 
     pa = sample_surface(mesh_a, n_samples, seed)
     pb = sample_surface(mesh_b, n_samples, seed + 1)
-    da, _ = KDTree(pb).query(pa, k=1)
-    db, _ = KDTree(pa).query(pb, k=1)
+    da, _ = kd_tree(pb).query(pa, k=1)
+    db, _ = kd_tree(pa).query(pb, k=1)
     return {"chamfer": float(0.5 * (da.mean() + db.mean())), "accuracy": float(da.mean()),
             "completeness": float(db.mean()), "p90_a_to_b": float(np.percentile(da, 90)),
             "p90_b_to_a": float(np.percentile(db, 90))}

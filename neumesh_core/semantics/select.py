@@ -161,9 +161,9 @@ class SelectionContext:
     @property
     def tree(self):
         if self._tree is None:
-            from pykdtree.kdtree import KDTree
+            from ..field.knn import kd_tree
 
-            self._tree = KDTree(self.vertices)
+            self._tree = kd_tree(self.vertices)
         return self._tree
 
     def nearest_vertices(self, points: np.ndarray, k: int) -> np.ndarray:
