@@ -28,6 +28,7 @@ from ..runtime.text import text_width, wrapped_label
 from ..scene import identity, props, sync
 from ..scene.props import field_path_of
 from ..render import fields
+from ..render.engine import refresh_viewports
 
 
 def field_for_edit(obj):
@@ -144,6 +145,16 @@ class EditOperator(JobModal):
     def prepare(self, context):  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def invoke(self, context, event):
+        """Invoked from the interface: an undo step of the state the edit starts from is pushed first, so
+        the redo panel (which undoes to the step before this operator's and calls :meth:`execute` with
+        the new options) starts from exactly that state, also when the scene was changed without an undo
+        step (a script, a timer): otherwise the redo undid those changes too (the object deselected, its
+        vertex groups gone) and the re-run failed without a word (issue 47.4)."""
+        if "UNDO" in self.bl_options:
+            push_undo_step(context, f"Before {self.bl_label}")
+        return JobModal.invoke(self, context, event)
+
     def _start(self, context):
         try:
             targets, fn = self.prepare(context)
@@ -181,6 +192,7 @@ class EditOperator(JobModal):
                 self.report({"ERROR"}, f"NeuMesh: could not save the edited field of '{name}': {exc}")
                 return {"CANCELLED"} if not saved else {"FINISHED"}
             changed += n
+        refresh_viewports(context)
         redraw(context, whole=True)
         done = [r for r in job.result if r is not None]
         if not saved:
@@ -193,6 +205,21 @@ class EditOperator(JobModal):
 
     def summary(self, record) -> str:
         return f"{record.info.get('seconds', 0.0):.1f} s"
+
+def push_undo_step(context, message: str) -> bool:
+    """Push an undo step of the current state (main thread, interface only); False where there is no
+    undo stack (background mode, a script run without a window)."""
+    if bpy.app.background or context.window is None:
+        return False
+    try:
+        with context.temp_override(window=context.window):
+            return "FINISHED" in bpy.ops.ed.undo_push(message=message)
+    except (RuntimeError, AttributeError, TypeError):   # poll failed / no temp_override before 3.2
+        try:
+            return "FINISHED" in bpy.ops.ed.undo_push(message=message)
+        except RuntimeError:
+            return False
+
 
 def _point_back(op, context, which: str):
     """Point the active object at the file its field was edited from (``which="parent"``) or at the
@@ -218,6 +245,7 @@ def _point_back(op, context, which: str):
         return {"CANCELLED"}
     props.set_field_path(obj, target)
     _register(obj, fields.get_field(obj.name_full, target), target)
+    refresh_viewports(context)
     shown = "the trained field " if which == "root" else ""
     op.report({"INFO"}, f"NeuMesh: '{obj.name}' shows {shown}{os.path.basename(target)}")
     return {"FINISHED"}
@@ -296,4 +324,28 @@ class EditSubPanel(_FieldPanel):
 classes = (NEUMESH_OT_undo_edit, NEUMESH_OT_revert_field, NEUMESH_PT_edit)
 
 
-register, unregister = bpy.utils.register_classes_factory(classes)
+@bpy.app.handlers.persistent
+def _after_undo(*_args):
+    """Ctrl+Z / Ctrl+Shift+Z (and undo history jumps) change which file an object shows: the Rendered
+    viewport and the panels follow at once."""
+    refresh_viewports()
+
+
+_HANDLERS = ("undo_post", "redo_post")
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
+def register():
+    _register_classes()
+    for name in _HANDLERS:
+        lst = getattr(bpy.app.handlers, name)
+        if _after_undo not in lst:
+            lst.append(_after_undo)
+
+
+def unregister():
+    for name in _HANDLERS:
+        lst = getattr(bpy.app.handlers, name)
+        while _after_undo in lst:
+            lst.remove(_after_undo)
+    _unregister_classes()

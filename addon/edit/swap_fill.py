@@ -107,6 +107,8 @@ class NeuMeshEditSettings(bpy.types.PropertyGroup):
     swap_use_pairs: BoolProperty(name="Use selected pairs", default=False,
                                  description="Align by 3+ vertex pairs selected in Edit Mode, in order (same "
                                              "count on both objects; one object: source, target, source...)")
+    swap_skip_fit_check: BoolProperty(name="Skip fit check", default=False,
+                                      description="Apply the previewed alignment although it fails the fit check")
     fill_target_group: StringProperty(name="Target group", description="Vertex group to fill")
     fill_target_uv: StringProperty(name="Target UV", description="UV map of the active object")
     fill_template: PointerProperty(name="Template", type=bpy.types.Object, poll=lambda s, o: o.type == "MESH",
@@ -154,7 +156,22 @@ class _FromPanel(EditOperator):
         return target, field, path, obj, other_field, t_idx, s_idx
 
 
-class NEUMESH_OT_swap_texture(_FromPanel, bpy.types.Operator):
+class SwapResult:
+    """Mixin of the operators that swap: the refusal of a failed fit says the Blender way out, and the
+    report gives the residual."""
+
+    def _finish(self, context, job):
+        if job.error is not None and "check_fit=False" in str(job.error):   # a failed fit: the Blender way out
+            job.error = type(job.error)(f"{job.error} In Blender: Preview alignment draws the aligned source; "
+                                        "Skip fit check there applies it anyway.")
+        return super()._finish(context, job)
+
+    def summary(self, record):
+        i = record.info
+        return f"residual {i.get('residual', 0):.2f} edge lengths, {i.get('seconds', 0):.1f} s"
+
+
+class NEUMESH_OT_swap_texture(SwapResult, _FromPanel, bpy.types.Operator):
     """Give a vertex group the texture of another object's (or this object's) vertex group: aligned
     automatically or by selected vertex pairs; the source's decoder comes along. Saved as a new field
     file beside the current one (Undo edit / Ctrl+Z go back)"""
@@ -186,11 +203,6 @@ class NEUMESH_OT_swap_texture(_FromPanel, bpy.types.Operator):
             return [nm.swap_texture(work, t_idx, work if source is None else source, s_idx, pairs=pairs,
                                     config=cfg, progress=progress)]
         return [(target, work, path)], run
-
-    def summary(self, record):
-        i = record.info
-        return f"residual {i.get('residual', 0):.2f} edge lengths, {i.get('seconds', 0):.1f} s"
-
 
 class NEUMESH_OT_fill_texture(_FromPanel, bpy.types.Operator):
     """Tile the texture of a template vertex group over a target vertex group through their UV maps.
@@ -229,6 +241,7 @@ class NEUMESH_OT_fill_texture(_FromPanel, bpy.types.Operator):
 
 class NEUMESH_PT_swap(EditSubPanel, bpy.types.Panel):
     bl_label = "Swap texture"
+    extra_draw: list = []   # draw(context, layout, obj) functions added below (swap_preview: the preview)
 
     def draw_edit(self, context, col, obj):
         s = context.scene.neumesh_edit
@@ -238,6 +251,8 @@ class NEUMESH_PT_swap(EditSubPanel, bpy.types.Panel):
         labelled_search(col, s, "swap_source_group", src, "vertex_groups", "Source vertex group")
         col.prop(s, "swap_use_pairs")
         col.operator("neumesh.swap_texture", icon="UV_SYNC_SELECT")
+        for draw in self.extra_draw:
+            draw(context, col, obj)
 
 
 class NEUMESH_PT_fill(EditSubPanel, bpy.types.Panel):

@@ -18,6 +18,35 @@ LAST_RENDER: dict = {}
 # the last message drawn in a viewport: its wrapped lines, the widest one's right end, the region's width
 # and the part of it that the sidebar does not cover (pixels)
 VIEWPORT_MESSAGE = {"lines": [], "widest": 0.0, "region_width": 0, "visible_width": 0}
+# bumped by refresh_viewports(): a viewport engine whose own count differs collects the fields anew
+# (an edit, undo or revert changed which file an object shows, with or without a depsgraph update)
+FIELD_EPOCH = [0]
+
+
+def refresh_viewports(context=None) -> int:
+    """After an edit, undo or revert (operator, script call or timer alike): every Rendered viewport
+    collects its fields again and renders anew (its render cache is invalidated), and the 3D views'
+    WINDOW regions and sidebars of every window are tagged for redraw, so the new image shows without
+    moving the mouse. Returns the new epoch."""
+    FIELD_EPOCH[0] += 1
+    for e in list(_PollRedraw._engines):
+        try:
+            e._key = None
+            e.tag_redraw()
+        except ReferenceError:
+            pass
+    try:
+        wm = (context or bpy.context).window_manager
+        for win in wm.windows:
+            for area in win.screen.areas:
+                if area.type != "VIEW_3D":
+                    continue
+                for region in area.regions:
+                    if region.type in ("WINDOW", "UI"):
+                        region.tag_redraw()
+    except Exception:  # noqa: BLE001 - no window manager in background mode
+        pass
+    return FIELD_EPOCH[0]
 
 
 class NeuMeshRenderEngine(bpy.types.RenderEngine):
@@ -36,6 +65,7 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
         self._texture = None
         self._texture_serial = None
         self._dirty = False
+        self._epoch = FIELD_EPOCH[0]
 
     def __del__(self):
         pv = getattr(self, "_preview", None)
@@ -154,6 +184,12 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
         except camera.CameraError as exc:
             self._draw_message(context, str(exc))
             return
+        if self._epoch != FIELD_EPOCH[0]:   # an edit/undo/revert since the last draw: the fields anew
+            self._epoch = FIELD_EPOCH[0]
+            self.view_update(context, depsgraph)
+            if self._error:
+                self._draw_message(context, self._error)
+                return
         pv = self._ensure_preview()
         key = (self._generation, K.tobytes(), c2w.tobytes(), W, H, transparent)
         if key != self._key:
