@@ -30,6 +30,9 @@ class RenderSettings:
     # the same sample positions are evaluated, so the image is the same
     skip_empty: bool = True
     empty_tile: int = 8
+    # render_camera: a field's background model (real captures, field/background.py) composited behind
+    # the field by its transmittance: on, the photo-like frame; off, the object alone with a true alpha
+    background_model: bool = True
 
     def __post_init__(self):
         if int(self.supersample) != self.supersample or self.supersample < 1:
@@ -62,7 +65,7 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
                 settings: Optional[RenderSettings] = None, train: bool = False,
                 jitter: Optional[torch.Tensor] = None, vertex_ids: bool = False,
                 semantics: bool = False, far: Optional[torch.Tensor] = None,
-                ranges: Optional[Sequence] = None) -> dict:
+                ranges: Optional[Sequence] = None, background_model=None) -> dict:
     """Render rays (R,3) through one field or a list of fields (composited jointly, sorted by depth).
 
     Returns tensors: rgb (R,3), opacity (R,), depth (R,) (expected distance, normalised by opacity;
@@ -78,6 +81,9 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
     in front of the field, e.g. a holdout object: the field behind it is cut).
     ``ranges``: None, or per field None or ((R,) near, (R,) far): the distances outside which that
     field's grid has nothing on each ray (:meth:`OccupancyGrid.camera_ranges`); marching skips them.
+    ``background_model``: None, or a :class:`~neumesh_core.field.background.BackgroundModel` composited
+    behind the fields by their transmittance (``rgb += (1 - opacity) * rgb_bg``; ``opacity`` stays the
+    fields' own, the background's is ``bg_opacity``); ``background`` then fills what it leaves.
     """
     settings = settings or RenderSettings()
     fl = _as_list(fields)
@@ -140,9 +146,17 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
             out["sem"] = c["sem"]
     if vertex_ids:
         out["vertex_ids"] = touched
+    rest = 1.0 - out["opacity"]
+    if background_model is not None:
+        with torch.set_grad_enabled(train and torch.is_grad_enabled()):
+            bg_rgb, bg_op = background_model(origins, dirs, jitter=jitter if train else None,
+                                             far=None if far is None else t_far)
+        out["rgb"] = out["rgb"] + rest[:, None] * bg_rgb
+        out["bg_opacity"] = bg_op
+        rest = rest * (1.0 - bg_op)
     if background is not None:
         bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)
-        out["rgb"] = out["rgb"] + (1.0 - out["opacity"])[:, None] * bg
+        out["rgb"] = out["rgb"] + rest[:, None] * bg
     return out
 
 
@@ -220,15 +234,26 @@ class RenderOutput:
     n_samples: int = 0
     seconds: float = 0.0
     sem: Optional[np.ndarray] = None   # (H,W,C) composited semantic features (render_camera(semantics=True))
+    # (H,W) the background model's opacity behind the field (None: no background model rendered);
+    # ``opacity`` stays the object's own (its true alpha), ``alpha`` is the frame's
+    background_opacity: Optional[np.ndarray] = None
+
+    @property
+    def alpha(self) -> np.ndarray:
+        """(H,W) coverage of the frame: the object's opacity, plus the background model's behind it."""
+        if self.background_opacity is None:
+            return self.opacity
+        return self.opacity + (1.0 - self.opacity) * self.background_opacity
 
     def rgba(self, background=None) -> np.ndarray:
         """(H,W,4) straight-alpha RGBA. ``background``: the colour the rgb was composited on."""
         rgb = self.rgb
+        alpha = self.alpha
         if background is not None:
-            a = self.opacity[..., None]
+            a = alpha[..., None]
             bg = np.asarray(background, np.float32)
             rgb = np.where(a > 1e-6, (rgb - (1 - a) * bg) / np.maximum(a, 1e-6), 0.0)
-        return np.concatenate([np.clip(rgb, 0, 1), np.clip(self.opacity, 0, 1)[..., None]], -1)
+        return np.concatenate([np.clip(rgb, 0, 1), np.clip(alpha, 0, 1)[..., None]], -1)
 
 
 def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0, 1.0),
@@ -311,6 +336,11 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
                     raise Cancelled("rendering cancelled")
     if progress is not None and m == 0 and progress(1.0) is False:
         raise Cancelled("rendering cancelled")
+    bg_model = _background_model(fl) if settings.background_model else None
+    bg_op = None
+    if bg_model is not None:   # behind the fields, every pixel (see _composite_background_model)
+        rgb, bg_op = _composite_background_model(bg_model, K, c2w, width, height, device, rgb, opac,
+                                                 len(offsets), far_t, chunk)
     if ss == 1:
         depth = depth_w
     else:   # the opacity-weighted mean depth of the sub-pixel rays
@@ -318,8 +348,35 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     inv = 1.0 / len(offsets)
     if background is not None:
         bg = torch.as_tensor(background, dtype=torch.float32)
-        rgb = rgb + (len(offsets) - opac)[:, None] * bg
+        rgb = rgb + ((len(offsets) - opac) if bg_op is None else (len(offsets) - opac) * (1 - bg_op))[:, None] * bg
     return RenderOutput((rgb * inv).view(height, width, 3).numpy(), (opac * inv).view(height, width).numpy(),
                         depth.view(height, width).numpy(), (mod * inv).view(height, width, 3).numpy(),
                         n_samples, time.perf_counter() - t0,
-                        None if sem is None else (sem * inv).view(height, width, -1).numpy())
+                        None if sem is None else (sem * inv).view(height, width, -1).numpy(),
+                        None if bg_op is None else bg_op.view(height, width).numpy())
+
+
+def _background_model(fields):
+    """The first of ``fields`` that has a background model's model (field/background.py), or None."""
+    for f in fields:
+        m = f._modules.get("background") if isinstance(f, torch.nn.Module) else None
+        if m is not None:
+            return m
+    return None
+
+
+@torch.no_grad()
+def _composite_background_model(model, K, c2w, width, height, device, rgb, opac, n_sub, far_t, chunk):
+    """Add the background model behind the fields' summed sub-pixel colour ``rgb`` (n,3) and opacity
+    ``opac`` (n,) (sums over ``n_sub`` sub-pixel rays): one ray per pixel centre, weighted by the
+    pixel's mean transmittance (exact for one ray per pixel; with supersampling the background, which
+    is smooth, is not supersampled).  Returns (rgb, background opacity (n,))."""
+    n = width * height
+    bg_rgb = torch.zeros(n, 3)
+    bg_op = torch.zeros(n)
+    origins, dirs = pixel_rays(K, c2w, width, height, device=device)
+    for s in range(0, n, chunk):
+        e = min(n, s + chunk)
+        c, a = model(origins[s:e], dirs[s:e], far=None if far_t is None else far_t[s:e])
+        bg_rgb[s:e], bg_op[s:e] = c.cpu(), a.cpu()
+    return rgb + (n_sub - opac)[:, None] * bg_rgb, bg_op
