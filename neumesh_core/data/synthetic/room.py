@@ -59,6 +59,8 @@ def make_room_scene(resolution: int = 48, n_train: int = 24, n_val: int = 3, see
     K = np.array([[f, 0, resolution / 2], [0, f, resolution / 2], [0, 0, 1]], np.float32)
     splits, alphas = {}, {}
     for name in ("train", "val"):
+        if len(pos[name]) == 0:
+            continue
         c2w = np.stack([look_at_opencv(p) for p in pos[name]]).astype(np.float32)
         imgs, als = zip(*(render_in_room(K, c, resolution, resolution, seed=seed + i) for i, c in enumerate(c2w)))
         cams = Cameras(np.repeat(K[None], len(c2w), 0), c2w, resolution, resolution)
