@@ -29,7 +29,7 @@ def _write_room_capture(folder, n=16, res=32):
                    "w": res, "h": res, "frames": frames}, fh)
 
 
-def test_fit_without_masks_box_background(tmp_path):
+def test_fit_without_masks_box_background(tmp_path, capsys):
     import neumesh_core as nm
     from neumesh_core.cli import main
     from neumesh_core.field.background import background_of
@@ -51,3 +51,14 @@ def test_fit_without_masks_box_background(tmp_path):
     # the scaffold lies inside the box (up to the density grid's margin of a few cells)
     v = np.abs(f.rest_vertices.numpy())
     assert v.max() <= 1.4 * 1.2, v.max()
+    # `neumesh eval`: full frame on the held-out photos, background on and off
+    figures = {}
+    for mode in ("on", "off"):
+        capsys.readouterr()
+        with one_thread():
+            assert main(["eval", "--field", str(out / "field.neumesh"), "--data", str(data),
+                         "--background-model", mode, "--json", str(tmp_path / f"ev_{mode}.json")]) == 0
+        text = capsys.readouterr().out
+        assert f"full-frame figures (2 held-out photos of 'val'); background model {mode}" in text
+        figures[mode] = json.loads((tmp_path / f"ev_{mode}.json").read_text())["mean"]["psnr"]
+    assert figures["on"] != figures["off"]
