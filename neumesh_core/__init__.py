@@ -35,6 +35,8 @@ from .data.loader import read_capture  # noqa: E402
 from .reconstruct.poses import PosesConfig, PosesError, PosesProgress, PosesReport, estimate_poses  # noqa: E402
 from .reconstruct.video import frames_from_video  # noqa: E402
 from . import deform  # noqa: E402  (nm.deform: ArapSolver, arap)
+from .data.frame import ObjectBox, SceneFrame, object_box, parse_box, scene_frame  # noqa: E402
+from .field.background import BackgroundModel, attach_background, background_for, background_of  # noqa: E402
 
 __version__ = "0.1.0"
 
@@ -50,4 +52,6 @@ __all__ = [
     "save_field", "save_image", "save_mesh", "swap_texture", "train",
     "Capture", "PosesConfig", "PosesError", "PosesProgress", "PosesReport", "estimate_poses", "frames_from_video",
     "read_capture", "undistorted_images",
+    "ObjectBox", "SceneFrame", "object_box", "parse_box", "scene_frame", "BackgroundModel", "attach_background",
+    "background_for", "background_of",
 ]

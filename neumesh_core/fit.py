@@ -1,5 +1,11 @@
 """`fit`: images alone -> scaffold -> trained field -> evaluation (resumable per stage).
 
+Real captures without masks (issue 49): the object box (``box``, else found from the cameras and
+sparse points, ``data.frame.object_box``) bounds the scaffold (built inside it by photometric density
+fitting: no masks needed), is saved with the field, and a background model (``field.background``)
+holds everything outside it, trained together with the field on full frames; evaluation is full
+frame with the background on.
+
 out_dir layout: scaffold.ply (+ scaffold.scaffold.json report), field.neumesh, fit.json (summary).
 The scaffold stage is skipped when out_dir/scaffold.ply exists (delete it to rebuild); training
 resumes from out_dir/field.neumesh (its step and optimiser state) when that exists.
@@ -9,6 +15,8 @@ from __future__ import annotations
 import json
 import os
 import time
+
+import numpy as np
 from typing import Callable, Optional
 
 from .reconstruct.build import ScaffoldConfig, build_scaffold
@@ -18,10 +26,13 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
         scaffold_config: Optional[ScaffoldConfig] = None, field_config=None, train_config=None,
         scaffold_progress: Optional[Callable[[str, float], object]] = None,
         train_callback=None, evaluate_split: str = "val", log: Callable[[str], None] = print,
-        device="cpu") -> dict:
+        device="cpu", box=None, background_model: bool = True) -> dict:
     """Run the whole pipeline on a dataset folder; returns a summary dict (also written to fit.json).
 
-    ``device``: where the field trains and is evaluated (the scaffold is built on the CPU)."""
+    ``device``: where the field trains and is evaluated (the scaffold is built on the CPU).
+    ``box``: a ``data.frame.ObjectBox`` for the object (None: automatic for captures without masks).
+    ``background_model``: without masks, fit a background model outside the box (off: the field
+    alone must explain the whole frame; for comparisons)."""
     from .data.loader import load_scene
     from .errors import VertexMismatchError
     from .evaluate import evaluate
@@ -34,6 +45,18 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
     t0 = time.perf_counter()
     scene = load_scene(data_dir, downscale=downscale, background=background)
     summary = {"data": os.path.abspath(data_dir), "downscale": downscale}
+    real = not scene.has_masks and scene.background is None and scene.kind != "dtu"
+    if box is None and real:
+        from .data.frame import object_box
+
+        train_c2w = scene.split("train").cameras.c2w
+        pts = None if scene.capture is None else scene.capture.points
+        box = object_box(train_c2w, pts)
+        log(f"object box (automatic; --box cx,cy,cz,sx,sy,sz overrides): centre "
+            f"{np.round(box.centre, 3).tolist()}, half-sizes {np.round(box.half_extents, 3).tolist()}")
+    if box is not None:
+        scene.bbox = box.aabb()   # the scaffold is built inside the box
+        summary["object_box"] = box.to_dict()
 
     mesh_path = os.path.join(out_dir, "scaffold.ply")
     report_path = os.path.join(out_dir, "scaffold.scaffold.json")
@@ -64,6 +87,13 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
         summary["resumed_from_step"] = done
     else:
         field = create_field(mesh, field_config or FieldConfig(), device=device)
+        if box is not None:
+            field.object_box = box
+        if real and background_model:
+            from .field.background import attach_background, background_for
+
+            attach_background(field, background_for(scene.split("train").cameras.c2w, box,
+                                                    None if scene.capture is None else scene.capture.points))
     res = train(field, scene, tcfg, callback=train_callback)
     if os.path.abspath(tcfg.checkpoint_path) != os.path.abspath(field_path):
         save_field(field, field_path)  # (the trainer already wrote field_path with its step/optimiser)

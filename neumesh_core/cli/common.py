@@ -122,6 +122,9 @@ def _add_render_options(ap) -> None:
     ap.add_argument("--step-scale", type=float, default=None,
                     help="marching step / field radius (default: the step the field was trained with; "
                          "half of it renders finer, twice as slowly)")
+    ap.add_argument("--background-model", choices=["on", "off"], default="on",
+                    help="a field of a real capture: render its background (on, default: the photo-like "
+                         "frame) or the object alone (off)")
 
 
 def _add_device_option(ap) -> None:
@@ -141,7 +144,8 @@ def _device(args):
 def _render_settings(args):
     import neumesh_core as nm
 
-    return nm.RenderSettings(supersample=args.supersample, step_scale=args.step_scale)
+    return nm.RenderSettings(supersample=args.supersample, step_scale=args.step_scale,
+                             background_model=getattr(args, "background_model", "on") == "on")
 
 
 def _scene_background(scene):

@@ -16,6 +16,13 @@ def cmd_eval(args) -> int:
     r = nm.evaluate(field, scene.split(args.split), background=scene.background, masked=masked,
                     out_dir=args.renders, settings=_render_settings(args))
     _print_eval(r)
+    if not scene.has_masks:
+        from ..field.background import background_of
+
+        has_bg = background_of(field) is not None
+        print(f"full-frame figures ({len(scene.split(args.split))} held-out photos of '{args.split}'); background "
+              "model " + (("on" if args.background_model == "on" else "off") if has_bg else
+                          "absent (the field alone; train with `neumesh fit` for one)"))
     out = args.json or os.path.splitext(args.field)[0] + f"_eval_{args.split}.json"
     write_json({"field": args.field, "data": args.data, "split": args.split, **r}, out)
     print(f"wrote {out}")

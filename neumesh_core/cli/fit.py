@@ -10,6 +10,7 @@ from .scaffold import add_scaffold_options
 
 
 def cmd_fit(args) -> int:
+    from ..data.frame import parse_box
     from ..fit import fit
     from .scaffold import StageProgress, config_from_args
 
@@ -26,7 +27,9 @@ def cmd_fit(args) -> int:
     summary = fit(args.data, args.out, downscale=args.downscale, background=args.background,
                   scaffold_config=config_from_args(args), field_config=_field_config(args), train_config=tcfg,
                   scaffold_progress=StageProgress(), train_callback=train_cb,
-                  log=lambda m: print(m, file=sys.stderr), device=_device(args))
+                  log=lambda m: print(m, file=sys.stderr), device=_device(args),
+                  box=None if args.box is None else parse_box(args.box),
+                  background_model=args.background_model == "on")
     ev = summary.get("eval")
     if ev:
         print("stage 3/3: evaluation: " + ", ".join(f"{k} {v:.4f}" for k, v in ev.items() if k != "render_s"))
@@ -37,10 +40,20 @@ def cmd_fit(args) -> int:
 def add_commands(sub) -> None:
     p = sub.add_parser("fit", help="images alone -> scaffold -> trained field -> evaluation (resumable)",
                        description="Build the scaffold (skipped when OUT/scaffold.ply exists), train the "
-                                   "field (resumes OUT/field.neumesh), evaluate on 'val'. Progress per stage.")
+                                   "field (resumes OUT/field.neumesh), evaluate on 'val'. Progress per stage. "
+                                   "Photos without masks (a phone capture: transforms.json or COLMAP): the "
+                                   "object box is found from what the cameras look at (or --box), the scaffold "
+                                   "is built inside it from the photos alone (photometric density grid fitted "
+                                   "by volume rendering in the box), and a background model learns the room "
+                                   "outside it; held-out every 8th photo, evaluated full frame.")
     _add_data_options(p)
     p.add_argument("--out", required=True, help="output folder: scaffold.ply, field.neumesh, fit.json")
     p.add_argument("--log-every", type=int, default=25, help="steps between progress lines")
+    p.add_argument("--box", default=None, metavar="CX,CY,CZ,SX,SY,SZ",
+                   help="object box: centre and half-sizes in world units (default: automatic, around "
+                        "what the cameras look at; only for photos without masks)")
+    p.add_argument("--background-model", choices=["on", "off"], default="on",
+                   help="photos without masks: learn the room outside the box (default on)")
     add_scaffold_options(p)
     _add_field_options(p)
     _add_train_options(p)

@@ -13,6 +13,10 @@ Version-1 files load as single-decoder fields with every vertex bound to decoder
 Semantics (optional in both versions): ``field_config.sem_dim``/``sem_features`` > 0 means the file
 holds ``param/sem_codes`` (N, sem_dim) and ``param/sem_decoder.*``; the header's ``semantics`` entry
 says how they were distilled.  A file without them loads as a field without semantics.
+
+Real captures (optional in version 2, issue 49): the header's ``object_box`` (centre, half_extents,
+rotation) and ``background`` (the background model's configuration; its tensors are
+``param/background.*``).  Files without them load as fields without a box or background.
 """
 from __future__ import annotations
 
@@ -92,7 +96,7 @@ def save_field(field, path: str, optimizer: Optional[torch.optim.Optimizer] = No
     from safetensors.torch import save_file
 
     tensors = {}
-    for name, p in field.named_parameters():
+    for name, p in field.named_parameters():   # (a background model's: param/background.*)
         tensors[f"param/{name}"] = p.detach().cpu().contiguous()
     for name, b in field.named_buffers():
         if name in field.persistent_buffer_names():
@@ -133,6 +137,7 @@ def save_field(field, path: str, optimizer: Optional[torch.optim.Optimizer] = No
         meta["paint_atlas"] = atlas_meta
     if getattr(field, "has_semantics", False) and getattr(field, "semantics_info", None):
         meta["semantics"] = field.semantics_info
+    _save_real_capture_meta(field, meta)
     _atomic_write(path, lambda tmp: save_file(tensors, tmp, metadata={"neumesh": json.dumps(meta)}))
 
 
@@ -239,11 +244,45 @@ def load_field(path: str, device="cpu"):
             field.paint_atlas = PaintAtlas.from_tensors(meta["paint_atlas"], t, len(mesh.faces), path)
     except KeyError as exc:
         raise CheckpointError(f"{path}: missing entry {exc}; the file is incomplete") from exc
+    _load_real_capture_meta(path, field, meta, t)
     field._checkpoint_meta = meta
     if field.has_semantics:
         field.semantics_info = dict(meta.get("semantics") or {})
     field._checkpoint_optim = {k[6:]: v for k, v in t.items() if k.startswith("optim/")}
     return field.to(device)
+
+
+def _save_real_capture_meta(field, meta: dict) -> None:
+    from .background import background_of
+
+    box = getattr(field, "object_box", None)
+    if box is not None:
+        meta["object_box"] = box.to_dict()
+    bg = background_of(field)
+    if bg is not None:
+        meta["background"] = bg.config()
+
+
+def _load_real_capture_meta(path: str, field, meta: dict, t: dict) -> None:
+    """The object box and background model of a real-capture field (absent in older files)."""
+    if meta.get("object_box") is not None:
+        from ..data.frame import ObjectBox
+
+        try:
+            field.object_box = ObjectBox.from_dict(meta["object_box"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"{path}: the object box in the header is invalid ({exc}); the file is corrupt")
+    if meta.get("background") is not None:
+        from .background import BackgroundModel, attach_background
+
+        try:
+            bg = BackgroundModel.from_config(meta["background"])
+            state = {k[len("param/background."):]: v for k, v in t.items() if k.startswith("param/background.")}
+            bg.load_state_dict(state, strict=True)
+        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+            raise CheckpointError(f"{path}: the background model is incomplete or invalid ({exc}); the file "
+                                  "is corrupt (load it without the background by re-saving from a backup)") from exc
+        attach_background(field, bg)
 
 
 def load_optimizer_state(field, optimizer: torch.optim.Optimizer) -> bool:

@@ -34,6 +34,9 @@ class RenderSettings:
     # the field is covered, render/fused_triton.py; the torch path otherwise, the CPU included),
     # "torch" (the reference) or "triton" (the kernel, an error where it cannot run)
     backend: str = "auto"
+    # render_camera: a field's background model (real captures, field/background.py) composited behind
+    # the field by its transmittance: on, the photo-like frame; off, the object alone with a true alpha
+    background_model: bool = True
 
     def __post_init__(self):
         if self.backend not in ("auto", "torch", "triton"):
@@ -68,7 +71,7 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
                 settings: Optional[RenderSettings] = None, train: bool = False,
                 jitter: Optional[torch.Tensor] = None, vertex_ids: bool = False,
                 semantics: bool = False, far: Optional[torch.Tensor] = None,
-                ranges: Optional[Sequence] = None) -> dict:
+                ranges: Optional[Sequence] = None, background_model=None) -> dict:
     """Render rays (R,3) through one field or a list of fields (composited jointly, sorted by depth).
 
     Returns tensors: rgb (R,3), opacity (R,), depth (R,) (expected distance, normalised by opacity;
@@ -84,13 +87,16 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
     in front of the field, e.g. a holdout object: the field behind it is cut).
     ``ranges``: None, or per field None or ((R,) near, (R,) far): the distances outside which that
     field's grid has nothing on each ray (:meth:`OccupancyGrid.camera_ranges`); marching skips them.
+    ``background_model``: None, or a :class:`~neumesh_core.field.background.BackgroundModel` composited
+    behind the fields by their transmittance (``rgb += (1 - opacity) * rgb_bg``; ``opacity`` stays the
+    fields' own, the background's is ``bg_opacity``); ``background`` then fills what it leaves.
     """
     settings = settings or RenderSettings()
     fl = _as_list(fields)
     n = origins.shape[0]
     if settings.backend != "torch" and _fused(settings, fl, origins.device, train, jitter, vertex_ids, semantics):
-        return _render_fused(fl[0], origins, dirs, background, settings, far,
-                             None if ranges is None else ranges[0])
+        out = _render_fused(fl[0], origins, dirs, settings, far, None if ranges is None else ranges[0])
+        return _over_and_behind(out, fl, origins, dirs, background, background_model, train, jitter, far)
     t_far = float("inf") if far is None else far.to(origins.device, torch.float32)
     sem_width = _semantic_width(fl) if semantics else 0
     parts = []
@@ -149,13 +155,28 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
             out["sem"] = c["sem"]
     if vertex_ids:
         out["vertex_ids"] = touched
-    if not train:   # texel paint (field.paint_atlas) over the colour at each ray's expected surface point
+    return _over_and_behind(out, fl, origins, dirs, background, background_model, train, jitter, far)
+
+
+def _over_and_behind(out: dict, fl, origins, dirs, background, background_model, train, jitter, far) -> dict:
+    """What goes over and behind the fields' own colour, for the torch and the fused path alike: texel
+    paint (field.paint_atlas; not while training) at each ray's expected surface point, the background
+    model by the fields' transmittance, then the plain ``background`` colour in what is left."""
+    if not train:
         from ..field.paint_atlas import composite_paint
 
         out = composite_paint(fl, origins, dirs, out)
+    rest = 1.0 - out["opacity"]
+    if background_model is not None:
+        t_far = None if far is None else far.to(origins.device, torch.float32)
+        with torch.set_grad_enabled(train and torch.is_grad_enabled()):
+            bg_rgb, bg_op = background_model(origins, dirs, jitter=jitter if train else None, far=t_far)
+        out["rgb"] = out["rgb"] + rest[:, None] * bg_rgb
+        out["bg_opacity"] = bg_op
+        rest = rest * (1.0 - bg_op)
     if background is not None:
         bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)
-        out["rgb"] = out["rgb"] + (1.0 - out["opacity"])[:, None] * bg
+        out["rgb"] = out["rgb"] + rest[:, None] * bg
     return out
 
 
@@ -168,9 +189,9 @@ def _fused(settings, fl, device, train, jitter, vertex_ids, semantics) -> bool:
                       semantics=semantics)
 
 
-def _render_fused(field, origins, dirs, background, settings, far, ranges) -> dict:
-    """:func:`render_rays` through the fused Triton kernel (render/fused_triton.py): the same near/far
-    limits as the torch path, the same outputs."""
+def _render_fused(field, origins, dirs, settings, far, ranges) -> dict:
+    """The fields' own part of :func:`render_rays` through the fused Triton kernel
+    (render/fused_triton.py): the same near/far limits as the torch path, the same outputs."""
     from .fused_triton import render_rays_fused
 
     near_f = settings.near
@@ -181,9 +202,6 @@ def _render_fused(field, origins, dirs, background, settings, far, ranges) -> di
         far_f = torch.minimum(r_far, far_f) if torch.is_tensor(far_f) else r_far.clamp_max(far_f)
     out = render_rays_fused(field, origins, dirs, settings, default_step(field, settings), near=near_f, far=far_f)
     out["n_samples"] = int(out["n_samples"].sum())
-    if background is not None:
-        bg = torch.as_tensor(background, dtype=out["rgb"].dtype, device=origins.device)
-        out["rgb"] = out["rgb"] + (1.0 - out["opacity"])[:, None] * bg
     return out
 
 
@@ -261,15 +279,26 @@ class RenderOutput:
     n_samples: int = 0
     seconds: float = 0.0
     sem: Optional[np.ndarray] = None   # (H,W,C) composited semantic features (render_camera(semantics=True))
+    # (H,W) the background model's opacity behind the field (None: no background model rendered);
+    # ``opacity`` stays the object's own (its true alpha), ``alpha`` is the frame's
+    background_opacity: Optional[np.ndarray] = None
+
+    @property
+    def alpha(self) -> np.ndarray:
+        """(H,W) coverage of the frame: the object's opacity, plus the background model's behind it."""
+        if self.background_opacity is None:
+            return self.opacity
+        return self.opacity + (1.0 - self.opacity) * self.background_opacity
 
     def rgba(self, background=None) -> np.ndarray:
         """(H,W,4) straight-alpha RGBA. ``background``: the colour the rgb was composited on."""
         rgb = self.rgb
+        alpha = self.alpha
         if background is not None:
-            a = self.opacity[..., None]
+            a = alpha[..., None]
             bg = np.asarray(background, np.float32)
             rgb = np.where(a > 1e-6, (rgb - (1 - a) * bg) / np.maximum(a, 1e-6), 0.0)
-        return np.concatenate([np.clip(rgb, 0, 1), np.clip(self.opacity, 0, 1)[..., None]], -1)
+        return np.concatenate([np.clip(rgb, 0, 1), np.clip(alpha, 0, 1)[..., None]], -1)
 
 
 def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0, 1.0),
@@ -353,6 +382,11 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
                     raise Cancelled("rendering cancelled")
     if progress is not None and m == 0 and progress(1.0) is False:
         raise Cancelled("rendering cancelled")
+    bg_model = _background_model(fl) if settings.background_model else None
+    bg_op = None
+    if bg_model is not None:   # behind the fields, every pixel (see _composite_background_model)
+        rgb, bg_op = _composite_background_model(bg_model, K, c2w, width, height, device, rgb, opac,
+                                                 len(offsets), far_t, chunk)
     if ss == 1:
         depth = depth_w
     else:   # the opacity-weighted mean depth of the sub-pixel rays
@@ -360,9 +394,36 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     inv = 1.0 / len(offsets)
     if background is not None:
         bg = torch.as_tensor(background, dtype=torch.float32, device=device)
-        rgb = rgb + (len(offsets) - opac)[:, None] * bg
+        rgb = rgb + ((len(offsets) - opac) if bg_op is None else (len(offsets) - opac) * (1 - bg_op))[:, None] * bg
     rgb, opac, depth, mod = ((rgb * inv).cpu(), (opac * inv).cpu(), depth.cpu(), (mod * inv).cpu())
     return RenderOutput(rgb.view(height, width, 3).numpy(), opac.view(height, width).numpy(),
                         depth.view(height, width).numpy(), mod.view(height, width, 3).numpy(),
                         n_samples, time.perf_counter() - t0,
-                        None if sem is None else (sem * inv).cpu().view(height, width, -1).numpy())
+                        None if sem is None else (sem * inv).cpu().view(height, width, -1).numpy(),
+                        None if bg_op is None else bg_op.cpu().view(height, width).numpy())
+
+
+def _background_model(fields):
+    """The first of ``fields`` that has a background model (field/background.py), or None."""
+    for f in fields:
+        m = f._modules.get("background") if isinstance(f, torch.nn.Module) else None
+        if m is not None:
+            return m
+    return None
+
+
+@torch.no_grad()
+def _composite_background_model(model, K, c2w, width, height, device, rgb, opac, n_sub, far_t, chunk):
+    """Add the background model behind the fields' summed sub-pixel colour ``rgb`` (n,3) and opacity
+    ``opac`` (n,) (sums over ``n_sub`` sub-pixel rays): one ray per pixel centre, weighted by the
+    pixel's mean transmittance (exact for one ray per pixel; with supersampling the background, which
+    is smooth, is not supersampled).  Returns (rgb, background opacity (n,)), on ``device``."""
+    n = width * height
+    bg_rgb = torch.zeros(n, 3, device=device)
+    bg_op = torch.zeros(n, device=device)
+    origins, dirs = pixel_rays(K, c2w, width, height, device=device)
+    for s in range(0, n, chunk):
+        e = min(n, s + chunk)
+        c, a = model(origins[s:e], dirs[s:e], far=None if far_t is None else far_t[s:e])
+        bg_rgb[s:e], bg_op[s:e] = c, a
+    return rgb + (n_sub - opac)[:, None] * bg_rgb, bg_op

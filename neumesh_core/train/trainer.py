@@ -42,6 +42,9 @@ class TrainConfig:
     # plain per-vertex codes from there (None: keep the levels to the end)
     code_levels_until: Optional[float] = None
     random_background: bool = True    # composite targets on random colours (needs masks)
+    # without masks, a field's background model (field/background.py; real captures) trains with it on
+    # full-frame colour; with masks it is left alone
+    lr_background: float = 1e-2
     occ_refresh_every: int = 16
     occ_warmup_steps: int = 200
     step_scale: Optional[float] = None  # marching step = radius x step_scale (None: the field's own)
@@ -131,13 +134,15 @@ class _Batcher:
         return o, d, rgb, mask
 
 
-def _make_optimizer(field, cfg: TrainConfig, extra_codes=()):
+def _make_optimizer(field, cfg: TrainConfig, extra_codes=(), background=None):
     groups = [
         {"params": [field.geo_codes, field.tex_codes, field.mod_colors, *extra_codes], "lr": cfg.lr_codes,
          "name": "codes"},
         {"params": list(field.geo_decoder.parameters()) + list(field.rad_decoder.parameters()),
          "lr": cfg.lr_decoders, "name": "decoders"},
     ]
+    if background is not None:
+        groups.append({"params": list(background.parameters()), "lr": cfg.lr_background, "name": "background"})
     for g in groups:
         g["base_lr"] = g["lr"]
     # codes get row-sparse gradients while training (field.sparse_grads); the update stays exactly Adam's
@@ -191,7 +196,9 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
         from ..field.pyramid import CodePyramid
 
         pyramid = CodePyramid(field, cfg.code_levels, cfg.code_level_factor, kinds=cfg.code_level_kinds)
-    opt = _make_optimizer(field, cfg, () if pyramid is None else list(pyramid.parameters()))
+    # no masks: the background model (when the field has one) is fitted with the field, full frame
+    bg_model = field._modules.get("background") if images.masks is None else None
+    opt = _make_optimizer(field, cfg, () if pyramid is None else list(pyramid.parameters()), bg_model)
     start = 0
     meta = getattr(field, "_checkpoint_meta", None)
     if cfg.resume and meta:
@@ -248,7 +255,8 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
                 target = rgb_gt
             jitter = torch.rand(len(o), generator=gen).to(device)
             out = render_rays(field, o, d, background=bg, settings=settings, train=True, jitter=jitter,
-                              vertex_ids=cfg.weight_tv > 0 and cfg.tv_vertices == "batch")
+                              vertex_ids=cfg.weight_tv > 0 and cfg.tv_vertices == "batch",
+                              background_model=bg_model)
             if not bool(torch.isfinite(out["opacity"]).all()):
                 raise FloatingPointError(
                     f"the rendered opacity became NaN/inf at step {step}; lower lr_codes/lr_decoders and "

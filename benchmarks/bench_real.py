@@ -1,0 +1,112 @@
+"""Real captures (issue 49): fit a phone capture without masks, scaffold included, and measure the
+held-out photos full frame (every 8th photo), with the background model on and off.
+
+    .venv/bin/python benchmarks/bench_real.py --data /work/shared/data/real/fox --downscale 4 \
+        --minutes 60 --threads 2 --name fox_ds4_60min
+    .venv/bin/python benchmarks/bench_real.py --minutes 3 --threads 1 --smoke --name fox_smoke
+
+Figures (JSON in benchmarks/results/real_<name>.json): scaffold vertices and seconds, training
+steps and seconds, held-out PSNR/SSIM with the field's background model rendered on, and the same
+field rendered with it off (the object alone on black: what the background model brings), render
+seconds of one frame on/off, peak memory (ru_maxrss).  ``--no-background-model`` trains without a
+background model (the field alone explains the whole frame) for the comparison.  ``--minutes`` is
+the training budget; a 15- and a 60-minute figure are two runs.  ``--smoke``: small scaffold budget
+and ``--eval-views`` held-out photos only (a pipeline check, not a quality figure).  ``--pictures
+DIR`` writes each held-out photo beside its render (never commit pictures of the photos).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from benchmarks._results import write_results  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="/work/shared/data/real/fox")
+    ap.add_argument("--downscale", type=float, default=4)
+    ap.add_argument("--minutes", type=float, default=15.0, help="training budget (wall minutes)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out", default=None, help="working folder (default: /tmp/bench_real_<name>)")
+    ap.add_argument("--name", default=None)
+    ap.add_argument("--smoke", action="store_true")
+    ap.add_argument("--eval-views", type=int, default=0, help="held-out photos evaluated (0: all)")
+    ap.add_argument("--no-background-model", action="store_true")
+    ap.add_argument("--pictures", default=None)
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args(argv)
+
+    import numpy as np
+    import torch
+
+    import neumesh_core as nm
+    from neumesh_core.fit import fit
+    from neumesh_core.reconstruct.build import ScaffoldConfig
+    from neumesh_core.render.renderer import RenderSettings, render_camera
+    from neumesh_core.train.trainer import TrainConfig
+
+    torch.set_num_threads(args.threads)
+    name = args.name or f"{os.path.basename(os.path.normpath(args.data))}_ds{args.downscale:g}_{args.minutes:g}min"
+    out = args.out or f"/tmp/bench_real_{name}"
+    os.makedirs(out, exist_ok=True)
+    scfg = ScaffoldConfig(method="density", compute_iou=False, chamfer_samples=0)
+    if args.smoke:
+        scfg.density_iters, scfg.density_resolutions, scfg.target_vertices = (150, 150), (48, 96), 60_000
+    tcfg = TrainConfig(steps=10**7, max_seconds=args.minutes * 60.0, threads=args.threads, log_every=100,
+                       checkpoint_every=10**9)
+    t0 = time.perf_counter()
+    log_lines = []
+
+    def log(m):
+        log_lines.append(m)
+        print(m, file=sys.stderr, flush=True)
+
+    def cb(p):
+        if p.step % 500 == 0:
+            log(f"step {p.step} train psnr {p.psnr:.2f} {p.elapsed_s:.0f}s")
+
+    summary = fit(args.data, out, downscale=args.downscale, background=None, scaffold_config=scfg,
+                  train_config=tcfg, train_callback=cb, evaluate_split="none", log=log, device=args.device,
+                  background_model=not args.no_background_model)
+    field = nm.load_field(os.path.join(out, "field.neumesh"), device=args.device)
+    scene = nm.load_scene(args.data, downscale=args.downscale)
+    val = scene.split("val")
+    if args.eval_views:
+        val = val.subset(np.arange(min(args.eval_views, len(val))))
+    res = {"data": os.path.abspath(args.data), "downscale": args.downscale, "threads": args.threads,
+           "minutes": args.minutes, "smoke": args.smoke, "device": args.device,
+           "background_model_trained": not args.no_background_model,
+           "size": [val.cameras.width, val.cameras.height], "held_out_views": len(val),
+           "scaffold": summary.get("scaffold"), "train": summary.get("train"),
+           "object_box": summary.get("object_box")}
+    for mode in ("on", "off"):
+        st = RenderSettings(background_model=mode == "on")
+        ev = nm.evaluate(field, val, background=(0.0, 0.0, 0.0), settings=st)
+        res[f"background_{mode}"] = {"psnr": ev["mean"]["psnr"], "ssim": ev["mean"]["ssim"],
+                                     "render_s": ev["mean"]["render_s"], "lpips": ev["mean"].get("lpips")}
+        log(f"held-out, background model {mode}: PSNR {ev['mean']['psnr']:.2f} SSIM {ev['mean']['ssim']:.3f} "
+            f"render {ev['mean']['render_s']:.1f}s/frame")
+    if args.pictures:
+        os.makedirs(args.pictures, exist_ok=True)
+        cam = val.cameras
+        for i in range(min(2, len(val))):
+            on = render_camera(field, cam.K[i], cam.c2w[i], cam.width, cam.height, background=(0, 0, 0))
+            off = render_camera(field, cam.K[i], cam.c2w[i], cam.width, cam.height, background=(1, 1, 1),
+                                settings=RenderSettings(background_model=False))
+            side = np.concatenate([val.images[i], np.clip(on.rgb, 0, 1), np.clip(off.rgb, 0, 1)], 1)
+            nm.save_image(os.path.join(args.pictures, f"heldout_{i}_photo_render_object.png"), side)
+    res["peak_rss_gib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    res["total_s"] = time.perf_counter() - t0
+    write_results(res, f"real_{name}.json")
+    print(f"wrote benchmarks/results/real_{name}.json")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

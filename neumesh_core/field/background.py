@@ -1,0 +1,153 @@
+"""The background model of real captures (issue 49; the paper's "unbounded scenes").
+
+The mesh field holds the object inside its :class:`~neumesh_core.data.frame.ObjectBox`; everything
+else (the room) is a separate, cheap field in plain torch: a dense grid of density + colour features in
+mip-NeRF 360's contracted space (``y = (x - centre) / radius``, ``|y| <= 1`` kept, beyond it
+``(2 - 1/|y|) y/|y|``, so the whole world fits in a ball of radius 2), read trilinearly, and a tiny
+MLP (features + view direction -> colour).  Each ray is sampled from where it leaves the object box
+(or, missing the box, from its closest approach to the frame centre) to far away, evenly in
+disparity (1/t); the last interval reaches infinity (the background is opaque: a photo has no holes).
+
+The renderer composites it behind the mesh field by the mesh field's transmittance:
+``rgb = rgb_field + (1 - opacity_field) * rgb_background`` (``render.renderer.render_rays``,
+``background_model=``).  It never depends on the scaffold's vertices, so deformations and edits of
+the object never move it.  Saved with the field (``field.io``: header entry ``background`` +
+``param/background.*`` tensors); files without it load as fields without a background.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+
+def contract(y: torch.Tensor) -> torch.Tensor:
+    """mip-NeRF 360's contraction: identity inside the unit ball, ``(2 - 1/|y|) y/|y|`` outside."""
+    n = y.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    return torch.where(n <= 1, y, (2 - 1 / n) * y / n)
+
+
+def ray_box_exit(o: torch.Tensor, d: torch.Tensor, centre, half, rot):
+    """(t_enter, t_exit) of rays against an oriented box (inf/-inf-free: t_enter > t_exit = miss)."""
+    lo_ = (o - centre) @ rot          # ray in box coordinates
+    ld = d @ rot
+    inv = 1.0 / torch.where(ld.abs() < 1e-12, torch.full_like(ld, 1e-12), ld)
+    t0 = (-half - lo_) * inv
+    t1 = (half - lo_) * inv
+    return torch.minimum(t0, t1).amax(-1), torch.maximum(t0, t1).amin(-1)
+
+
+class BackgroundModel(nn.Module):
+    """Dense contracted-space grid (``resolution``^3 x (1 + ``features``)) + MLP colour head."""
+
+    def __init__(self, centre, radius: float, box=None, resolution: int = 64, features: int = 8,
+                 hidden: int = 32, samples: int = 48, far_factor: float = 100.0):
+        super().__init__()
+        if resolution < 2 or features < 1 or samples < 2 or radius <= 0:
+            raise ValueError("BackgroundModel: resolution >= 2, features >= 1, samples >= 2, radius > 0")
+        self.centre_np = np.asarray(centre, np.float64).reshape(3)
+        self.radius = float(radius)
+        self.box = box   # data.frame.ObjectBox or None (the whole ray is background)
+        self.resolution, self.features, self.hidden = int(resolution), int(features), int(hidden)
+        self.samples, self.far_factor = int(samples), float(far_factor)
+        r = self.resolution
+        grid = torch.zeros(1, 1 + self.features, r, r, r)
+        grid[:, 0] = -2.0   # low initial density: softplus(-2) ~ 0.13 per radius
+        grid[:, 1:].normal_(0, 0.1, generator=torch.Generator().manual_seed(0))
+        self.grid = nn.Parameter(grid)
+        self.mlp = nn.Sequential(nn.Linear(self.features + 3, self.hidden), nn.ReLU(),
+                                 nn.Linear(self.hidden, 3))
+
+    # -- configuration (the file header holds it; the tensors are the parameters) --------------------
+    def config(self) -> dict:
+        return {"centre": self.centre_np.tolist(), "radius": self.radius,
+                "box": None if self.box is None else self.box.to_dict(), "resolution": self.resolution,
+                "features": self.features, "hidden": self.hidden, "samples": self.samples,
+                "far_factor": self.far_factor}
+
+    @classmethod
+    def from_config(cls, cfg: dict) -> "BackgroundModel":
+        from ..data.frame import ObjectBox
+
+        box = None if cfg.get("box") is None else ObjectBox.from_dict(cfg["box"])
+        return cls(cfg["centre"], cfg["radius"], box, int(cfg["resolution"]), int(cfg["features"]),
+                   int(cfg["hidden"]), int(cfg["samples"]), float(cfg["far_factor"]))
+
+    # -- sampling ------------------------------------------------------------------------------------
+    def ray_start(self, o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """Where each ray's background begins: the box exit, else its closest approach to the centre."""
+        c = torch.as_tensor(self.centre_np, dtype=o.dtype, device=o.device)
+        t_close = ((c - o) * d).sum(-1).clamp_min(0)
+        if self.box is None:
+            return torch.zeros_like(t_close)
+        bc = torch.as_tensor(self.box.centre, dtype=o.dtype, device=o.device)
+        bh = torch.as_tensor(self.box.half_extents, dtype=o.dtype, device=o.device)
+        br = torch.as_tensor(self.box.rotation, dtype=o.dtype, device=o.device)
+        t_in, t_out = ray_box_exit(o, d, bc, bh, br)
+        hit = (t_in <= t_out) & (t_out > 0)
+        return torch.where(hit, t_out.clamp_min(0), t_close)
+
+    def query(self, x: torch.Tensor, d: torch.Tensor):
+        """Density per radius (S,) and colour (S,3) at world points ``x`` (S,3) seen along ``d``."""
+        c = torch.as_tensor(self.centre_np, dtype=x.dtype, device=x.device)
+        z = contract((x - c) / self.radius) * 0.5          # in [-1, 1]^3 for grid_sample
+        g = F.grid_sample(self.grid, z.view(1, -1, 1, 1, 3), mode="bilinear", align_corners=True)
+        g = g.view(1 + self.features, -1).t()
+        sigma = F.softplus(g[:, 0])
+        rgb = torch.sigmoid(self.mlp(torch.cat([g[:, 1:], d], -1)))
+        return sigma, rgb
+
+    def forward(self, origins: torch.Tensor, dirs: torch.Tensor, jitter: Optional[torch.Tensor] = None,
+                far: Optional[torch.Tensor] = None):
+        """Render rays: premultiplied colour (R,3) and opacity (R,) of the background (1 where nothing
+        cuts it: the last interval is opaque).  ``jitter`` (R,) in [0,1) shifts the samples (training);
+        ``far`` (R,) cuts the background behind an occluder (nothing past it counts)."""
+        R, S = origins.shape[0], self.samples
+        if R == 0:
+            return origins.new_zeros(0, 3), origins.new_zeros(0)
+        t0 = self.ray_start(origins, dirs).clamp_min(0.02 * self.radius)
+        t_far = t0 + self.far_factor * self.radius
+        u = torch.arange(S + 1, dtype=origins.dtype, device=origins.device) / S   # S intervals
+        if jitter is not None:
+            u = (u[None, :] + (jitter[:, None].to(origins.dtype) - 0.5) / S).clamp(0, 1)
+        else:
+            u = u[None, :].expand(R, -1)
+        # evenly in disparity between 1/t0 and 1/t_far
+        t = 1.0 / (1.0 / t0[:, None] * (1 - u) + 1.0 / t_far[:, None] * u)
+        mid = 0.5 * (t[:, 1:] + t[:, :-1])
+        x = origins[:, None, :] + dirs[:, None, :] * mid[..., None]
+        sigma, rgb = self.query(x.reshape(-1, 3), dirs[:, None, :].expand(-1, S, -1).reshape(-1, 3))
+        sigma, rgb = sigma.view(R, S), rgb.view(R, S, 3)
+        dt = (t[:, 1:] - t[:, :-1]) / self.radius
+        alpha = 1 - torch.exp(-sigma * dt)
+        alpha = torch.cat([alpha[:, :-1], torch.ones_like(alpha[:, -1:])], 1)   # opaque at infinity
+        if far is not None:
+            alpha = torch.where(mid < far.to(mid.dtype)[:, None], alpha, torch.zeros_like(alpha))
+        trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
+        w = trans * alpha
+        return (w[..., None] * rgb).sum(1), w.sum(1)
+
+
+def background_for(c2w: np.ndarray, box, points: Optional[np.ndarray] = None, **kw) -> BackgroundModel:
+    """A background model framed by the cameras (``data.frame.scene_frame``) around ``box``."""
+    from ..data.frame import scene_frame
+
+    fr = scene_frame(c2w, points)
+    return BackgroundModel(fr.centre, fr.radius, box, **kw)
+
+
+def attach_background(field, model: Optional[BackgroundModel]) -> None:
+    """Give ``field`` its background model (None removes it); a submodule, so it moves with
+    ``field.to`` and is saved by ``save_field``."""
+    if model is None:
+        if "background" in field._modules:
+            del field._modules["background"]
+        return
+    field.background = model.to(field.rest_vertices.device)
+
+
+def background_of(field) -> Optional[BackgroundModel]:
+    return field._modules.get("background") if isinstance(field, nn.Module) else None

@@ -1,0 +1,204 @@
+"""Background model of real captures (issue 49): frame and box, compositing, training without masks,
+save/load.  The scene is the built-in blob in a textured room, rendered without masks."""
+import numpy as np
+import pytest
+import torch
+
+from neumesh_core.data.frame import ObjectBox, focus_point, object_box, parse_box, scene_frame
+from neumesh_core.field.background import (BackgroundModel, attach_background, background_for, background_of,
+                                           contract)
+from neumesh_core.render.renderer import RenderSettings, render_camera, render_rays
+from tests.conftest import one_thread, textured_field
+
+
+@pytest.fixture(scope="module")
+def room():
+    from neumesh_core.data.synthetic.room import make_room_scene
+
+    with one_thread():
+        return make_room_scene(resolution=40, n_train=20, n_val=2)
+
+
+def _with_background(mesh, scene, plain=False, **kw):
+    from neumesh_core.field.field import FieldConfig, create_field
+
+    f = create_field(mesh, FieldConfig()) if plain else textured_field(mesh)
+    cams = scene.split("train").cameras
+    box = object_box(cams.c2w)
+    f.object_box = box
+    attach_background(f, background_for(cams.c2w, box, resolution=kw.pop("resolution", 24), **kw))
+    return f
+
+
+def test_frame_and_box_from_cameras(room):
+    scene, _ = room
+    c2w = scene.split("train").cameras.c2w
+    assert np.allclose(focus_point(c2w), 0, atol=1e-3)          # every camera looks at the origin
+    fr = scene_frame(c2w)
+    assert fr.radius == pytest.approx(4.0, rel=1e-3)
+    box = object_box(c2w)
+    assert np.allclose(box.centre, 0, atol=1e-3) and np.allclose(box.half_extents, 1.2, rtol=1e-3)
+    # with sparse points: the points near the focus point, robust to a far outlier cloud
+    rng = np.random.default_rng(0)
+    obj = rng.uniform(-0.5, 0.5, (400, 3)) + [0.2, 0, 0]
+    wall = rng.uniform(-1, 1, (400, 3)) * [0.1, 5, 5] + [9, 0, 0]
+    b = object_box(c2w, np.concatenate([obj, wall]))
+    assert b.contains(obj).mean() > 0.95 and not b.contains(wall).any()
+    assert np.allclose(b.centre, [0.2, 0, 0], atol=0.05)
+    assert parse_box("1,2,3,0.5,0.5,1").aabb().tolist() == [[0.5, 1.5, 2], [1.5, 2.5, 4]]
+    with pytest.raises(ValueError, match="six numbers"):
+        parse_box("1,2,3")
+    with pytest.raises(ValueError, match="> 0"):
+        ObjectBox([0, 0, 0], [1, 0, 1])
+
+
+def test_contract_bounds():
+    y = torch.randn(1000, 3) * 50
+    z = contract(y)
+    assert float(z.norm(dim=-1).max()) < 2.0
+    inner = y.norm(dim=-1) <= 1
+    assert torch.allclose(z[inner], y[inner])
+
+
+def test_compositing_alpha_is_the_fields_opacity(blob_mesh, room):
+    """Background off: the object alone, alpha = the mesh field's opacity; on: the frame is
+    rgb_field + (1 - opacity) * rgb_background, covering every pixel."""
+    scene, _ = room
+    f = _with_background(blob_mesh, scene)
+    cam = scene.split("val").cameras
+    K, c2w, W, H = cam.K[0], cam.c2w[0], cam.width, cam.height
+    with one_thread():
+        on = render_camera(f, K, c2w, W, H, background=(0, 0, 0))
+        off = render_camera(f, K, c2w, W, H, background=(0, 0, 0), settings=RenderSettings(background_model=False))
+        bgm = background_of(f)
+        attach_background(f, None)
+        plain = render_camera(f, K, c2w, W, H, background=(0, 0, 0))
+        # the background alone, per pixel, as the renderer composites it
+        from neumesh_core.data.cameras import pixel_rays
+
+        o, d = pixel_rays(K, c2w, W, H)
+        with torch.no_grad():
+            bg_rgb, bg_op = bgm(o, d)
+    assert off.background_opacity is None and plain.background_opacity is None
+    np.testing.assert_allclose(off.opacity, plain.opacity, atol=1e-6)
+    np.testing.assert_allclose(off.rgb, plain.rgb, atol=1e-6)
+    np.testing.assert_allclose(on.opacity, off.opacity, atol=1e-6)     # the object's alpha is unchanged
+    assert 0.05 < off.opacity.mean() < 0.95
+    a = off.opacity[..., None]
+    want = off.rgb + (1 - a) * bg_rgb.numpy().reshape(H, W, 3)
+    np.testing.assert_allclose(on.rgb, want, atol=1e-5)
+    np.testing.assert_allclose(on.alpha, 1.0, atol=1e-5)                 # the background is opaque
+    assert np.allclose(bg_op.numpy(), 1.0, atol=1e-6)
+    assert on.rgba()[..., 3].min() > 0.999 and np.allclose(off.rgba()[..., 3], np.clip(off.opacity, 0, 1))
+
+
+def test_render_rays_reference_per_ray(blob_mesh, room):
+    """render_rays with a background model equals the field's own render plus the background per ray."""
+    scene, _ = room
+    f = _with_background(blob_mesh, scene)
+    bgm = background_of(f)
+    g = torch.Generator().manual_seed(0)
+    o = torch.tensor([[4.0, 0.3, 0.2]]).expand(64, 3).clone()
+    d = torch.nn.functional.normalize(torch.randn(64, 3, generator=g) * 0.3 + torch.tensor([-1.0, 0, 0]), dim=-1)
+    with one_thread(), torch.no_grad():
+        a = render_rays(f, o, d, background=(0.2, 0.4, 0.6), background_model=bgm)
+        b = render_rays(f, o, d, background=None)
+        c, op = bgm(o, d)
+        # the background model's own sum, sample by sample (a loop reference of its compositing)
+        t0 = bgm.ray_start(o, d)
+        assert (t0 > 0).all()
+    exp = b["rgb"] + (1 - b["opacity"])[:, None] * c + ((1 - b["opacity"]) * (1 - op))[:, None] * torch.tensor([0.2, 0.4, 0.6])
+    assert torch.allclose(a["rgb"], exp, atol=1e-6)
+    assert torch.allclose(a["opacity"], b["opacity"])
+    # rays through the box start the background where they leave it
+    box = f.object_box
+    hit = torch.tensor([[4.0, 0, 0]]), torch.tensor([[-1.0, 0, 0]])
+    assert float(bgm.ray_start(*hit)) == pytest.approx(4.0 + box.half_extents[0], rel=1e-5)
+
+
+def test_far_cuts_the_background(blob_mesh, room):
+    scene, _ = room
+    bgm = background_of(_with_background(blob_mesh, scene))
+    o = torch.tensor([[4.0, 0, 0]]).repeat(8, 1)
+    d = torch.nn.functional.normalize(torch.tensor([[-1.0, 0.8, 0.1]]).repeat(8, 1), dim=-1)
+    with torch.no_grad():
+        _, op = bgm(o, d, far=torch.full((8,), 1e-3))
+    assert torch.allclose(op, torch.zeros(8))
+
+
+def test_save_load_round_trip(tmp_path, blob_mesh, room):
+    import neumesh_core as nm
+
+    scene, _ = room
+    f = _with_background(blob_mesh, scene)
+    with torch.no_grad():
+        background_of(f).grid.normal_(0, 0.5)
+    p = tmp_path / "f.neumesh"
+    nm.save_field(f, str(p))
+    g = nm.load_field(str(p))
+    assert np.allclose(g.object_box.centre, f.object_box.centre)
+    bg_f, bg_g = background_of(f), background_of(g)
+    assert bg_g is not None and bg_g.config() == bg_f.config()
+    for (n1, a), (n2, b) in zip(bg_f.state_dict().items(), bg_g.state_dict().items()):
+        assert n1 == n2 and torch.allclose(a, b)
+    cam = scene.split("val").cameras
+    with one_thread():
+        r1 = render_camera(f, cam.K[0], cam.c2w[0], cam.width, cam.height)
+        r2 = render_camera(g, cam.K[0], cam.c2w[0], cam.width, cam.height)
+    np.testing.assert_allclose(r1.rgb, r2.rgb, atol=1e-5)
+    # a field without background saves and loads without one (and without a box)
+    attach_background(f, None)
+    del f.object_box
+    nm.save_field(f, str(p))
+    h = nm.load_field(str(p))
+    assert background_of(h) is None and getattr(h, "object_box", None) is None
+    header = nm.field.io.read_header(str(p)) if hasattr(nm, "field") else None
+    assert header is None or "background" not in header
+
+
+def test_old_files_load_without_background():
+    import os
+
+    from neumesh_core.field.io import load_field
+
+    here = os.path.join(os.path.dirname(__file__), "data", "field_v1_post.neumesh")
+    f = load_field(here)
+    assert background_of(f) is None and getattr(f, "object_box", None) is None
+
+
+def test_deformation_leaves_the_background(blob_mesh, room):
+    scene, _ = room
+    f = _with_background(blob_mesh, scene)
+    bgm = background_of(f)
+    before = {k: v.clone() for k, v in bgm.state_dict().items()}
+    f.set_vertices(f.rest_vertices.numpy() * 1.1 + 0.05)
+    assert background_of(f) is bgm
+    assert all(torch.equal(before[k], v) for k, v in bgm.state_dict().items())
+
+
+def test_training_without_masks_keeps_the_object_in_the_box(blob_mesh, room):
+    """Trained on full frames (no masks), the field renders its object inside the box (its alpha
+    matches the true silhouette) and the background model the room (better full-frame PSNR than off)."""
+    from neumesh_core import metrics
+    from neumesh_core.train.trainer import TrainConfig, train
+
+    scene, alphas = room
+    assert not scene.has_masks
+    f = _with_background(blob_mesh, scene, plain=True, resolution=32)
+    with one_thread():
+        res = train(f, scene, TrainConfig(steps=300, rays_per_batch=1024, log_every=100, seed=0))
+    assert res.steps_done == 300
+    val = scene.split("val")
+    cam = val.cameras
+    ious, gains = [], []
+    with one_thread():
+        for i in range(len(val)):
+            on = render_camera(f, cam.K[i], cam.c2w[i], cam.width, cam.height, background=(0, 0, 0))
+            off = render_camera(f, cam.K[i], cam.c2w[i], cam.width, cam.height, background=(0, 0, 0),
+                                settings=RenderSettings(background_model=False))
+            a, t = off.opacity > 0.5, alphas["val"][i] > 0.5
+            ious.append((a & t).sum() / max(1, (a | t).sum()))
+            gains.append(metrics.psnr(np.clip(on.rgb, 0, 1), val.images[i]) -
+                         metrics.psnr(np.clip(off.rgb, 0, 1), val.images[i]))
+    assert min(ious) > 0.85, ious
+    assert min(gains) > 3.0, gains
