@@ -52,7 +52,9 @@ def test_fill_redo_panel_reruns_and_the_viewport_redraws(addon_zip, trained_fiel
     assert f["redo"] == ["FINISHED"], f["redo"]
     assert len(f["files_after_redo"]) == 2 and f["redo_path"] != f["after_path"]
     assert f["selected_after_redo"] and f["active_after_redo"] == "blob"
-    # ... and the viewport shows the redone fill a second later (scale 3 against 2 on the briefly trained
-    # blob moves fewer pixels than the first fill: measured 44 over 30 levels; an undrawn view moves none)
+    # ... and the viewport shows the redone fill a second later. Scale 3 against 2 on the briefly trained
+    # blob is a subtle change: 2,331 pixels over 5 levels once the view had finished redrawing, 62,961
+    # when the shot caught the coarse first preview level of the re-render (both measured); a view that
+    # was not redrawn moves none
     redone = _viewport(f["redo_shot"], f)
-    assert (np.abs(redone - after).max(-1) > 30).sum() > 20
+    assert (np.abs(redone - after).max(-1) > 5).sum() > 200
