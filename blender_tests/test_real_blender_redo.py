@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 
 import numpy as np
 import pytest
 
-from test_real_blender import BLENDER, HERE, TORCH_DIR, _env
-from test_real_blender_ui import WINDOW, XVFB, _facts
+from test_real_blender import BLENDER
+from test_real_blender_ui import XVFB, run_in_window
 
 pytestmark = [
     pytest.mark.skipif(not os.path.exists(BLENDER), reason="no blender binary; run scripts/setup_blender.sh"),
@@ -26,19 +25,7 @@ def _viewport(path, f):
 
 
 def test_fill_redo_panel_reruns_and_the_viewport_redraws(addon_zip, trained_field, tiny_dataset, tmp_path):
-    if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
-        pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
-    env = _env(tmp_path)
-    out = tmp_path / "ui"
-    r = subprocess.run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_ui.py"),
-                        "--", "setup", addon_zip, trained_field, tiny_dataset, str(out)], env=env,
-                       capture_output=True, text=True, timeout=240)
-    assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
-    r = subprocess.run([XVFB, "-a", "-s", "-screen 0 %dx%dx24" % WINDOW, BLENDER, str(out / "ui.blend"),
-                        "--enable-event-simulate", "--python", os.path.join(HERE, "real_blender_redo.py"), "--",
-                        "gui", str(out)], env=env, capture_output=True, text=True, timeout=400)
-    log = r.stdout + r.stderr
-    f = _facts(r.stdout)
+    r, log, f = run_in_window("real_blender_redo.py", "gui", addon_zip, trained_field, tiny_dataset, tmp_path, 400)
     print(json.dumps(f, indent=1))
     assert f["errors"] == [], f["errors"]
     assert "Traceback" not in log, log[-4000:]

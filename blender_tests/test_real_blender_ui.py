@@ -32,6 +32,24 @@ def _facts(log):
     return json.loads(lines[-1][14:])
 
 
+def run_in_window(script: str, mode: str, addon_zip, trained_field, tiny_dataset, tmp_path, timeout: int):
+    """The two steps of a real-window test: real_blender_ui.py's ``setup`` writes tmp_path/ui/ui.blend
+    in ``blender -b``, then ``script`` (a file beside this one) runs ``mode`` on it in the real window
+    (Xvfb, event simulation).  Returns (the window run's CompletedProcess, its whole log, its facts)."""
+    if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
+        pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
+    env = _env(tmp_path)
+    out = tmp_path / "ui"
+    r = subprocess.run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_ui.py"),
+                        "--", "setup", addon_zip, trained_field, tiny_dataset, str(out)], env=env,
+                       capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
+    r = subprocess.run([XVFB, "-a", "-s", "-screen 0 %dx%dx24" % WINDOW, BLENDER, str(out / "ui.blend"),
+                        "--enable-event-simulate", "--python", os.path.join(HERE, script), "--", mode, str(out)],
+                       env=env, capture_output=True, text=True, timeout=timeout)
+    return r, r.stdout + r.stderr, _facts(r.stdout)
+
+
 def test_sidebar_in_a_real_window(addon_zip, trained_field, tiny_dataset, tmp_path):
     if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
         pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
@@ -152,19 +170,7 @@ def test_paint_on_view_opens_its_image_editor_inside_the_main_window(addon_zip, 
     """Issue 47.5 in the real window: Paint on view splits the 3D View (no new window); that Image
     Editor shows the paint image in Paint mode with the NeuMesh sidebar panel (Apply / Cancel) drawn;
     Cancel painting closes it again and removes the paint images."""
-    if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
-        pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
-    env = _env(tmp_path)
-    out = tmp_path / "ui"
-    r = subprocess.run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_ui.py"),
-                        "--", "setup", addon_zip, trained_field, tiny_dataset, str(out)], env=env,
-                       capture_output=True, text=True, timeout=240)
-    assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
-    r = subprocess.run([XVFB, "-a", "-s", "-screen 0 %dx%dx24" % WINDOW, BLENDER, str(out / "ui.blend"),
-                        "--enable-event-simulate", "--python", os.path.join(HERE, "real_blender_paint.py"), "--",
-                        "paint", str(out)], env=env, capture_output=True, text=True, timeout=300)
-    log = r.stdout + r.stderr
-    f = _facts(r.stdout)
+    r, log, f = run_in_window("real_blender_paint.py", "paint", addon_zip, trained_field, tiny_dataset, tmp_path, 300)
     assert r.returncode == 0 and f["errors"] == [], (f["errors"], log[-3000:])
     assert "Traceback" not in log, log[-4000:]
     assert f["paint_view"] == ["FINISHED"] and f["cancel"] == ["FINISHED"]
@@ -185,19 +191,7 @@ def test_sculpt_mode_preview_reaches_the_last_level_after_a_stroke(addon_zip, tr
                                                                    tmp_path):
     """Issue 47.8 in the real window: a Grab stroke in Sculpt Mode with the Rendered viewport; once the
     stroke ends, the preview reaches its last (finest) level and further updates do not restart it."""
-    if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
-        pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
-    env = _env(tmp_path)
-    out = tmp_path / "ui"
-    r = subprocess.run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_ui.py"),
-                        "--", "setup", addon_zip, trained_field, tiny_dataset, str(out)], env=env,
-                       capture_output=True, text=True, timeout=240)
-    assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
-    r = subprocess.run([XVFB, "-a", "-s", "-screen 0 %dx%dx24" % WINDOW, BLENDER, str(out / "ui.blend"),
-                        "--enable-event-simulate", "--python", os.path.join(HERE, "real_blender_sculpt.py"), "--",
-                        "sculpt", str(out)], env=env, capture_output=True, text=True, timeout=500)
-    log = r.stdout + r.stderr
-    f = _facts(r.stdout)
+    r, log, f = run_in_window("real_blender_sculpt.py", "sculpt", addon_zip, trained_field, tiny_dataset, tmp_path, 500)
     print("sculpt facts:", f)
     assert r.returncode == 0 and f["errors"] == [], (f["errors"], log[-3000:])
     assert f["first_done"] and f["mode"] == "SCULPT"
