@@ -379,3 +379,73 @@ def test_no_camera_is_a_clear_error(addon, trained_field):
     bpy.context.scene.render.engine = "NEUMESH"
     with pytest.raises(RuntimeError, match="camera"):
         bpy.ops.neumesh.render_images(cameras="ACTIVE")
+
+
+def test_device_preference_renders_on_the_chosen_device(addon, trained_field):
+    """Preferences > Device: Auto renders on a CUDA GPU when torch sees one, else on the CPU; CPU always
+    on the CPU; CUDA without a GPU is an error that says what to do (not a silent fallback)."""
+    import torch
+
+    _deformed_scene(addon, trained_field)
+    prefs = addon.runtime.prefs.get_prefs()
+    items = addon.render.fields.collect(bpy.context.evaluated_depsgraph_get())
+    K, c2w = manual_K_c2w(bpy.context.scene.camera, 16, 12)
+    try:
+        prefs.device = "CPU"
+        cpu = addon.render.frame.render_items(items, K, c2w, 16, 12)
+        assert addon.render.frame.LAST_TIMINGS["device"] == "cpu"
+        prefs.device = "AUTO"
+        auto = addon.render.frame.render_items(items, K, c2w, 16, 12)
+        want = "cuda" if torch.cuda.is_available() else "cpu"
+        assert addon.render.frame.LAST_TIMINGS["device"].startswith(want)
+        assert np.abs(auto - cpu).max() <= 2e-3   # the same image on either device
+        prefs.device = "CUDA"
+        if torch.cuda.is_available():
+            addon.render.frame.render_items(items, K, c2w, 16, 12)
+            assert addon.render.frame.LAST_TIMINGS["device"].startswith("cuda")
+        else:
+            with pytest.raises(addon.runtime.errors.UserError, match="Device: choose Auto or CPU"):
+                addon.render.frame.render_items(items, K, c2w, 16, 12)
+            with pytest.raises(RuntimeError, match="Device: choose Auto or CPU"):
+                bpy.ops.render.render()   # F12 reports the same error (and renders no image)
+    finally:
+        prefs.device = "AUTO"
+
+
+def test_device_copy_is_made_once_per_field_and_follows_deformation(addon):
+    """The copy of a cached field on the render device: made once, re-posed (not re-copied) when the
+    cached field was deformed, and made anew when an edit is adopted (a new cache entry)."""
+    fields = addon.render.fields
+
+    class FakeField:   # records what the device copy is asked to do
+        def __init__(self):
+            self.posed = []
+
+        def to(self, device):
+            self.device = device
+            return self
+
+        def set_vertices(self, v):
+            self.posed.append(np.array(v))
+
+    class Dev:
+        type = "gpu-stand-in"
+
+    dev = Dev()
+    fields.clear_cache()
+    cpu = FakeField()
+    v0 = np.zeros((3, 3), np.float32)
+    fields._CACHE["obj"] = fields._Entry("f.neumesh", (0, 0), cpu, v0.copy())
+    item = fields.Item("obj", "f.neumesh", v0)
+    made = fields.STATS["mirrors"]
+    a = fields.on_device(item, cpu, dev)
+    assert a is not cpu and a.device is dev and fields.STATS["mirrors"] == made + 1
+    assert fields.on_device(item, cpu, dev) is a and a.posed == []            # nothing changed: reused
+    fields._CACHE["obj"].last_vertices = v0 + 1.0                             # the cached field was deformed
+    assert fields.on_device(item, cpu, dev) is a and len(a.posed) == 1 and np.allclose(a.posed[0], 1.0)
+    assert fields.on_device(item, cpu, dev) is a and len(a.posed) == 1        # posed once
+    fields._CACHE["obj"] = fields._Entry("f2.neumesh", (1, 1), cpu, v0 + 1.0)  # an edit adopted
+    b = fields.on_device(item, cpu, dev)
+    assert b is not a and fields.STATS["mirrors"] == made + 2
+    assert fields.on_device(item, cpu, "cpu") is cpu and "obj" not in fields._MIRRORS  # CPU: the field itself
+    fields.clear_cache()

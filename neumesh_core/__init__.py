@@ -4,7 +4,7 @@ Public API (see README.md): load_scene, load_mesh, create_field, train, save_fie
 render_camera, evaluate, save_image, make_default_scene; edits: swap_texture, fill_texture,
 paint_texture (nm.edit); semantics: nm.semantics; baking: bake_texture (nm.bake: decimate, save_bake);
 scaffold building: build_scaffold, ScaffoldConfig; real captures: read_capture, undistorted_images,
-estimate_poses, frames_from_video; deformation: nm.deform (ArapSolver, arap). The add-on reaches the core only through these names.
+estimate_poses, frames_from_video; deformation: nm.deform (ArapSolver, arap); devices: resolve_device. The add-on reaches the core only through these names.
 """
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from .data.scene import ImageSet, Scene
 from .errors import (CheckpointError, DataError, DeformError, EditError, NeuMeshError, NoSemanticsError,
                      SelectionError, VertexMismatchError, WeightsUnavailableError)
 from .mesh import Mesh, load_mesh, save_mesh
+from .device import resolve_device
 from .field.field import FieldConfig, NeuMeshField, create_field
 from .field.remap import field_key, remap_field, resolve_ids  # remap_field: the add-on's topology edits
 from .render.renderer import Cancelled, RenderOutput, RenderSettings, render_camera, render_rays
@@ -53,5 +54,5 @@ __all__ = [
     "Capture", "PosesConfig", "PosesError", "PosesProgress", "PosesReport", "estimate_poses", "frames_from_video",
     "read_capture", "undistorted_images",
     "ObjectBox", "SceneFrame", "object_box", "parse_box", "scene_frame", "BackgroundModel", "attach_background",
-    "background_for", "background_of",
+    "background_for", "background_of", "resolve_device",
 ]

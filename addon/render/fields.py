@@ -79,6 +79,7 @@ def adopt(key: str, path: str, field):
 def clear_cache():
     with _LOCK:
         _CACHE.clear()
+        _MIRRORS.clear()
         _DERIVED.clear()
         _SOURCES.clear()
         _IDENTITY_MEMO.clear()
@@ -287,6 +288,51 @@ def _apply_vertices(item: Item):
     STATS["set_vertices"] += 1
     e.last_vertices = item.vertices.copy()
     return e.field
+
+
+@dataclass
+class _Mirror:
+    """A copy of a cached field on the render device (a CUDA GPU), kept posed like the cached field."""
+
+    entry: _Entry            # the cache entry it copies: a new entry (edit adopted, file reloaded) -> new copy
+    device: object
+    field: object
+    vertices: np.ndarray | None
+
+
+_MIRRORS: dict[str, _Mirror] = {}
+STATS["mirrors"] = 0
+
+
+def on_device(item: Item, field, device):
+    """``field`` (the posed cached field of ``item``) as rendered on ``device``: itself on the CPU, else a
+    copy there, made once per cache entry and re-posed when the cached field was deformed. The cached
+    field stays on the CPU: edits, selection and bake work on it, and an edit shows on the device when
+    it is adopted (:func:`adopt` makes a new entry). Call under the cache's lock, after posing."""
+    if getattr(device, "type", str(device)) == "cpu":
+        _MIRRORS.pop(item.key, None)
+        return field
+    e = _CACHE.get(item.key)
+    if e is None or e.field is not field:   # not posed through the cache (_apply_vertices always is)
+        raise RuntimeError(f"on_device: {item.key} is not the cached field; pose it with _apply_vertices first")
+    m = _MIRRORS.get(item.key)
+    if m is None or m.entry is not e or m.device != device:
+        return _fresh_mirror(item.key, e, device)
+    if e.last_vertices is not None and (m.vertices is None or m.vertices.shape != e.last_vertices.shape
+                                        or not np.array_equal(m.vertices, e.last_vertices)):
+        m.field.set_vertices(e.last_vertices)
+        m.vertices = e.last_vertices.copy()
+    return m.field
+
+
+def _fresh_mirror(key: str, e: _Entry, device):
+    import copy
+
+    _MIRRORS.pop(key, None)   # free the old copy's device memory before making the new one
+    dev = copy.deepcopy(e.field).to(device)
+    STATS["mirrors"] += 1
+    _MIRRORS[key] = _Mirror(e, device, dev, None if e.last_vertices is None else e.last_vertices.copy())
+    return dev
 
 
 def private_copy(field):

@@ -49,11 +49,12 @@ def _render_out(items: list[Item], K, c2w, width: int, height: int, transparent:
 
     with core.torch_work() as threads, fields._LOCK:
         t0 = time.perf_counter()
+        device = core.render_device()   # the preference Device (auto: a CUDA GPU when torch sees one)
         posed = []
         for it in items:
             if it.field is None:
                 fields.get_field(it.key, it.path)
-            posed.append(fields._apply_vertices(it))
+            posed.append(fields.on_device(it, fields._apply_vertices(it), device))
         t1 = time.perf_counter()
         out = nm.render_camera(posed if len(posed) > 1 else posed[0], np.asarray(K, np.float32),
                                np.asarray(c2w, np.float32), int(width), int(height), background=bg,
@@ -61,7 +62,7 @@ def _render_out(items: list[Item], K, c2w, width: int, height: int, transparent:
                                far=far)
         t2 = time.perf_counter()
     LAST_TIMINGS.update(pose_s=t1 - t0, core_s=t2 - t1, torch_threads=torch.get_num_threads(),
-                        threads_wanted=threads)
+                        threads_wanted=threads, device=str(device))
     core.guard_torch_namespaces()  # torch may have imported more modules lazily
     return out
 

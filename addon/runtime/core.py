@@ -83,6 +83,42 @@ def torch_work(threads: int | None = None):
         yield n
 
 
+def render_device():
+    """The torch device renders run on, from the preference *Device* (auto: CUDA when torch sees a GPU).
+
+    Raises :class:`~.errors.UserError` saying what to do when CUDA is chosen and torch cannot use it.
+    """
+    from . import settings
+    from .errors import UserError
+
+    nm = get()
+    choice = settings.device()
+    try:
+        return nm.resolve_device(choice)
+    except nm.NeuMeshError as exc:
+        import torch
+
+        build = "a CPU-only build" if torch.version.cuda is None else f"a CUDA {torch.version.cuda} build"
+        raise UserError(
+            f"Device is CUDA, but torch {torch.__version__} ({build}) sees no NVIDIA GPU. In Edit > "
+            "Preferences > Add-ons > NeuMesh > Device: choose Auto or CPU, or install a CUDA build of torch "
+            "on a machine with an NVIDIA GPU and driver") from exc
+
+
+def device_summary() -> str:
+    """What torch in this Blender can render on, for the preferences (imports the core)."""
+    try:
+        import torch
+
+        get()
+    except Exception as exc:  # noqa: BLE001 - no torch: the dependency list says what to do
+        return f"torch unavailable ({type(exc).__name__})"
+    if torch.cuda.is_available():
+        return f"CUDA GPU: {torch.cuda.get_device_name(0)} (torch {torch.__version__})"
+    build = "a CPU-only build" if torch.version.cuda is None else f"CUDA {torch.version.cuda} build, no GPU seen"
+    return f"no CUDA GPU (torch {torch.__version__}, {build}): renders on the CPU"
+
+
 def _import():
     pkg = __package__.rpartition(".")[0] if __package__ else ""   # the add-on package (above runtime/)
     vendored = pkg + ".neumesh_core" if pkg else None

@@ -54,6 +54,15 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
         name="Preview ends at", description="Resolution of the last viewport preview pass",
         items=[("4", "1/4", ""), ("2", "1/2", ""), ("1", "Full", "")], default="2",
     )
+    device: EnumProperty(
+        name="Device",
+        description="Where the Rendered viewport and F12 render fields. Auto: an NVIDIA GPU when torch sees "
+                    "one (a CUDA build of torch), else the CPU. Training and edits run on the CPU",
+        items=[("AUTO", "Auto", "A CUDA GPU when torch sees one, else the CPU"),
+               ("CPU", "CPU", "Always the CPU"),
+               ("CUDA", "CUDA", "An NVIDIA GPU (needs a CUDA build of torch and a driver)")],
+        default="AUTO",
+    )
     show_log: BoolProperty(name="Show pip log", default=False)
 
     def draw(self, context):
@@ -101,6 +110,10 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
         row = layout.row()
         row.prop(self, "torch_threads")
         row.label(text=f"{core.wanted_threads()} in use" + (" (all cores)" if self.torch_threads == 0 else ""))
+        row = layout.row()
+        row.prop(self, "device")
+        if "torch" in __import__("sys").modules:   # never import torch just to draw the preferences
+            row.label(text=core.device_summary())
         row = layout.row()
         row.prop(self, "preview_start")
         row.prop(self, "preview_final")

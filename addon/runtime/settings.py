@@ -47,6 +47,16 @@ def torch_threads() -> int:
         return 0
 
 
+def device() -> str:
+    """The preference *Device*: "auto" (a CUDA GPU when torch sees one, else the CPU), "cpu" or
+    "cuda" ("auto" without preferences)."""
+    p = get_prefs()
+    try:
+        return str(p.device).lower() if p is not None else "auto"
+    except Exception:  # noqa: BLE001
+        return "auto"
+
+
 def preview_divisors() -> tuple:
     """The viewport preview's resolution divisors, coarsest first, from *Preview starts/ends at*."""
     p = get_prefs()
