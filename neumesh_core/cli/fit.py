@@ -14,7 +14,6 @@ def cmd_fit(args) -> int:
     from ..fit import fit
     from .scaffold import StageProgress, config_from_args
 
-    print("stage 1/3: scaffold (skipped when OUT/scaffold.ply exists)", file=sys.stderr)
     bar = ProgressBar()
 
     def train_cb(p):
@@ -22,9 +21,13 @@ def cmd_fit(args) -> int:
             bar(p)
         return None
 
+    data = _data_or_poses(args)
+    if data is None:
+        return 2
+    print("stage 1/3: scaffold (skipped when OUT/scaffold.ply exists)", file=sys.stderr)
     tcfg = _train_config(args, os.path.join(args.out, "field.neumesh"))
     tcfg.log_every = 1
-    summary = fit(args.data, args.out, downscale=args.downscale, background=args.background,
+    summary = fit(data, args.out, downscale=args.downscale, background=args.background,
                   scaffold_config=config_from_args(args), field_config=_field_config(args), train_config=tcfg,
                   scaffold_progress=StageProgress(), train_callback=train_cb,
                   log=lambda m: print(m, file=sys.stderr), device=_device(args),
@@ -37,8 +40,33 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def _data_or_poses(args):
+    """The dataset folder: --data, or OUT/poses made from --images / --video first (reused when a
+    previous run left it complete). None (after an error line) when the options do not say which."""
+    given = [n for n in ("data", "images", "video") if getattr(args, n)]
+    if len(given) != 1:
+        print("error: give one of --data DIR (a dataset or capture with poses), --images DIR (plain photos: "
+              "poses are recovered first) or --video clip.mp4", file=sys.stderr)
+        return None
+    if args.data:
+        return args.data
+    from .poses import recover_poses
+    from ..reconstruct.poses import PosesConfig
+
+    poses_dir = os.path.join(args.out, "poses")
+    if os.path.isfile(os.path.join(poses_dir, "poses_report.json")) and \
+            os.path.isdir(os.path.join(poses_dir, "sparse", "0")):
+        print(f"stage 0/3: poses (reusing {poses_dir}; delete it to recover them again)", file=sys.stderr)
+        return poses_dir
+    print("stage 0/3: poses from the photos (pycolmap on the CPU)", file=sys.stderr)
+    recover_poses(poses_dir, images=args.images, video=args.video, fps=args.fps,
+                  config=PosesConfig(num_threads=args.threads or -1))
+    return poses_dir
+
+
 def add_commands(sub) -> None:
-    p = sub.add_parser("fit", help="images alone -> scaffold -> trained field -> evaluation (resumable)",
+    p = sub.add_parser("fit", help="images alone -> scaffold -> trained field -> evaluation (resumable); plain photos or a video: "
+                            "poses first (--images / --video)",
                        description="Build the scaffold (skipped when OUT/scaffold.ply exists), train the "
                                    "field (resumes OUT/field.neumesh), evaluate on 'val'. Progress per stage. "
                                    "Photos without masks (a phone capture: transforms.json or COLMAP): the "
@@ -46,7 +74,12 @@ def add_commands(sub) -> None:
                                    "is built inside it from the photos alone (photometric density grid fitted "
                                    "by volume rendering in the box), and a background model learns the room "
                                    "outside it; held-out every 8th photo, evaluated full frame.")
-    _add_data_options(p)
+    _add_data_options(p, required=False)
+    g = p.add_argument_group("photos without poses (instead of --data)")
+    g.add_argument("--images", default=None, help="a folder of plain photos: poses are recovered first "
+                   "(as `neumesh poses`, into OUT/poses; reused by the next run)")
+    g.add_argument("--video", default=None, help="a video clip: sharp frames at --fps, then as --images")
+    g.add_argument("--fps", type=float, default=2.0, help="frames per second taken from --video (default 2)")
     p.add_argument("--out", required=True, help="output folder: scaffold.ply, field.neumesh, fit.json")
     p.add_argument("--log-every", type=int, default=25, help="steps between progress lines")
     p.add_argument("--box", default=None, metavar="CX,CY,CZ,SX,SY,SZ",

@@ -27,26 +27,23 @@ class _Progress:
             print(file=self.stream)
 
 
-def cmd_poses(args) -> int:
+def recover_poses(out: str, *, images: str | None = None, video: str | None = None, fps: float = 2.0,
+                  min_sharpness: float = 20.0, config=None):
+    """Poses for photos (``images``, read in place) or a video's sharp frames (written to OUT/images):
+    a COLMAP model in ``out`` that ``--data out`` loads. Progress on stderr; returns the report."""
     from ..reconstruct.poses import PosesConfig, estimate_poses
     from ..reconstruct.video import frames_from_video
 
-    if bool(args.images) == bool(args.video):
-        print("error: give either --images DIR (photos) or --video clip.mp4", file=sys.stderr)
-        return 2
-    images = args.images
     sequential = False
-    if args.video:
-        images = os.path.join(args.out, "images")
-        print(f"extracting frames at {args.fps:g} fps from {args.video} into {images} ...", file=sys.stderr)
-        paths = frames_from_video(args.video, images, fps=args.fps, min_sharpness=args.min_sharpness)
+    if video:
+        images = os.path.join(out, "images")
+        print(f"extracting frames at {fps:g} fps from {video} into {images} ...", file=sys.stderr)
+        paths = frames_from_video(video, images, fps=fps, min_sharpness=min_sharpness)
         print(f"{len(paths)} frames kept", file=sys.stderr)
         sequential = True
-    cfg = PosesConfig(matcher=args.matcher, max_image_size=args.max_image_size, camera_model=args.camera_model,
-                      single_camera=not args.per_image_camera, num_threads=args.threads or -1)
     bar = _Progress()
     try:
-        rep = estimate_poses(images, args.out, cfg, callback=bar, sequential=sequential)
+        rep = estimate_poses(images, out, config or PosesConfig(), callback=bar, sequential=sequential)
     finally:
         bar.done()
     print(f"registered {rep.registered} of {rep.num_images} photos, mean reprojection error "
@@ -55,7 +52,20 @@ def cmd_poses(args) -> int:
           f"mapping {rep.stage_seconds.get('map', 0):.0f}s)")
     if rep.unregistered:
         print(f"not placed: {', '.join(rep.unregistered[:10])}" + (" ..." if len(rep.unregistered) > 10 else ""))
-    print(f"model: {rep.model_dir}; train with: neumesh train --data {args.out} ...")
+    return rep
+
+
+def cmd_poses(args) -> int:
+    from ..reconstruct.poses import PosesConfig
+
+    if bool(args.images) == bool(args.video):
+        print("error: give either --images DIR (photos) or --video clip.mp4", file=sys.stderr)
+        return 2
+    cfg = PosesConfig(matcher=args.matcher, max_image_size=args.max_image_size, camera_model=args.camera_model,
+                      single_camera=not args.per_image_camera, num_threads=args.threads or -1)
+    rep = recover_poses(args.out, images=args.images, video=args.video, fps=args.fps,
+                        min_sharpness=args.min_sharpness, config=cfg)
+    print(f"model: {rep.model_dir}; train with: neumesh fit --data {args.out} --out DIR")
     return 0
 
 

@@ -275,12 +275,15 @@ class _Run:
             return None
         st = self.current
         lo, span = self._WEIGHTS[st]
-        frac = lo + span * (self.registered / self.n if st == "map" else self.done)
+        # pycolmap calls back once per registration attempt, across every model it tries (a second start
+        # pair, re-registrations): the count can pass n before mapping ends, so it is shown capped and the
+        # stage's fraction stays below its end until the mapping returns
+        placed = min(self.registered, self.n)
+        frac = lo + span * (min(placed / self.n, 0.99) if st == "map" else self.done)
         msg = {"extract": f"finding features in {self.n} photos ({100 * self.done:.0f}%)",
                "match": f"matching photos ({self.matcher}, {100 * self.done:.0f}%)",
-               "map": f"placing cameras: {self.registered} of {self.n} registered"}[st]
-        return self.callback(PosesProgress(st, min(frac, 1.0), msg, time.perf_counter() - self.t_start,
-                                           self.registered))
+               "map": f"placing cameras: {placed} of {self.n} registered"}[st]
+        return self.callback(PosesProgress(st, min(frac, 1.0), msg, time.perf_counter() - self.t_start, placed))
 
     def stage(self, name: str, fn):
         self.current, self.done = name, 0.0

@@ -237,3 +237,27 @@ def test_cli_poses_from_a_video(tmp_path, capsys):
     report = json.load(open(out / "poses_report.json"))
     assert report["matcher"] == "sequential" and report["images"] == str(out / "images")
     assert len(load_scene(str(out), log=lambda m: None).split("train")) == 17
+
+
+def test_cli_fit_from_plain_photos_recovers_poses_first_and_reuses_them(tmp_path, capsys):
+    """`neumesh fit --images DIR`: poses into OUT/poses (photos read in place), then scaffold, training and
+    evaluation on them; a second run reuses the poses. Neither --data nor --images: a clear error."""
+    from neumesh_core.cli import main
+
+    photos = str(tmp_path / "photos")
+    write_cube_photos(photos, n=16)
+    out = tmp_path / "out"
+    args = ["fit", "--images", photos, "--out", str(out), "--steps", "4", "--method", "density",
+            "--iters", "10,10", "--density-resolutions", "16,24", "--threads", "1", "--vertices", "2000",
+            "--downscale", "2"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "stage 0/3: poses from the photos" in err and "stage 1/3: scaffold" in err
+    report = json.load(open(out / "poses" / "poses_report.json"))
+    assert report["registered"] == 16 and report["images"] == photos
+    summary = json.load(open(out / "fit.json"))
+    assert np.isfinite(summary["eval"]["psnr"]) and (out / "field.neumesh").is_file()
+    assert main(args + ["--steps", "5"]) == 0
+    assert "stage 0/3: poses (reusing" in capsys.readouterr().err
+    assert main(["fit", "--out", str(out)]) == 2
+    assert "give one of --data DIR" in capsys.readouterr().err
