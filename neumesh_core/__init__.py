@@ -38,6 +38,7 @@ from .reconstruct.video import frames_from_video  # noqa: E402
 from . import deform  # noqa: E402  (nm.deform: ArapSolver, arap)
 from .data.frame import ObjectBox, SceneFrame, object_box, parse_box, scene_frame  # noqa: E402
 from .field.background import BackgroundModel, attach_background, background_for, background_of  # noqa: E402
+from .fit import capture_box, is_unmasked_capture, prepare_capture_field  # noqa: E402
 
 __version__ = "0.1.0"
 
@@ -54,5 +55,6 @@ __all__ = [
     "Capture", "PosesConfig", "PosesError", "PosesProgress", "PosesReport", "estimate_poses", "frames_from_video",
     "read_capture", "undistorted_images",
     "ObjectBox", "SceneFrame", "object_box", "parse_box", "scene_frame", "BackgroundModel", "attach_background",
-    "background_for", "background_of", "resolve_device",
+    "background_for", "background_of", "resolve_device", "capture_box", "is_unmasked_capture",
+    "prepare_capture_field",
 ]

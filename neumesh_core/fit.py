@@ -22,6 +22,41 @@ from typing import Callable, Optional
 from .reconstruct.build import ScaffoldConfig, build_scaffold
 
 
+def is_unmasked_capture(scene) -> bool:
+    """Photos without masks or a known background (a phone capture): the object lives in a box and a
+    background model explains the rest of each photo."""
+    return not scene.has_masks and scene.background is None and scene.kind != "dtu"
+
+
+def capture_box(scene, box=None, log=None):
+    """The object box of ``scene`` and the scaffold's bounds set to it: ``box`` when given (any scene),
+    else found from what the cameras look at for a capture without masks (None for masked data,
+    whose scaffold the masks bound). The same step for ``neumesh fit`` and the add-on's Build scaffold."""
+    if box is None and is_unmasked_capture(scene):
+        from .data.frame import object_box
+
+        pts = None if scene.capture is None else scene.capture.points
+        box = object_box(scene.split("train").cameras.c2w, pts)
+        if log is not None:
+            log(f"object box (automatic; --box cx,cy,cz,sx,sy,sz overrides): centre "
+                f"{np.round(box.centre, 3).tolist()}, half-sizes {np.round(box.half_extents, 3).tolist()}")
+    if box is not None:
+        scene.bbox = box.aabb()   # the scaffold is built inside the box
+    return box
+
+
+def prepare_capture_field(field, scene, box, background_model: bool = True) -> None:
+    """A new field for ``scene``: it keeps ``box`` (saved with it; edits and deformation act inside) and,
+    with ``background_model``, a background model for the photos outside the box. Nothing for None."""
+    if box is not None:
+        field.object_box = box
+    if background_model and box is not None:
+        from .field.background import attach_background, background_for
+
+        attach_background(field, background_for(scene.split("train").cameras.c2w, box,
+                                                None if scene.capture is None else scene.capture.points))
+
+
 def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, background="white",
         scaffold_config: Optional[ScaffoldConfig] = None, field_config=None, train_config=None,
         scaffold_progress: Optional[Callable[[str, float], object]] = None,
@@ -45,17 +80,9 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
     t0 = time.perf_counter()
     scene = load_scene(data_dir, downscale=downscale, background=background)
     summary = {"data": os.path.abspath(data_dir), "downscale": downscale}
-    real = not scene.has_masks and scene.background is None and scene.kind != "dtu"
-    if box is None and real:
-        from .data.frame import object_box
-
-        train_c2w = scene.split("train").cameras.c2w
-        pts = None if scene.capture is None else scene.capture.points
-        box = object_box(train_c2w, pts)
-        log(f"object box (automatic; --box cx,cy,cz,sx,sy,sz overrides): centre "
-            f"{np.round(box.centre, 3).tolist()}, half-sizes {np.round(box.half_extents, 3).tolist()}")
+    real = is_unmasked_capture(scene)
+    box = capture_box(scene, box, log)
     if box is not None:
-        scene.bbox = box.aabb()   # the scaffold is built inside the box
         summary["object_box"] = box.to_dict()
 
     mesh_path = os.path.join(out_dir, "scaffold.ply")
@@ -87,13 +114,7 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
         summary["resumed_from_step"] = done
     else:
         field = create_field(mesh, field_config or FieldConfig(), device=device)
-        if box is not None:
-            field.object_box = box
-        if real and background_model:
-            from .field.background import attach_background, background_for
-
-            attach_background(field, background_for(scene.split("train").cameras.c2w, box,
-                                                    None if scene.capture is None else scene.capture.points))
+        prepare_capture_field(field, scene, box, background_model=real and background_model)
     res = train(field, scene, tcfg, callback=train_callback)
     if os.path.abspath(tcfg.checkpoint_path) != os.path.abspath(field_path):
         save_field(field, field_path)  # (the trainer already wrote field_path with its step/optimiser)

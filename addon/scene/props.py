@@ -163,6 +163,15 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
                                 description="Final renders (F12, Render to images) average S x S rays per "
                                             "pixel: smoother edges and fine texture, S^2 times the render "
                                             "time. The viewport uses 1")
+    render_background: BoolProperty(
+        name="Background", default=True,
+        description="Fields trained on photos without masks: render the room their background model learned "
+                    "behind the object (a photo-like frame). Off: the object alone; with Film > Transparent "
+                    "its alpha is the object's own opacity")
+    train_background: BoolProperty(
+        name="Background model", default=True,
+        description="Photos without masks: learn the room outside the NeuMesh Box with a background model, "
+                    "so the field keeps only the object (off: the field explains the whole photo)")
     viewport_preview: BoolProperty(name="Progressive viewport", default=True,
                                    description="Rendered viewport shading draws low-resolution previews first")
     photo_colour_set: BoolProperty(name="Photo colours set", default=False, options={"HIDDEN"},

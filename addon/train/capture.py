@@ -74,6 +74,27 @@ def box_bounds(obj):
     return w[:, :3].min(0), w[:, :3].max(0)
 
 
+def scene_box(scene):
+    """The NeuMesh Box of ``scene`` as the artist left it (moved, rotated, scaled), as the core's object
+    box: (centre (3,), half_extents (3,), rotation (3,3) whose columns are the box axes), or None when
+    the scene has none (training then finds the box itself). Shear is dropped (the nearest rotation)."""
+    obj = next((o for o in scene.objects if o.type == "EMPTY" and
+                (o.get("neumesh_box_source") is not None or o.name == BOX_NAME)), None)
+    if obj is None:
+        return None
+    M = np.asarray([list(r) for r in obj.matrix_world], np.float64)
+    A = M[:3, :3] * float(getattr(obj, "empty_display_size", 1.0) or 1.0)
+    half = np.linalg.norm(A, axis=0)
+    if not (half > 1e-9).all():
+        raise ValueError(f"'{obj.name}' is flat (scale {np.round(half, 6).tolist()}): give it a size on "
+                         "every axis, or delete it to let training find the object's box")
+    u, _s, vt = np.linalg.svd(A / half)
+    R = u @ vt
+    if np.linalg.det(R) < 0:   # a mirrored box: the same box with one axis flipped
+        R[:, 2] *= -1
+    return M[:3, 3].copy(), half, R
+
+
 def srgb_to_linear(c):
     c = np.asarray(c, np.float32)
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)

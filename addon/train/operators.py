@@ -12,7 +12,7 @@ from ..runtime.errors import UserError
 from ..scene import camera, identity, props, sync
 from ..render import fields
 from ..render.images import DATASET_COLLECTION, dataset_cameras  # noqa: F401 (ui, tests)
-from . import worker
+from . import capture, worker
 
 def _report_exc(op, exc, what):
     msg = f"NeuMesh: {what}: {exc}" if not isinstance(exc, core.CoreUnavailable) else f"NeuMesh: {exc}"
@@ -204,6 +204,8 @@ class NEUMESH_OT_build_scaffold(bpy.types.Operator):
         wm.progress_begin(0, 100)
         try:
             ds = nm.load_scene(path, downscale=s.downscale, background="white")
+            box = capture.scene_box(context.scene)   # the NeuMesh Box as the artist left it, if any
+            nm.capture_box(ds, None if box is None else nm.ObjectBox(*box))   # the scaffold is built inside
 
             def prog(*args):  # (stage, fraction)
                 frac = [a for a in args if isinstance(a, (int, float))]
@@ -281,7 +283,8 @@ class NEUMESH_OT_train(bpy.types.Operator):
         try:
             job = worker.start(dataset_path=dataset, field_path=field_path, steps=self.steps or s.train_steps,
                                vertices=verts, faces=faces, resume=self.resume, downscale=s.downscale,
-                               object_name=obj.name)
+                               object_name=obj.name, box=capture.scene_box(context.scene),
+                               background_model=s.train_background)
         except Exception as exc:  # noqa: BLE001
             return _report_exc(self, exc, "cannot start training")
         if self.wait:

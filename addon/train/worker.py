@@ -18,7 +18,7 @@ class TrainJob(Job):
 
     def __init__(self, *, dataset_path: str, field_path: str, steps: int, vertices=None, faces=None,
                  resume: bool = False, downscale: int = 1, background: str = "white", train_kwargs=None,
-                 object_name: str = ""):
+                 object_name: str = "", box=None, background_model: bool = True):
         super().__init__("train")
         self.dataset_path = dataset_path
         self.field_path = field_path
@@ -30,6 +30,8 @@ class TrainJob(Job):
         self.background = background
         self.train_kwargs = dict(train_kwargs or {})
         self.object_name = object_name
+        self.box = box                      # (centre, half_extents, rotation) of the NeuMesh Box, or None
+        self.background_model = bool(background_model)
         self.step = 0
         self.total_steps = self.steps
         self.loss = float("nan")
@@ -82,6 +84,7 @@ class TrainJob(Job):
     def run(self):
         nm = core.get()
         scene = nm.load_scene(self.dataset_path, downscale=self.downscale, background=self.background)
+        box = nm.capture_box(scene, None if self.box is None else nm.ObjectBox(*self.box))
         if self.cancel_requested:
             self.state, self.message = "CANCELLED", "before training started"
             return None
@@ -93,6 +96,9 @@ class TrainJob(Job):
             if self.vertices is None or self.faces is None:
                 raise ValueError("no mesh given to train a new field on")
             field = nm.create_field(nm.Mesh(self.vertices, self.faces), nm.FieldConfig())
+            # photos without masks: the field keeps the box, a background model learns the rest
+            nm.prepare_capture_field(field, scene, box,
+                                     background_model=self.background_model and nm.is_unmasked_capture(scene))
         self.state = "TRAINING"
         os.makedirs(os.path.dirname(os.path.abspath(self.field_path)) or ".", exist_ok=True)
         kw = dict(self.train_kwargs)

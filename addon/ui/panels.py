@@ -77,7 +77,7 @@ class NEUMESH_PT_scaffold(_Step, bpy.types.Panel):
 class NEUMESH_PT_train(_Step, bpy.types.Panel):
     bl_label = "Training"
     bl_description = "Train the field of a scaffold mesh on the dataset, in the background"
-    labelled_prop, props = ("train_object", "Scaffold mesh"), (("train_steps", None),)
+    labelled_prop, props = ("train_object", "Scaffold mesh"), (("train_steps", None), ("train_background", None))
 
     def draw_step(self, context, col, s):
         job = worker.current()
@@ -104,6 +104,7 @@ class NEUMESH_PT_field(_Sidebar, bpy.types.Panel):
         col.separator()
         _labelled(col, s, "render_cameras", "Render cameras")
         col.prop(s, "render_samples")
+        col.prop(s, "render_background")
         _labelled(col, s, "output_dir", "Output folder")
         col.operator("neumesh.render_images", text="Render to Images", icon="RENDER_STILL")
         col.separator()
@@ -144,6 +145,7 @@ class NEUMESH_PT_render(bpy.types.Panel):
         col = self.layout.column()
         col.prop(scene.render, "film_transparent")
         col.prop(scene.neumesh, "render_samples")
+        col.prop(scene.neumesh, "render_background")
         issues = colour.photo_colour_issues(scene)
         width = text_width(context)
         if issues:
