@@ -132,12 +132,8 @@ def _polar_block(M: np.ndarray) -> np.ndarray:
     adj = _adjugate4(A)
     diag = np.abs(np.stack([adj[k][k] for k in range(4)], 1))
     k = diag.argmax(1)
-    q = np.zeros((4, n))
-    for c in range(4):   # column k of the adjugate
-        sel = k == c
-        for r in range(4):
-            q[r][sel] = adj[r][c][sel]
-    q = q.T
+    cols = np.array(adj)                                   # (4 rows, 4 columns, n)
+    q = cols[:, k, np.arange(n)].T                         # column k of the adjugate
     qn = np.linalg.norm(q, axis=1)
     scale = np.maximum(fro2, 1e-300) ** 1.5
     good = finite & (diag.max(1) > 1e-9 * scale) & (qn > 0)
