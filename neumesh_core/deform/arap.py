@@ -281,8 +281,10 @@ class ConstrainedArap:
         Lf = L[self.free]
         self.L_fc = Lf[:, self.fixed].tocsr()
         self.lu = None
+        t0 = time.perf_counter()
         if len(self.free):
             self.lu = factorise_spd(Lf[:, self.free].tocsc())
+        self.factor_seconds = time.perf_counter() - t0
         # only the free vertices' rows of the right-hand side are used, and they read the rotations of
         # the free vertices and of their neighbours (the *active* ones): the other constrained vertices'
         # rotations are computed once per solve, for the result, not every iteration
