@@ -27,8 +27,10 @@ class NeuMeshArapSettings(bpy.types.PropertyGroup):
         name="Preview", default=30000, min=0, soft_max=200000,
         description="Solve on a cage of about this many vertices while dragging and carry the result to "
                     "every vertex (0: the full mesh). Smaller is faster")
-    iterations: IntProperty(name="Iterations", default=4, min=1, max=100,
-                            description="Local-global iterations per move while dragging")
+    iterations: IntProperty(name="Iterations", default=2, min=1, max=100,
+                            description="Local-global iterations per move while dragging (each move "
+                                        "starts from the last one's result; more: closer to the "
+                                        "converged shape, fewer previews a second)")
     frame_iterations: IntProperty(name="Frame iterations", default=30, min=1, max=500,
                                   description="Iterations of a solve from rest on a frame change or render")
     cage_in_renders: BoolProperty(name="Cage in renders", default=False,

@@ -11,11 +11,13 @@ these pieces; the swap alignment's non-rigid ICP (``edit/align.py``) builds its 
 
 :class:`ArapSolver` deforms a mesh: *anchors* stay at rest, *handles* go where they are told, every
 other vertex follows as rigidly as possible.  The Laplacian of the free vertices is factorised once per
-anchor/handle set (scipy's sparse LU, COLAMD ordering); every move then costs a few local-global
-iterations (a batched 3x3 polar decomposition, three sparse products and one factorised solve),
+anchor/handle set (scipy's SuperLU in symmetric mode: a Cholesky-like factor, :func:`factorise_spd`);
+every move then costs a few local-global iterations (a batched 3x3 polar decomposition of the vertices
+a free vertex can see, three sparse products over the free rows and one factorised solve),
 warm-started from the previous move's solution while a handle is dragged.  With
 ``ArapConfig.cage_vertices`` set, it solves on a decimated cage (:mod:`neumesh_core.deform.cage`) and
-carries the cage's positions and rotations to every vertex through a precomputed linear map.
+carries the cage's positions and rotations to every vertex through a precomputed linear map (float32).
+:meth:`ConstrainedArap.solve_reference` is the plain loop the fast one is tested against.
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import DeformError
-from .rotations import polar_rotations
+from .rotations import polar_rotations, polar_rotations_reference
 
 WEIGHTS = ("cotangent", "uniform")
 
@@ -154,12 +156,40 @@ class ArapTerms:
             out += self._K[c] @ R[:, :, c]
         return 0.5 * out
 
+    def rows(self, idx: np.ndarray) -> "TermRows":
+        """:meth:`covariances` and :meth:`rhs` restricted to the vertices ``idx`` (their rows of the
+        sparse products made once here)."""
+        return TermRows(self, idx)
+
     def energy(self, x: np.ndarray, R: np.ndarray, S: Optional[np.ndarray] = None) -> float:
         """E(x, R) (each edge counted from both ends), for rotations R."""
         x = np.asarray(x, np.float64)
         S = self.covariances(x) if S is None else S
         xLx = float((x * (self.laplacian @ x)).sum())              # sum over edges of w |x_i - x_j|^2
         return max(0.0, 2.0 * xLx + self._rest_term - 2.0 * float(np.einsum("nab,nab->", R, S)))
+
+
+class TermRows:
+    """The rows ``idx`` of :meth:`ArapTerms.covariances` and :meth:`ArapTerms.rhs` (the solver needs the
+    right-hand side at the free vertices only, and rotations only where a free vertex can see them)."""
+
+    def __init__(self, terms: ArapTerms, idx: np.ndarray):
+        self.idx = np.asarray(idx, np.int64)
+        self._K = [K[self.idx] for K in terms._K]
+        self._d = terms._d[self.idx]
+
+    def covariances(self, x: np.ndarray) -> np.ndarray:
+        xi = x[self.idx]
+        S = np.empty((len(self.idx), 3, 3))
+        for c in range(3):
+            S[:, :, c] = xi * self._d[:, c:c + 1] - self._K[c] @ x
+        return S
+
+    def rhs(self, R: np.ndarray) -> np.ndarray:
+        out = np.einsum("nab,nb->na", R[self.idx], self._d)
+        for c in range(3):
+            out += self._K[c] @ R[:, :, c]
+        return 0.5 * out
 
 
 def covariances_reference(rest, x, edges, weights=None) -> np.ndarray:
@@ -202,6 +232,30 @@ def energy_reference(rest, x, R, edges, weights=None) -> float:
 
 
 # ----------------------------------------------------------------------------------------- solving
+def factorise_spd(A):
+    """A factorisation of the sparse symmetric positive definite ``A`` (the free vertices' Laplacian) with
+    a ``solve(b)`` method: scipy's SuperLU in symmetric mode (minimum-degree ordering of A + A^T, no
+    pivoting, which SPD matrices do not need), so that U has the structure of L^T as in a Cholesky
+    factorisation.  On lego's scaffold (162k unknowns) that is half the fill of the unsymmetric COLAMD
+    factorisation (:func:`factorise_reference`), so a solve reads half the numbers; on its 30k cage it
+    factorises in 0.2 s.  Falls back to the reference where the symmetric factorisation fails (a
+    zero pivot: the matrix is not positive definite)."""
+    from scipy.sparse.linalg import splu
+
+    try:
+        return splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                    options={"SymmetricMode": True})
+    except RuntimeError:
+        return factorise_reference(A)
+
+
+def factorise_reference(A):
+    """The plain factorisation: scipy's SuperLU with its default partial pivoting and COLAMD ordering."""
+    from scipy.sparse.linalg import splu
+
+    return splu(A, permc_spec="COLAMD")
+
+
 class ConstrainedArap:
     """Local-global ARAP on a graph with a fixed set of constrained vertices; the free vertices' Laplacian
     is factorised once here.  A connected component with no constrained vertex cannot be placed (its
@@ -210,7 +264,6 @@ class ConstrainedArap:
     def __init__(self, terms: ArapTerms, constrained: np.ndarray):
         import scipy.sparse as sp
         from scipy.sparse.csgraph import connected_components
-        from scipy.sparse.linalg import splu
 
         self.terms = terms
         n = len(terms.rest)
@@ -228,10 +281,25 @@ class ConstrainedArap:
         Lf = L[self.free]
         self.L_fc = Lf[:, self.fixed].tocsr()
         self.lu = None
+        t0 = time.perf_counter()
         if len(self.free):
-            # COLAMD ordering: on a 30k-unknown Laplacian it factorises in 4 s against 98 s for the
-            # symmetric-mode MMD ordering (with 1.4x the fill; solves 0.22 s vs 0.97 s, busy machine)
-            self.lu = splu(Lf[:, self.free].tocsc(), permc_spec="COLAMD")
+            self.lu = factorise_spd(Lf[:, self.free].tocsc())
+        self.factor_seconds = time.perf_counter() - t0
+        # only the free vertices' rows of the right-hand side are used, and they read the rotations of
+        # the free vertices and of their neighbours (the *active* ones): the other constrained vertices'
+        # rotations are computed once per solve, for the result, not every iteration
+        near = np.zeros(n, bool)
+        near[self.free] = True
+        near[L[self.free].indices] = True
+        self.active = np.nonzero(near)[0]
+        self.inactive = np.nonzero(~near)[0]
+        self._rows_free = terms.rows(self.free)
+        self._rows_active = terms.rows(self.active)
+        self._rows_inactive = terms.rows(self.inactive)
+        adj = L[self.inactive].tocsr(copy=True)          # each inactive row and its neighbours
+        adj.data = np.ones_like(adj.data)
+        self._inactive_adj = adj
+        self._inactive_cache = None
         e = terms.edges
         self.unit = float(np.linalg.norm(terms.rest[e[:, 0]] - terms.rest[e[:, 1]], axis=1).mean()) \
             if len(e) else 1.0
@@ -241,7 +309,7 @@ class ConstrainedArap:
         """Constrained vertices at ``targets``; start from positions ``x0`` with rotations ``R0``.
         Returns (x, R, energies per iteration, iterations run)."""
         x = np.array(x0, np.float64)
-        R = np.asarray(R0, np.float64)
+        R = np.array(R0, np.float64)
         xc = np.concatenate([np.asarray(targets, np.float64).reshape(-1, 3), self.terms.rest[self.held]])
         x[self.fixed] = xc
         record = []
@@ -251,22 +319,65 @@ class ConstrainedArap:
             return x, R, [self.terms.energy(x, R)] if energies else [], 0
         bc = self.L_fc @ xc
         for it in range(1, iterations + 1):
-            b = self.terms.rhs(R)[self.free] - bc
+            b = self._rows_free.rhs(R) - bc
             xf = self.lu.solve(np.ascontiguousarray(b))
             moved = float(np.abs(xf - x[self.free]).max())
             x[self.free] = xf
-            S = self.terms.covariances(x)
-            R = polar_rotations(S)
-            if energies:
+            if energies:   # every rotation, for the energy
+                S = self.terms.covariances(x)
+                R = polar_rotations(S)
                 record.append(self.terms.energy(x, R, S))
+            else:
+                R[self.active] = polar_rotations(self._rows_active.covariances(x))
             if moved < tolerance * self.unit:
                 break
+        if not energies and len(self.inactive):
+            R[self.inactive] = self._inactive_rotations(x)
         return x, R, record, it
+
+    def _inactive_rotations(self, x: np.ndarray) -> np.ndarray:
+        """Rotations of the inactive vertices: they depend on the constrained positions only, so only
+        the rows next to a constrained vertex whose target changed since the last solve are recomputed
+        (a drag moves the handles; the anchors' inner rows stay)."""
+        xf = x[self.fixed]
+        cache = self._inactive_cache
+        if cache is None:
+            redo = np.arange(len(self.inactive))
+            Ri = np.empty((len(self.inactive), 3, 3))
+        else:
+            last, Ri = cache
+            Ri = Ri.copy()
+            changed = np.zeros(len(x))
+            changed[self.fixed[(xf != last).any(1)]] = 1.0
+            redo = np.nonzero((self._inactive_adj @ changed) > 0)[0]
+        if len(redo):
+            sub = self._rows_inactive if len(redo) == len(self.inactive) else self.terms.rows(self.inactive[redo])
+            Ri[redo] = polar_rotations(sub.covariances(x))
+        self._inactive_cache = (xf.copy(), Ri)
+        return Ri
+
+    def solve_reference(self, targets: np.ndarray, x0: np.ndarray, R0: np.ndarray, iterations: int):
+        """The plain local-global loop of :meth:`solve` (every vertex's covariance, rotation and
+        right-hand side each iteration; scipy's ``spsolve`` for the global step; no early stop)."""
+        from scipy.sparse.linalg import spsolve
+
+        x = np.array(x0, np.float64)
+        R = np.array(R0, np.float64)
+        xc = np.concatenate([np.asarray(targets, np.float64).reshape(-1, 3), self.terms.rest[self.held]])
+        x[self.fixed] = xc
+        L = self.terms.laplacian
+        A = L[self.free][:, self.free].tocsc()
+        for _ in range(iterations):
+            b = rhs_reference(self.terms.rest, R, self.terms.edges, self.terms.weights)[self.free] - self.L_fc @ xc
+            x[self.free] = spsolve(A, b)
+            R = polar_rotations_reference(covariances_reference(self.terms.rest, x, self.terms.edges,
+                                                                self.terms.weights))
+        return x, R
 
 
 @dataclass
 class ArapResult:
-    """One solve: ``vertices`` (N,3) float64, ``rotations`` (N,3,3) per-vertex rest -> deformed
+    """One solve: ``vertices`` (N,3) (float64; float32 in cage mode, carried for the viewport), ``rotations`` (N,3,3) per-vertex rest -> deformed
     rotations (computed on first use in cage mode), ``energies`` after each iteration (of the system
     solved: the cage's in cage mode; with ``ArapConfig.energies``, else empty), ``iterations`` run,
     ``seconds`` taken."""

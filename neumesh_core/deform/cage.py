@@ -35,7 +35,29 @@ class Cage:
 
     def carry(self, y: np.ndarray, R: np.ndarray, rest: np.ndarray):
         """Mesh positions (N,3) from cage positions ``y`` (M,3) and rotations ``R`` (M,3,3), and the
-        per-vertex blended rotation matrices (N,3,3) (not yet orthonormal; see ArapResult.rotations)."""
+        per-vertex blended rotation matrices (N,3,3) (not yet orthonormal; see ArapResult.rotations).
+
+        In float32 (what the viewport and the field take), as one sparse product of the (N,M) weights
+        with the (M,12) block [y - R p | R]: the same numbers as :meth:`carry_reference` to float32's
+        precision, in about half the time."""
+        W32, rest32 = self._float32(rest)
+        m = len(self.samples)
+        Z = np.empty((m, 12), np.float32)
+        Z[:, 3:] = R.reshape(m, 9)
+        Z[:, :3] = y - np.einsum("mab,mb->ma", R, rest[self.samples])
+        WZ = W32 @ Z
+        A = WZ[:, 3:].reshape(-1, 3, 3)
+        x = WZ[:, :3] + np.einsum("nab,nb->na", A, rest32)
+        return x, A
+
+    def _float32(self, rest: np.ndarray):
+        cached = getattr(self, "_cache32", None)
+        if cached is None or cached[0] is not rest:
+            cached = self._cache32 = (rest, self.W.astype(np.float32), np.asarray(rest, np.float32))
+        return cached[1], cached[2]
+
+    def carry_reference(self, y: np.ndarray, R: np.ndarray, rest: np.ndarray):
+        """The plain float64 form of :meth:`carry`: x_i = sum_k w_ik (y_k + R_k (p_i - p_k))."""
         pc = rest[self.samples]
         A = np.asarray(self.W @ R.reshape(-1, 9)).reshape(-1, 3, 3)
         Rp = np.einsum("mab,mb->ma", R, pc)

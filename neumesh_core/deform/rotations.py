@@ -129,18 +129,31 @@ def _polar_block(M: np.ndarray) -> np.ndarray:
         if not (np.abs(step) > tol).any():
             break
     A = [[Nd[r][c] - lam if r == c else Nd[r][c] for c in range(4)] for r in range(4)]
-    adj = _adjugate4(A)
-    diag = np.abs(np.stack([adj[k][k] for k in range(4)], 1))
-    k = diag.argmax(1)
-    q = np.zeros((4, n))
-    for c in range(4):   # column k of the adjugate
-        sel = k == c
-        for r in range(4):
-            q[r][sel] = adj[r][c][sel]
-    q = q.T
-    qn = np.linalg.norm(q, axis=1)
     scale = np.maximum(fro2, 1e-300) ** 1.5
-    good = finite & (diag.max(1) > 1e-9 * scale) & (qn > 0)
+    # adj(N - lam I) = c v v^T (rank one): column 0 is c v_0 v, well conditioned unless the quaternion's
+    # w = v_0 is small (a rotation near 180 degrees), so it is computed alone (a quarter of the
+    # adjugate); the other rows take the best-conditioned column of the whole adjugate
+    a1, a2, a3 = A[1], A[2], A[3]
+    m0, m1, m2 = a2[0] * a3[1] - a3[0] * a2[1], a2[0] * a3[2] - a3[0] * a2[2], a2[0] * a3[3] - a3[0] * a2[3]
+    m3, m4, m5 = a2[1] * a3[2] - a3[1] * a2[2], a2[1] * a3[3] - a3[1] * a2[3], a2[2] * a3[3] - a3[2] * a2[3]
+    q = np.empty((n, 4))
+    q[:, 0] = a1[1] * m5 - a1[2] * m4 + a1[3] * m3
+    q[:, 1] = -a1[0] * m5 + a1[2] * m2 - a1[3] * m1
+    q[:, 2] = a1[0] * m4 - a1[1] * m2 + a1[3] * m0
+    q[:, 3] = -a1[0] * m3 + a1[1] * m1 - a1[2] * m0
+    qn = np.sqrt((q * q).sum(1))
+    good = finite & (np.abs(q[:, 0]) >= 0.25 * qn) & (np.abs(q[:, 0]) > 1e-10 * scale)
+    other = np.nonzero(~good)[0]
+    if len(other):
+        As = [[e[other] for e in row] for row in A]
+        adj = _adjugate4(As)
+        diag = np.abs(np.stack([adj[k][k] for k in range(4)], 1))
+        k = diag.argmax(1)
+        cols = np.array(adj)                                   # (4 rows, 4 columns, m)
+        qo = cols[:, k, np.arange(len(other))].T               # column k of the adjugate
+        qon = np.sqrt((qo * qo).sum(1))
+        q[other], qn[other] = qo, qon
+        good[other] = finite[other] & (diag.max(1) > 1e-9 * scale[other]) & (qon > 0)
     q = q / np.where(good, qn, 1.0)[:, None]
     R = _quaternion_rotations(q[:, 0], q[:, 1], q[:, 2], q[:, 3])
     # every answer checked: tr(R^T S) must reach the largest eigenvalue (else, e.g. a nearly double root
