@@ -56,7 +56,7 @@ def density_grid(field, voxel: float, chunk: int = 262144,
     """The field's density on a grid of ``voxel`` world units over its occupancy grid's box: (values
     (X,Y,Z) float32, lo (3,) the first node's position).  Nodes outside the occupied cells (grown by
     one cell) are 0 and not queried."""
-    from .texture import _cancel
+    from .surface import _cancel
 
     g = field.grid
     lo = g.aabb[0].detach().cpu().double().numpy()
@@ -84,7 +84,7 @@ def density_grid(field, voxel: float, chunk: int = 262144,
 
 def _mesh_at(vals, density, lo, voxel, faces, min_component):
     from ..reconstruct.meshing import clean_mesh, keep_large_components, marching_cubes
-    from .texture import decimate
+    from .simplify import decimate
 
     m = marching_cubes(vals, density, lo, voxel)
     if len(m.faces) == 0:
@@ -104,8 +104,7 @@ def extract_surface(field, config: Optional[ExtractConfig] = None,
 
     ``info``: the level used (opacity over a radius and the density), each candidate's score when
     calibrated, the grid's size, marching cubes' face count before decimation, and the seconds."""
-    from .surface import render_disagreement, view_cameras
-    from .texture import _cancel
+    from .surface import _cancel, render_disagreement, view_cameras
 
     cfg = config or ExtractConfig()
     t0 = time.perf_counter()

@@ -70,8 +70,7 @@ def projected_colours(field, vertices, faces, points, normals, config: Optional[
     from ..data.cameras import ray_to_axis_depth
     from ..render.raster import depth_buffer
     from ..render.renderer import render_camera
-    from .surface import view_cameras
-    from .texture import _cancel
+    from .surface import _cancel, view_cameras
 
     cfg = config or ProjectConfig()
     V = np.asarray(vertices, np.float32)
