@@ -375,3 +375,22 @@ def test_bake_onto_the_fields_own_surface_with_projected_colours(trained, baked)
         bake_texture(field, resolution=32, colours="normals")
     with pytest.raises(ValueError, match="mesh"):
         bake_texture(field, resolution=32, mesh="scaffold-please")
+
+
+def test_cli_bake_onto_the_field_surface_with_projected_colours(trained, tmp_path):
+    """`neumesh bake --target field --colours views` writes the files; --target field with --mesh is refused."""
+    import trimesh
+
+    from neumesh_core.cli import main
+
+    field, _ = trained
+    fpath = tmp_path / "blob.neumesh"
+    nm.save_field(field, str(fpath))
+    out = tmp_path / "baked"
+    with one_thread():
+        assert main(["bake", "--field", str(fpath), "--out", str(out), "--resolution", "64", "--no-glb",
+                     "--target", "field", "--colours", "views", "--views", "4", "--view-size", "48"]) == 0
+    m = trimesh.load(str(out / "blob.obj"), process=False, force="mesh")
+    assert len(m.faces) > 100 and m.visual.uv is not None
+    with pytest.raises(SystemExit, match="--target field"):
+        main(["bake", "--field", str(fpath), "--out", str(out), "--target", "field", "--mesh", str(fpath)])
