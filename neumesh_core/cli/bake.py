@@ -48,7 +48,13 @@ def cmd_bake(args) -> int:
         so = res.info["surface_offset"]
         print(f"the baked mesh lies {so['median_radii']:.3f} field radii (median; 90%: {so['p90_radii']:.3f}) "
               "from the field's surface" + (f" (moved onto it, opacity level {res.info['fit']['level']:g})"
-                                            if "fit" in res.info else ""), file=sys.stderr)
+                                            if "fit" in res.info else "")
+              + (f" (extracted from the field's density at opacity {res.info['extract']['level']:g} over a radius: "
+                 f"{res.info['extract']['marching_cubes_faces']} faces, decimated to {res.info['mesh_faces']})"
+                 if "extract" in res.info else ""), file=sys.stderr)
+    if res.info.get("texels_unseen"):
+        print(f"{res.info['texels_unseen']} texels were seen by none of the {args.views} views (inside or "
+              "underneath): they took the colour along their normal", file=sys.stderr)
     paths = save_bake(res, args.out, name, glb=args.glb, protect=(args.field,))
     if res.info.get("missed_texels"):
         print(f"warning: {res.info['missed_texels']} texels lie farther than the field radius from the field's "
