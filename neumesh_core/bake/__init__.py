@@ -4,9 +4,13 @@
 :func:`decimate`); ``surface``: where the field's surface is seen from a mesh, and moving the mesh onto
 it before baking (:func:`fit_to_field`, :func:`surface_offsets`).
 """
+from .extract import ExtractConfig, density_grid, extract_surface
+from .project import ProjectConfig, projected_colours
+from .simplify import decimate
 from .surface import SurfaceFitConfig, fit_to_field, offset_stats, surface_offsets
-from .texture import (BakeResult, bake_texture, decimate, dilate, save_bake, surface_colours, texel_coverage,
+from .texture import (BakeResult, bake_texture, dilate, save_bake, surface_colours, texel_coverage,
                       unwrap, uv_pixels)
 
-__all__ = ["BakeResult", "SurfaceFitConfig", "bake_texture", "decimate", "dilate", "fit_to_field", "offset_stats",
+__all__ = ["BakeResult", "ExtractConfig", "ProjectConfig", "SurfaceFitConfig", "density_grid", "extract_surface",
+           "projected_colours", "bake_texture", "decimate", "dilate", "fit_to_field", "offset_stats",
            "save_bake", "surface_colours", "surface_offsets", "texel_coverage", "unwrap", "uv_pixels"]

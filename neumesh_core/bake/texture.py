@@ -25,6 +25,7 @@ import torch
 
 from ..errors import NeuMeshError
 from ..render.raster import raster_triangles
+from .simplify import decimate  # noqa: F401  (kept importable from here)
 
 
 @dataclass
@@ -212,28 +213,6 @@ def surface_colours(field, points, normals, offset: float = 1.0, directions: int
     return out.numpy()
 
 
-def decimate(vertices: np.ndarray, faces: np.ndarray, ratio: float) -> tuple:
-    """Quadric decimation of a triangle mesh to about ``ratio`` x its faces (0 < ratio <= 1) with the
-    ``fast-simplification`` package (an optional dependency: ``pip install fast-simplification``).
-
-    Returns (vertices (V',3) float32, faces (F',3) int64).  ``ratio`` 1 returns the mesh unchanged."""
-    ratio = float(ratio)
-    if not 0.0 < ratio <= 1.0:
-        raise ValueError(f"decimation ratio must be in (0, 1], got {ratio}")
-    v = np.ascontiguousarray(vertices, np.float32)
-    f = np.ascontiguousarray(faces, np.int64)
-    if ratio >= 1.0:
-        return v, f
-    try:
-        import fast_simplification
-    except ImportError as exc:
-        raise NeuMeshError("decimating needs the 'fast-simplification' package: pip install "
-                           "fast-simplification; or decimate the mesh elsewhere (e.g. Blender's Decimate "
-                           "modifier) and pass it as the target mesh (--mesh)") from exc
-    dv, df = fast_simplification.simplify(v, f.astype(np.int32), target_reduction=1.0 - ratio)
-    return np.asarray(dv, np.float32), np.asarray(df, np.int64)
-
-
 def _target_mesh(field, mesh):
     """(vertices, faces, normals, label) of the mesh to bake onto: the scaffold in its current pose when
     ``mesh`` is None, else ``mesh`` (an ``nm.Mesh`` or a (vertices, faces) pair, world space)."""
@@ -260,8 +239,9 @@ def _target_mesh(field, mesh):
 
 def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Optional[float] = None,
                  directions: int = 1, cone_deg: float = 30.0, vertex_colors: bool = True, chunk: int = 32768,
-                 progress: Optional[Callable[[float], bool]] = None, mesh=None, fit=True,
-                 measure_texels: int = 65536) -> BakeResult:
+                 progress: Optional[Callable[[float], bool]] = None, mesh=None, fit=None,
+                 measure_texels: int = 65536, colours: str = "rays", project=None,
+                 extract=None) -> BakeResult:
     """Bake the field's view-independent appearance into a UV texture of a mesh.
 
     ``mesh``: the mesh to bake onto: None = the field's scaffold in its current pose (edited,
@@ -275,9 +255,17 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
     ``resolution``: texture size (square); ``padding``: texels between charts and dilation of their
     borders; ``offset``: ray start outside the surface, in field radii; ``directions``/``cone_deg``: rays
     averaged per texel (1 = straight along -normal); ``vertex_colors``: also a colour per mesh vertex.
+    ``mesh="field"``: a mesh extracted from the field's own density (marching cubes, then decimated:
+    :func:`~neumesh_core.bake.extract.extract_surface` with ``extract``, an :class:`ExtractConfig`;
+    ``info["extract"]``).
     ``fit``: first move the mesh's vertices along their normals onto the surface the field renders
     (:func:`~neumesh_core.bake.surface.fit_to_field`; True = the default :class:`SurfaceFitConfig`, a
-    config, or False to bake onto the mesh where it is).  The result's vertices are the moved ones.
+    config, or False to bake onto the mesh where it is; None = True except for ``mesh="field"``,
+    which already lies on it).  The result's vertices are the moved ones.
+    ``colours``: "rays" (each texel's short ray along -normal) or "views" (the field's renders from
+    virtual cameras projected onto the texels that they see, :func:`~neumesh_core.bake.project.
+    projected_colours` with ``project``, a :class:`ProjectConfig`; texels no view sees take their ray
+    colour; ``info["texels_unseen"]``).
     ``offset`` None: 0.5 radii with ``fit`` (the rays stay short around the surface the mesh now lies
     on), else 1.
     ``measure_texels``: how many texels (a fixed random subset; 0 = none) measure how far the baked
@@ -292,10 +280,26 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
     resolution = int(resolution)
     if resolution < 16:
         raise ValueError(f"resolution must be at least 16, got {resolution}")
+    if colours not in ("rays", "views"):
+        raise ValueError(f"colours must be 'rays' or 'views', got {colours!r}")
     _cancel(progress, 0.0)
+    extract_info = None
+    if isinstance(mesh, str):
+        if mesh != "field":
+            raise ValueError(f"mesh must be None, 'field', an nm.Mesh or (vertices, faces), got {mesh!r}")
+        from .extract import extract_surface
+
+        mesh, extract_info = extract_surface(field, extract, progress=None if progress is None else
+                                             (lambda f: progress(0.1 * f)))
+        if fit is None:
+            fit = False
     V, F, N, label = _target_mesh(field, mesh)
+    if extract_info is not None:
+        label = "field"
     fit_info = None
-    if fit is not False and fit is not None:
+    if fit is None:
+        fit = True
+    if fit is not False:
         cfg = fit if isinstance(fit, SurfaceFitConfig) else SurfaceFitConfig()
         V, fit_info = fit_to_field(field, V, F, cfg, progress=None if progress is None else
                                    (lambda f: progress(0.1 * f)))
@@ -310,6 +314,9 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
     if fit_info is not None:
         info["fit"] = fit_info
         info["fit_s"] = fit_info["seconds"]
+    if extract_info is not None:
+        info["extract"] = extract_info
+        info["extract_s"] = extract_info["seconds"]
     info["mesh"] = label
     info["mesh_vertices"] = int(len(V))
     info["mesh_faces"] = int(len(F))
@@ -330,8 +337,23 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
         info["surface_offset"] = offset_stats(off, float(field.radius))
     _cancel(progress, 0.15)
     vspan = 0.1 if vertex_colors else 0.0
-    cols, found = surface_colours(field, pts, nrm, offset, directions, cone_deg, chunk, progress,
-                                  span=(0.15, 0.95 - vspan), return_found=True)
+    if colours == "views":
+        from .project import projected_colours
+
+        t_proj = time.perf_counter()
+        cols, wsum = projected_colours(field, V, F, pts, nrm, project, progress, span=(0.15, 0.75))
+        unseen = wsum <= 0
+        found = np.ones(len(pts), bool)
+        if unseen.any():
+            rc, rf = surface_colours(field, pts[unseen], nrm[unseen], offset, directions, cone_deg, chunk,
+                                     progress, span=(0.75, 0.95 - vspan), return_found=True)
+            cols[unseen] = rc
+            found[unseen] = rf
+        info["texels_unseen"] = int(unseen.sum())
+        info["project_s"] = time.perf_counter() - t_proj
+    else:
+        cols, found = surface_colours(field, pts, nrm, offset, directions, cone_deg, chunk, progress,
+                                      span=(0.15, 0.95 - vspan), return_found=True)
     info["missed_texels"] = int((~found).sum())
     image = np.zeros((resolution * resolution, 3), np.float32)
     mask = np.zeros(resolution * resolution, bool)

@@ -11,7 +11,7 @@ from .common import _add_device_option, _device
 
 def cmd_bake(args) -> int:
     import neumesh_core as nm
-    from ..bake import SurfaceFitConfig, bake_texture, save_bake
+    from ..bake import ProjectConfig, SurfaceFitConfig, bake_texture, save_bake
 
     field = nm.load_field(args.field, device=_device(args))
     name = args.name or os.path.splitext(os.path.basename(args.field))[0]
@@ -21,23 +21,40 @@ def cmd_bake(args) -> int:
         return True
 
     mesh = None
-    if args.mesh:
+    extract = None
+    if args.target == "field":
+        if args.mesh:
+            raise SystemExit("error: --target field extracts the mesh from the field's density; leave out --mesh "
+                             "(or use --target scaffold to bake onto your mesh)")
+        from ..bake import ExtractConfig
+
+        faces = int(round(args.decimate * len(field.faces))) if args.decimate < 1.0 else 0
+        extract = ExtractConfig(faces=faces)
+        mesh = "field"
+    elif args.mesh:
         mesh = nm.load_mesh(args.mesh)
-    if args.decimate < 1.0:
+    if args.decimate < 1.0 and extract is None:
         from ..bake import decimate
 
         src = mesh if mesh is not None else nm.Mesh(np.asarray(field.vertices), field.faces.cpu().numpy())
         mesh = nm.Mesh(*decimate(src.vertices, src.faces, args.decimate))
         print(f"decimated {len(src.faces)} -> {len(mesh.faces)} faces", file=sys.stderr)
     res = bake_texture(field, resolution=args.resolution, padding=args.padding, directions=args.directions,
-                       offset=args.offset, progress=progress, mesh=mesh,
-                       fit=False if args.no_fit else SurfaceFitConfig(level=args.level))
+                       offset=args.offset, progress=progress, mesh=mesh, extract=extract,
+                       fit=False if args.no_fit or extract is not None else SurfaceFitConfig(level=args.level),
+                       colours=args.colours, project=ProjectConfig(views=args.views, size=args.view_size))
     print(file=sys.stderr)
     if "surface_offset" in res.info and "median_radii" in res.info["surface_offset"]:
         so = res.info["surface_offset"]
         print(f"the baked mesh lies {so['median_radii']:.3f} field radii (median; 90%: {so['p90_radii']:.3f}) "
               "from the field's surface" + (f" (moved onto it, opacity level {res.info['fit']['level']:g})"
-                                            if "fit" in res.info else ""), file=sys.stderr)
+                                            if "fit" in res.info else "")
+              + (f" (extracted from the field's density at opacity {res.info['extract']['level']:g} over a radius: "
+                 f"{res.info['extract']['marching_cubes_faces']} faces, decimated to {res.info['mesh_faces']})"
+                 if "extract" in res.info else ""), file=sys.stderr)
+    if res.info.get("texels_unseen"):
+        print(f"{res.info['texels_unseen']} texels were seen by none of the {args.views} views (inside or "
+              "underneath): they took the colour along their normal", file=sys.stderr)
     paths = save_bake(res, args.out, name, glb=args.glb, protect=(args.field,))
     if res.info.get("missed_texels"):
         print(f"warning: {res.info['missed_texels']} texels lie farther than the field radius from the field's "
@@ -80,6 +97,16 @@ def add_commands(sub) -> None:
     p.add_argument("--level", type=float, default=None,
                    help="opacity (0-1) along the normal at which the field's surface lies, for the fit "
                         "(default: calibrated against the field's own renders)")
+    p.add_argument("--target", choices=("scaffold", "field"), default="scaffold",
+                   help="scaffold (default): bake onto the scaffold (or --mesh), decimated with --decimate; "
+                        "field: onto a mesh extracted from the field's own density (marching cubes), decimated "
+                        "to --decimate x the scaffold's faces: the surface the field renders")
+    p.add_argument("--colours", choices=("rays", "views"), default="rays",
+                   help="rays (default): each texel's colour from a short ray along its normal; views: from "
+                        "the field's renders on --views virtual cameras, projected onto the texels they see "
+                        "(closer to the field's look; slower)")
+    p.add_argument("--views", type=int, default=48, help="--colours views: virtual cameras (default 48)")
+    p.add_argument("--view-size", type=int, default=512, help="--colours views: their size in pixels (default 512)")
     p.add_argument("--no-glb", dest="glb", action="store_false", help="skip the .glb (trimesh)")
     _add_device_option(p)
     p.set_defaults(func=cmd_bake)
