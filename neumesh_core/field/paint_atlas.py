@@ -170,9 +170,48 @@ class PaintAtlas:
         self._cache = None
         self._premultiplied = None
 
-    def changed(self) -> None:
-        """Call after writing :attr:`image` in place (the premultiplied copy used for sampling is rebuilt)."""
-        self._premultiplied = None
+    def changed(self, texels=None) -> None:
+        """Call after writing :attr:`image` in place: the premultiplied copy used for sampling is
+        rebuilt, or with ``texels`` (flat indices of the texels written) updated at those texels only."""
+        if texels is None or self._premultiplied is None:
+            self._premultiplied = None
+            return
+        t = np.asarray(texels, np.int64).reshape(-1)
+        if len(t) == 0:
+            return
+        rows = self.image.view(-1, 4).numpy()[t]
+        pm = self._premultiplied[0].reshape(-1, 4)
+        pm[t] = np.concatenate([rows[:, :3] * rows[:, 3:], rows[:, 3:]], 1).astype(np.float16)
+        any_paint = self._premultiplied[1] or bool((rows[:, 3] > 0).any())
+        if self._premultiplied[1] and not (rows[:, 3] > 0).all():
+            any_paint = bool((pm[:, 3] > 0).any())        # paint taken away (undo): look again
+        self._premultiplied = (self._premultiplied[0], any_paint)
+
+    def set_image(self, rgba, region=None) -> np.ndarray:
+        """Replace the paint image, or the part of it in ``region`` (y0, y1, x0, x1 in image rows/columns,
+        top row first), with ``rgba`` (straight alpha, float in [0, 1]; a paint program's pixels).  The
+        field is not rebuilt: the next render shows the new paint.  Returns the flat indices of the
+        texels that changed."""
+        h, w = self.size
+        y0, y1, x0, x1 = (0, h, 0, w) if region is None else (int(v) for v in region)
+        if not (0 <= y0 < y1 <= h and 0 <= x0 < x1 <= w):
+            raise NeuMeshError(f"region {region} lies outside the {w}x{h} paint image")
+        px = np.asarray(rgba, np.float32)
+        if px.shape != (y1 - y0, x1 - x0, 4):
+            raise NeuMeshError(f"the paint pixels are {px.shape}, expected ({y1 - y0}, {x1 - x0}, 4) RGBA for "
+                               f"this part of the {w}x{h} paint image; was the image resized?")
+        if not np.isfinite(px).all():
+            raise NeuMeshError("the paint pixels hold NaN/inf values")
+        px = np.clip(px, 0.0, 1.0)
+        cur = self.image.numpy()[y0:y1, x0:x1]
+        diff = np.abs(cur - px).max(-1) > 0
+        yy, xx = np.nonzero(diff)
+        if len(yy) == 0:
+            return np.zeros(0, np.int64)
+        cur[yy, xx] = px[yy, xx]
+        idx = (yy + y0) * w + (xx + x0)
+        self.changed(idx)
+        return idx
 
     def _pm(self) -> np.ndarray:
         if self._premultiplied is None:
