@@ -1,0 +1,372 @@
+"""Blender's own Texture Paint on a field's paint atlas (texel paint, ``neumesh_core/field/paint_atlas.py``).
+
+*Texture Paint* (operator ``neumesh.texture_paint``) gives the active object's field a paint atlas
+when it has none (the mesh's own UV map when it has one, else the core's unwrap), writes the atlas's
+UVs as the UV map "NeuMesh Paint" of the object's mesh, and makes the paint layer an ordinary Blender
+image ("NeuMesh Paint <object>", packed into the .blend) that Texture Paint mode paints into (Single
+Image mode, that image as the canvas).  The artist paints on the object with Blender's brushes,
+stencils and masks.
+
+The image is the truth while painting: whenever its pixels change (a stroke, Blender's undo or redo of
+one, a script writing ``image.pixels``) the changed rows are pushed into the cached field's paint atlas
+(``PaintAtlas.set_image``; the field is not rebuilt) and the Rendered viewports render again.  Changes
+are noticed by a depsgraph update of the image, by undo/redo, and by a timer that compares the pixels
+while the object is in Texture Paint mode (every ``POLL_S`` seconds).  *Save paint* writes the field
+with its atlas as a new edit file beside the object's own (``nm.edit.paint_image_record`` +
+``save_edited``: atomic; Undo edit / Ctrl+Z go back as for every edit).
+"""
+from __future__ import annotations
+
+import time
+
+import bpy
+from bpy.props import IntProperty
+
+from ..runtime._np import np
+from ..runtime import core
+from ..runtime.errors import UserError
+from ..runtime.text import text_width, wrapped_label
+from ..scene import props
+from ..render import engine, fields
+from .base import EditSubPanel, commit_edit
+
+UV_NAME = "NeuMesh Paint"
+IMAGE_PREFIX = "NeuMesh Paint "
+OBJECT_KEY = "neumesh_paint_object"     # on the image: the object whose field it paints
+POLL_S = 0.5
+# figures of the last pushes (tests and benchmarks read them)
+STATS = {"pushes": 0, "texels": 0, "last_push_s": 0.0, "last_push_at": 0.0, "polls": 0}
+_STATE: dict = {}   # object name -> {"image": name, "last": flat pixels pushed, "atlas": id, "saved": (H,W,4)}
+
+
+def image_name(obj) -> str:
+    return IMAGE_PREFIX + obj.name
+
+
+def paint_image(obj):
+    """The object's Texture Paint image, or None."""
+    img = bpy.data.images.get(image_name(obj))
+    return img if img is not None and img.get(OBJECT_KEY) == obj.name else None
+
+
+def _triangles(mesh):
+    """(vertices (F,3), loops (F,3)) of the mesh's loop triangles."""
+    mesh.calc_loop_triangles()
+    n = len(mesh.loop_triangles)
+    tri = np.empty(n * 3, np.int32)
+    loops = np.empty(n * 3, np.int32)
+    mesh.loop_triangles.foreach_get("vertices", tri)
+    mesh.loop_triangles.foreach_get("loops", loops)
+    return tri.reshape(n, 3).astype(np.int64), loops.reshape(n, 3).astype(np.int64)
+
+
+def own_field(obj, depsgraph=None):
+    """The cached field the viewport renders for ``obj`` (the object's own file on its own mesh) and
+    the mesh's loop of each field face corner (F,3); :class:`UserError` when the object's mesh is not
+    the field's scaffold face for face."""
+    if obj is None or obj.type != "MESH" or not props.has_field(obj):
+        raise UserError("select an object with a NeuMesh field (Load field) to texture paint it")
+    depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
+    field, mesh_index = fields.object_field(obj, depsgraph)
+    if mesh_index is not None:
+        raise UserError(f"'{obj.name}' shows a field remapped onto an edited mesh; Texture Paint needs the "
+                        "field's own scaffold mesh (Load field > New object)")
+    tri, loops = _triangles(obj.data)
+    faces = np.asarray(field.faces.cpu().numpy(), np.int64)
+    if tri.shape != faces.shape or not np.array_equal(tri, faces):
+        raise UserError(f"'{obj.name}' has {len(tri)} triangles but its field's scaffold has {len(faces)} faces "
+                        "in another order; Texture Paint needs the scaffold mesh as loaded (Load field > New "
+                        "object)")
+    return field, loops
+
+
+def _write_uv_layer(mesh, loops, uv) -> None:
+    """The atlas's UVs (F,3,2) as the mesh's UV map "NeuMesh Paint" (made active)."""
+    per_loop = np.zeros((len(mesh.loops), 2), np.float32)
+    per_loop[loops.reshape(-1)] = np.asarray(uv, np.float32).reshape(-1, 2)
+    if not np.allclose(per_loop[loops.reshape(-1)], np.asarray(uv, np.float32).reshape(-1, 2), atol=1e-6):
+        raise UserError("the mesh's faces are not triangles, so one corner would need two UVs; triangulate "
+                        "the field's scaffold before training, or Load field > New object")
+    layer = mesh.uv_layers.get(UV_NAME) or mesh.uv_layers.new(name=UV_NAME)
+    layer.data.foreach_set("uv", per_loop.ravel())
+    mesh.uv_layers.active = layer
+    mesh.update()
+
+
+def _mesh_uvs(mesh, loops):
+    """The artist's own UV map per field face corner (F,3,2), or None (no UV map but ours)."""
+    layer = next((u for u in mesh.uv_layers if u.active and u.name != UV_NAME), None) or \
+        next((u for u in mesh.uv_layers if u.name != UV_NAME), None)
+    if layer is None:
+        return None
+    uv = np.empty(len(mesh.loops) * 2, np.float32)
+    layer.data.foreach_get("uv", uv)
+    return uv.reshape(-1, 2)[loops]
+
+
+def _read_pixels(img) -> np.ndarray:
+    w, h = img.size
+    out = np.empty(w * h * 4, np.float32)
+    img.pixels.foreach_get(out)
+    return out
+
+
+def _new_image(obj, atlas):
+    h, w = atlas.size
+    name = image_name(obj)
+    old = bpy.data.images.get(name)
+    if old is not None:
+        bpy.data.images.remove(old)
+    img = bpy.data.images.new(name, w, h, alpha=True, float_buffer=False)
+    img.colorspace_settings.name = "sRGB"     # the field's colours are display-referred sRGB
+    img.alpha_mode = "STRAIGHT"
+    img.pixels.foreach_set(np.ascontiguousarray(atlas.image.numpy()[::-1], np.float32).ravel())
+    img.update()
+    img.pack()
+    img[OBJECT_KEY] = obj.name
+    return img
+
+
+def sync_object(obj, depsgraph=None, force: bool = False) -> int:
+    """Push the object's paint image into its field's paint atlas where its pixels changed since the
+    last push (all of it with ``force`` or when the field was reloaded); returns the texels changed.
+    Rendered viewports render again when any did."""
+    img = paint_image(obj)
+    if img is None or not props.has_field(obj):
+        return 0
+    t0 = time.perf_counter()
+    field = fields.get_field(obj.name_full, props.field_abspath(obj))   # the field the viewport shows
+    st = _STATE.setdefault(obj.name, {})
+    w, h = img.size
+    if getattr(field, "paint_atlas", None) is None or field.paint_atlas.size != (h, w):
+        # the field was loaded again (Ctrl+Z to a file without this paint, a reload): the image and the
+        # mesh's UV map still hold the paint, so the atlas is made from them
+        field, loops = own_field(obj, depsgraph)
+        layer = obj.data.uv_layers.get(UV_NAME)
+        if layer is None or w != h:
+            raise UserError(f"'{obj.name}' lost its UV map '{UV_NAME}' or its square paint image; press "
+                            "Texture Paint again")
+        uv = np.empty(len(obj.data.loops) * 2, np.float32)
+        layer.data.foreach_get("uv", uv)
+        field.paint_atlas = None
+        core.get().edit.create_paint_atlas(field, resolution=w, uvs=uv.reshape(-1, 2)[loops])
+        force = True
+    atlas = field.paint_atlas
+    px = _read_pixels(img)
+    last = st.get("last")
+    if force or last is None or last.size != px.size or st.get("atlas") is not atlas:
+        rows = np.arange(h)
+    else:
+        rows = np.nonzero((px.reshape(h, -1) != last.reshape(h, -1)).any(1))[0]
+    changed = 0
+    if len(rows):
+        y0, y1 = int(rows.min()), int(rows.max()) + 1        # bottom-first rows of the Blender image
+        block = px.reshape(h, w, 4)[y0:y1][::-1]
+        cols = np.nonzero((block != atlas.image.numpy()[h - y1:h - y0]).any(-1).any(0))[0]
+        if len(cols):
+            x0, x1 = int(cols.min()), int(cols.max()) + 1
+            changed = len(atlas.set_image(block[:, x0:x1], (h - y1, h - y0, x0, x1)))
+    st.update(last=px, atlas=atlas, image=img.name)
+    STATS["polls"] += 1
+    if changed:
+        STATS["pushes"] += 1
+        STATS["texels"] = changed
+        STATS["last_push_s"] = time.perf_counter() - t0
+        STATS["last_push_at"] = time.perf_counter()
+        engine.refresh_viewports()
+    return changed
+
+
+def sync_all(depsgraph=None, only_painting: bool = False) -> int:
+    n = 0
+    for img in list(bpy.data.images):
+        name = img.get(OBJECT_KEY)
+        obj = bpy.data.objects.get(name) if name else None
+        if obj is None or (only_painting and obj.mode != "TEXTURE_PAINT"):
+            continue
+        try:
+            n += sync_object(obj, depsgraph)
+        except Exception as exc:  # noqa: BLE001 - a handler must not raise into Blender
+            print(f"NeuMesh: Texture Paint of '{obj.name}' not shown: {exc}")
+    return n
+
+
+def _tick():
+    """Timer: while an object is in Texture Paint mode on its paint image, follow its pixels (read
+    only once the image was painted: ``is_dirty``).  Reading a 4096^2 image takes ~0.4 s, so the next
+    poll waits at least three times as long as this one took (the CPU stays mostly free)."""
+    if not any(img.get(OBJECT_KEY) and img.is_dirty for img in bpy.data.images):
+        return POLL_S
+    t = time.perf_counter()
+    sync_all(only_painting=True)
+    return max(POLL_S, 3.0 * (time.perf_counter() - t))
+
+
+def _on_depsgraph(scene, depsgraph):
+    try:
+        ids = [u.id for u in depsgraph.updates]
+    except Exception:  # noqa: BLE001
+        return
+    for i in ids:
+        if isinstance(i, bpy.types.Image) and i.get(OBJECT_KEY):
+            obj = bpy.data.objects.get(i.get(OBJECT_KEY))
+            if obj is not None:
+                try:
+                    sync_object(obj)
+                except Exception as exc:  # noqa: BLE001
+                    print(f"NeuMesh: Texture Paint of '{obj.name}' not shown: {exc}")
+
+
+def _on_undo(*_args):
+    sync_all()
+
+
+class NEUMESH_OT_texture_paint(bpy.types.Operator):
+    """Paint the active field object with Blender's brushes (Texture Paint mode): its paint layer becomes
+    an image on the UV map "NeuMesh Paint", and the Rendered viewport shows the paint as you paint"""
+
+    bl_idname = "neumesh.texture_paint"
+    bl_label = "Texture Paint"
+    bl_options = {"REGISTER"}
+
+    resolution: IntProperty(name="Resolution", default=0, min=0, max=16384,
+                            description="Paint image size in texels (0: 2048, or 4096 for scaffolds over 50,000 "
+                                        "faces); used only when the field has no paint layer yet")
+
+    def execute(self, context):
+        obj = context.active_object
+        try:
+            nm = core.get()
+            field, loops = own_field(obj)
+            made = False
+            if getattr(field, "paint_atlas", None) is None:
+                res = self.resolution or (4096 if len(loops) > 50_000 else 2048)
+                uvs = _mesh_uvs(obj.data, loops)
+                nm.edit.create_paint_atlas(field, resolution=res, uvs=uvs)
+                made = True
+            atlas = field.paint_atlas
+            _write_uv_layer(obj.data, loops, atlas.uv.numpy())
+            img = paint_image(obj)
+            if img is None or tuple(img.size) != (atlas.size[1], atlas.size[0]):
+                img = _new_image(obj, atlas)
+            # the paint as the field's file holds it (none when the layer was just made): Save paint
+            # records what changed since
+            _STATE.setdefault(obj.name, {}).setdefault(
+                "saved", np.zeros_like(atlas.image.numpy()) if made else atlas.image.numpy().copy())
+            sync_object(obj, force=True)
+        except (UserError, core.CoreUnavailable) as exc:
+            self.report({"ERROR"}, f"NeuMesh: {exc}")
+            return {"CANCELLED"}
+        except Exception as exc:  # noqa: BLE001
+            self.report({"ERROR"}, f"NeuMesh: cannot set up Texture Paint: {fields.user_message(exc)}")
+            return {"CANCELLED"}
+        ip = context.scene.tool_settings.image_paint
+        ip.mode = "IMAGE"          # Single Image: paint into this image through the active UV map
+        ip.canvas = img
+        try:
+            if obj.mode != "TEXTURE_PAINT":
+                bpy.ops.object.mode_set(mode="TEXTURE_PAINT")
+        except RuntimeError:      # no 3D View (scripts, background): the image and UV map are ready
+            pass
+        _ensure_timer()
+        h, w = atlas.size
+        self.report({"INFO"}, f"NeuMesh: paint on '{obj.name}' ({w}x{h} texels, UV map '{UV_NAME}'); the "
+                              "Rendered viewport follows; Save paint keeps it in the field")
+        return {"FINISHED"}
+
+
+def unsaved_texels(obj) -> int:
+    st = _STATE.get(obj.name)
+    img = paint_image(obj)
+    if st is None or img is None or st.get("saved") is None:
+        return 0
+    try:
+        field = fields.get_field(obj.name_full, props.field_abspath(obj))
+    except Exception:  # noqa: BLE001
+        return 0
+    if getattr(field, "paint_atlas", None) is None or field.paint_atlas.image.shape != st["saved"].shape:
+        return 0
+    return int((field.paint_atlas.image.numpy() != st["saved"]).any(-1).sum())
+
+
+class NEUMESH_OT_save_paint(bpy.types.Operator):
+    """Save the field with the paint made in Texture Paint (a new file beside the object's own; Undo edit
+    goes back)"""
+
+    bl_idname = "neumesh.save_paint"
+    bl_label = "Save paint"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        obj = context.active_object
+        try:
+            nm = core.get()
+            if paint_image(obj) is None:
+                raise UserError("this object has no Texture Paint image; press Texture Paint first")
+            sync_object(obj)
+            field, _ = own_field(obj)
+            if getattr(field, "paint_atlas", None) is None:
+                raise UserError("the field has no paint layer; press Texture Paint first")
+            st = _STATE.setdefault(obj.name, {})
+            saved = st.get("saved")
+            if saved is None or saved.shape != tuple(field.paint_atlas.image.shape):
+                saved = np.zeros(tuple(field.paint_atlas.image.shape), np.float32)
+            rec = nm.edit.paint_image_record(field, saved)
+            if rec.num_changed == 0:
+                self.report({"INFO"}, "NeuMesh: nothing was painted since the last save; nothing written")
+                return {"CANCELLED"}
+            out = commit_edit(obj, field, rec, props.field_abspath(obj))
+            st["saved"] = field.paint_atlas.image.numpy().copy()
+        except (UserError, core.CoreUnavailable) as exc:
+            self.report({"ERROR"}, f"NeuMesh: {exc}")
+            return {"CANCELLED"}
+        except Exception as exc:  # noqa: BLE001
+            self.report({"ERROR"}, f"NeuMesh: cannot save the paint: {fields.user_message(exc)}")
+            return {"CANCELLED"}
+        engine.refresh_viewports(context)
+        self.report({"INFO"}, f"NeuMesh: paint saved ({rec.num_changed:,} texels) in {out}")
+        return {"FINISHED"}
+
+
+class NEUMESH_PT_texture_paint(EditSubPanel, bpy.types.Panel):
+    bl_label = "Texture Paint"
+
+    def draw_edit(self, context, col, obj):
+        width = text_width(context)
+        wrapped_label(col, "Paint the field with Blender's brushes; the Rendered viewport follows", width,
+                      context=context)
+        col.operator("neumesh.texture_paint", icon="TPAINT_HLT")
+        row = col.row()
+        row.enabled = paint_image(obj) is not None
+        row.operator("neumesh.save_paint", icon="FILE_TICK")
+        n = unsaved_texels(obj) if row.enabled else 0
+        if n:
+            wrapped_label(col, f"{n:,} texels not saved in the field yet", width, icon="INFO", context=context)
+
+
+def _ensure_timer():
+    if not bpy.app.timers.is_registered(_tick):
+        bpy.app.timers.register(_tick, first_interval=POLL_S, persistent=True)
+
+
+classes = (NEUMESH_OT_texture_paint, NEUMESH_OT_save_paint, NEUMESH_PT_texture_paint)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
+def register():
+    _register_classes()
+    bpy.app.handlers.depsgraph_update_post.append(_on_depsgraph)
+    bpy.app.handlers.undo_post.append(_on_undo)
+    bpy.app.handlers.redo_post.append(_on_undo)
+    _ensure_timer()
+
+
+def unregister():
+    for hs, fn in ((bpy.app.handlers.depsgraph_update_post, _on_depsgraph), (bpy.app.handlers.undo_post, _on_undo),
+                   (bpy.app.handlers.redo_post, _on_undo)):
+        if fn in hs:
+            hs.remove(fn)
+    if bpy.app.timers.is_registered(_tick):
+        bpy.app.timers.unregister(_tick)
+    _STATE.clear()
+    _unregister_classes()
