@@ -126,3 +126,46 @@ def test_texture_paint_refuses_a_mesh_that_is_not_the_scaffold(addon, trained_fi
     with pytest.raises(RuntimeError, match="Load field > New object"):
         bpy.ops.neumesh.texture_paint()
     assert addon.edit.texture_paint.paint_image(obj) is None
+
+
+def test_paint_on_view_paints_the_atlas_of_a_field_that_has_one(addon, trained_field, tmp_path):
+    """Apply painting (Paint on view) writes into the field's paint atlas when it has one, at the
+    painted image's resolution, from the surface of the render painted on; the modification colours
+    stay as they were."""
+    import neumesh_core as nm
+    from neumesh_core.edit import create_paint_atlas
+
+    src = nm.load_field(trained_field)
+    create_paint_atlas(src, resolution=256)
+    path = str(tmp_path / "atlas.neumesh")
+    nm.save_field(src, path)
+    assert bpy.ops.neumesh.load_field(filepath=path, new_object=True) == {"FINISHED"}
+    obj = bpy.context.active_object
+    cam = add_camera((0, -4.8, 0.6), look_at=(0, 0, 0), lens=35.0)
+    scene = bpy.context.scene
+    scene.render.engine = "NEUMESH"
+    scene.render.resolution_x, scene.render.resolution_y = W, H
+    bpy.context.view_layer.update()
+    assert bpy.ops.neumesh.paint_view() == {"FINISHED"}
+    paint = addon.edit.paint
+    img = bpy.data.images[paint.PAINT_IMAGE]
+    assert img.name in paint._SURFACE
+    px = paint._image_pixels(img)
+    px[16:22, 18:30, :3] = GREEN
+    paint._set_pixels(img, px)
+    assert bpy.ops.neumesh.apply_paint() == {"FINISHED"}
+    out = addon.scene.props.field_abspath(obj)
+    assert out != path
+    edited = nm.load_field(out)
+    assert not edited.paint_atlas.is_empty
+    np.testing.assert_allclose(edited.mod_colors.detach().numpy(), src.mod_colors.detach().numpy(), atol=0)
+    K, c2w = manual_K_c2w(cam, W, H)
+    before = nm.render_camera(src, K, c2w, W, H)
+    after = nm.render_camera(edited, K, c2w, W, H)
+    solid = before.opacity[16:22, 18:30] > 0.9 * before.opacity.max()
+    a = before.opacity[16:22, 18:30][solid][:, None]
+    assert solid.sum() > 10
+    assert np.abs(after.rgb[16:22, 18:30][solid] - (a * np.array(GREEN) + (1 - a))).max() < 0.03
+    far = np.ones((H, W), bool)
+    far[13:25, 15:33] = False
+    assert (np.abs(after.rgb - before.rgb).max(-1)[far] <= 1 / 255).all()

@@ -65,6 +65,7 @@ def _view(context):
     return cam, depsgraph, np.asarray(K, np.float32), np.asarray(c2w, np.float32), int(W), int(H)
 
 
+_SURFACE: dict = {}   # paint image name -> (K, c2w, W, H, opacity, depth) of the render painted on
 OPENED_KEY = "neumesh_opened_area"   # on the paint image: the add-on split a 3D View for it
 
 
@@ -135,7 +136,7 @@ class NEUMESH_OT_paint_view(bpy.types.Operator):
             items = fields.collect(depsgraph, for_render=True)
             if not items:
                 raise UserError("no object with a field is in the scene; load or train a field first")
-            rgba = frame.render_items(items, K, c2w, W, H, transparent=False)
+            rgba, opacity, depth = frame.render_items_surface(items, K, c2w, W, H)
         except (UserError, core.CoreUnavailable) as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
@@ -156,6 +157,9 @@ class NEUMESH_OT_paint_view(bpy.types.Operator):
         img["neumesh_size"] = [W, H]
         img["neumesh_original"] = original.name
         img["neumesh_camera"] = cam.name
+        # the surface under each pixel: paint into a field's paint atlas needs no render again
+        _SURFACE.clear()
+        _SURFACE[img.name] = (K.copy(), c2w.copy(), W, H, opacity, depth)
         _open_in_image_editor(context, img)
         self.report({"INFO"}, f"NeuMesh: paint on '{img.name}' ({W}x{H}) in the Image Editor, then Apply painting "
                               "(its sidebar, tab NeuMesh, or its header)")
@@ -210,12 +214,18 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
             raise UserError("no object with a field is in the scene")
 
         targets, posed, plans = [], [], []
+        surf = _SURFACE.get(img.name)
+        surface = None
+        if surf is not None and surf[2:4] == (W, H) and np.allclose(surf[0], K) and np.allclose(surf[1], c2w) \
+                and surf[4] is not None:
+            surface = (surf[4], surf[5])
         for it in items:
             obj = bpy.data.objects.get(it.key.split("#")[0])
             if it.field is None:                     # the object's own field, vertex by vertex
                 field = fields.posed_copy(it)        # paint lands on the surface as it is posed now
                 targets.append((obj, field, it.path))
-                plans.append(None)
+                # a field with a paint atlas takes the paint in its texels (as sharp as painted)
+                plans.append("atlas" if getattr(field, "paint_atlas", None) is not None else None)
                 posed.append(field)
                 continue
             shown = fields.posed_copy(it)            # a field remapped onto the object's mesh
@@ -232,10 +242,30 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
             plans.append((source, ids))
 
         def run(progress):
-            recs = nm.edit.paint_fields(posed, K, c2w, W, H, layer, progress=progress)
+            # fields with a paint atlas: texel paint (each alone; the render painted on gives the
+            # surface); the others: modification colours, solved jointly
+            recs = [None] * len(posed)
+            for i, (plan, shown) in enumerate(zip(plans, posed)):
+                if plan == "atlas":
+                    try:
+                        recs[i] = nm.edit.paint_atlas_from_view(shown, K, c2w, W, H, layer, surface=surface)
+                    except nm.EditError as exc:
+                        if "background" not in str(exc) and "no texel" not in str(exc):
+                            raise
+            rest = [i for i, plan in enumerate(plans) if plan != "atlas"]
+            if rest:
+                try:
+                    for i, rec in zip(rest, nm.edit.paint_fields([posed[i] for i in rest], K, c2w, W, H, layer,
+                                                                 progress=progress)):
+                        recs[i] = rec
+                except nm.EditError:
+                    if not any(r is not None for r in recs):
+                        raise
+            if not any(r is not None for r in recs):
+                raise UserError("the paint covers none of the fields; paint over an object")
             out = []
             for rec, plan, shown in zip(recs, plans, posed):
-                if rec is None or plan is None:
+                if rec is None or plan is None or plan == "atlas":
                     out.append(rec)
                 elif plan == "skip":
                     out.append(None)

@@ -10,8 +10,10 @@ stencils and masks.
 The image is the truth while painting: whenever its pixels change (a stroke, Blender's undo or redo of
 one, a script writing ``image.pixels``) the changed rows are pushed into the cached field's paint atlas
 (``PaintAtlas.set_image``; the field is not rebuilt) and the Rendered viewports render again.  Changes
-are noticed by a depsgraph update of the image, by undo/redo, and by a timer that compares the pixels
-while the object is in Texture Paint mode (every ``POLL_S`` seconds).  *Save paint* writes the field
+are noticed by a stroke watcher (a modal handler that passes every event on: after a mouse press it
+pushes the image every 0.1 s, or twice as long as a push takes, until the image settles), by
+undo/redo handlers, and by a timer that compares the pixels itself where there is no window (scripts)
+and, rarely, as a fallback beside the watcher.  A push reads the whole image (~0.5 s at 4096^2).  *Save paint* writes the field
 with its atlas as a new edit file beside the object's own (``nm.edit.paint_image_record`` +
 ``save_edited``: atomic; Undo edit / Ctrl+Z go back as for every edit).
 """
@@ -104,6 +106,14 @@ def _mesh_uvs(mesh, loops):
     return uv.reshape(-1, 2)[loops]
 
 
+def _differ(a, b) -> np.ndarray:
+    """(H,W) where two (H,W,4) float32 images differ (each pixel compared as two 64-bit words)."""
+    if a.flags.c_contiguous and b.flags.c_contiguous:
+        a2, b2 = a.view(np.uint64), b.view(np.uint64)
+        return (a2[..., 0] != b2[..., 0]) | (a2[..., 1] != b2[..., 1])
+    return (a != b).any(-1)
+
+
 def _read_pixels(img) -> np.ndarray:
     w, h = img.size
     out = np.empty(w * h * 4, np.float32)
@@ -152,22 +162,22 @@ def sync_object(obj, depsgraph=None, force: bool = False) -> int:
         core.get().edit.create_paint_atlas(field, resolution=w, uvs=uv.reshape(-1, 2)[loops])
         force = True
     atlas = field.paint_atlas
+    t1 = time.perf_counter()
     px = _read_pixels(img)
+    t2 = time.perf_counter()
     last = st.get("last")
+    img3 = px.reshape(h, w, 4)
     if force or last is None or last.size != px.size or st.get("atlas") is not atlas:
-        rows = np.arange(h)
+        # against the atlas itself (Blender's rows run bottom to top)
+        yy, xx = np.nonzero(_differ(img3[::-1], atlas.image.numpy()))
     else:
-        rows = np.nonzero((px.reshape(h, -1) != last.reshape(h, -1)).any(1))[0]
-    changed = 0
-    if len(rows):
-        y0, y1 = int(rows.min()), int(rows.max()) + 1        # bottom-first rows of the Blender image
-        block = px.reshape(h, w, 4)[y0:y1][::-1]
-        cols = np.nonzero((block != atlas.image.numpy()[h - y1:h - y0]).any(-1).any(0))[0]
-        if len(cols):
-            x0, x1 = int(cols.min()), int(cols.max()) + 1
-            changed = len(atlas.set_image(block[:, x0:x1], (h - y1, h - y0, x0, x1)))
+        yb, xx = np.nonzero(_differ(img3, last.reshape(h, w, 4)))
+        yy = h - 1 - yb
+    t3 = time.perf_counter()
+    changed = len(atlas.set_texels(yy * w + xx, img3[h - 1 - yy, xx])) if len(yy) else 0
     st.update(last=px, atlas=atlas, image=img.name)
     STATS["polls"] += 1
+    STATS["last_split_s"] = {"field": t1 - t0, "read": t2 - t1, "diff": t3 - t2, "push": time.perf_counter() - t3}
     if changed:
         STATS["pushes"] += 1
         STATS["texels"] = changed
@@ -191,30 +201,93 @@ def sync_all(depsgraph=None, only_painting: bool = False) -> int:
     return n
 
 
+_WATCH = {"running": False, "pending": False, "last": 0.0, "cost": 0.0}
+
+
+def _painting() -> bool:
+    """Is an object whose field has a paint image in Texture Paint mode?"""
+    for img in bpy.data.images:
+        name = img.get(OBJECT_KEY)
+        obj = bpy.data.objects.get(name) if name else None
+        if obj is not None and obj.mode == "TEXTURE_PAINT":
+            return True
+    return False
+
+
 def _tick():
-    """Timer: while an object is in Texture Paint mode on its paint image, follow its pixels (read
-    only once the image was painted: ``is_dirty``).  Reading a 4096^2 image takes ~0.4 s, so the next
-    poll waits at least three times as long as this one took (the CPU stays mostly free)."""
+    """Timer.  With a window, it starts the stroke watcher (:class:`NEUMESH_OT_texture_paint_watch`)
+    while an object is in Texture Paint mode; without one (scripts), or as a slow fallback beside
+    the watcher, it compares the pixels itself, only once the image was painted (``is_dirty``).  A
+    4096^2 image takes ~0.5 s to read, so the next poll waits 3 (no watcher) or 10 (watcher) times as
+    long as this one took."""
+    if not _painting():
+        return POLL_S
+    if not _WATCH["running"]:
+        _start_watch()
     if not any(img.get(OBJECT_KEY) and img.is_dirty for img in bpy.data.images):
         return POLL_S
     t = time.perf_counter()
     sync_all(only_painting=True)
-    return max(POLL_S, 3.0 * (time.perf_counter() - t))
+    cost = time.perf_counter() - t
+    return max(5.0, 10.0 * cost) if _WATCH["running"] else max(POLL_S, 3.0 * cost)
 
 
-def _on_depsgraph(scene, depsgraph):
+def _start_watch():
     try:
-        ids = [u.id for u in depsgraph.updates]
+        wm = bpy.context.window_manager
+        win = wm.windows[0] if wm is not None and len(wm.windows) else None
     except Exception:  # noqa: BLE001
+        win = None
+    if win is None or bpy.app.background:
         return
-    for i in ids:
-        if isinstance(i, bpy.types.Image) and i.get(OBJECT_KEY):
-            obj = bpy.data.objects.get(i.get(OBJECT_KEY))
-            if obj is not None:
-                try:
-                    sync_object(obj)
-                except Exception as exc:  # noqa: BLE001
-                    print(f"NeuMesh: Texture Paint of '{obj.name}' not shown: {exc}")
+    try:
+        with bpy.context.temp_override(window=win):
+            bpy.ops.neumesh.texture_paint_watch("INVOKE_DEFAULT")
+    except Exception as exc:  # noqa: BLE001 - the timer's poll still follows the image
+        print(f"NeuMesh: cannot follow Texture Paint strokes: {exc}")
+
+
+class NEUMESH_OT_texture_paint_watch(bpy.types.Operator):
+    """Follow Texture Paint strokes on a NeuMesh field: after a mouse press (a stroke) the paint image
+    is pushed into the field every timer tick until nothing changes any more (runs while an object
+    with a NeuMesh paint image is in Texture Paint mode; passes every event on)"""
+
+    bl_idname = "neumesh.texture_paint_watch"
+    bl_label = "Follow Texture Paint"
+    bl_options = {"INTERNAL"}
+
+    def invoke(self, context, event):
+        if _WATCH["running"]:
+            return {"CANCELLED"}
+        self._timer = context.window_manager.event_timer_add(0.1, window=context.window)
+        context.window_manager.modal_handler_add(self)
+        _WATCH.update(running=True, pending=False)
+        return {"RUNNING_MODAL"}
+
+    def _end(self, context):
+        _WATCH.update(running=False, pending=False)
+        try:
+            context.window_manager.event_timer_remove(self._timer)
+        except Exception:  # noqa: BLE001
+            pass
+
+    def modal(self, context, event):
+        if not _painting():
+            self._end(context)
+            return {"FINISHED"}
+        if event.type == "LEFTMOUSE" and event.value == "PRESS":
+            _WATCH["pending"] = True           # a stroke starts: follow it until the image settles
+        elif event.type == "TIMER" and _WATCH["pending"]:
+            now = time.perf_counter()
+            if now - _WATCH["last"] >= max(0.1, 2.0 * _WATCH["cost"]):
+                n = sync_all(only_painting=True)
+                _WATCH.update(last=time.perf_counter(), cost=time.perf_counter() - now)
+                if n == 0:
+                    _WATCH["pending"] = False
+        return {"PASS_THROUGH"}
+
+    def cancel(self, context):
+        self._end(context)
 
 
 def _on_undo(*_args):
@@ -227,7 +300,7 @@ class NEUMESH_OT_texture_paint(bpy.types.Operator):
 
     bl_idname = "neumesh.texture_paint"
     bl_label = "Texture Paint"
-    bl_options = {"REGISTER"}
+    bl_options = {"REGISTER", "UNDO"}     # Ctrl+Z after the first stroke undoes the stroke, not this
 
     resolution: IntProperty(name="Resolution", default=0, min=0, max=16384,
                             description="Paint image size in texels (0: 2048, or 4096 for scaffolds over 50,000 "
@@ -269,6 +342,8 @@ class NEUMESH_OT_texture_paint(bpy.types.Operator):
         except RuntimeError:      # no 3D View (scripts, background): the image and UV map are ready
             pass
         _ensure_timer()
+        if not bpy.app.background and context.window is not None and not _WATCH["running"]:
+            bpy.ops.neumesh.texture_paint_watch("INVOKE_DEFAULT")
         h, w = atlas.size
         self.report({"INFO"}, f"NeuMesh: paint on '{obj.name}' ({w}x{h} texels, UV map '{UV_NAME}'); the "
                               "Rendered viewport follows; Save paint keeps it in the field")
@@ -349,21 +424,19 @@ def _ensure_timer():
         bpy.app.timers.register(_tick, first_interval=POLL_S, persistent=True)
 
 
-classes = (NEUMESH_OT_texture_paint, NEUMESH_OT_save_paint, NEUMESH_PT_texture_paint)
+classes = (NEUMESH_OT_texture_paint, NEUMESH_OT_texture_paint_watch, NEUMESH_OT_save_paint, NEUMESH_PT_texture_paint)
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
 
 
 def register():
     _register_classes()
-    bpy.app.handlers.depsgraph_update_post.append(_on_depsgraph)
     bpy.app.handlers.undo_post.append(_on_undo)
     bpy.app.handlers.redo_post.append(_on_undo)
     _ensure_timer()
 
 
 def unregister():
-    for hs, fn in ((bpy.app.handlers.depsgraph_update_post, _on_depsgraph), (bpy.app.handlers.undo_post, _on_undo),
-                   (bpy.app.handlers.redo_post, _on_undo)):
+    for hs, fn in ((bpy.app.handlers.undo_post, _on_undo), (bpy.app.handlers.redo_post, _on_undo)):
         if fn in hs:
             hs.remove(fn)
     if bpy.app.timers.is_registered(_tick):

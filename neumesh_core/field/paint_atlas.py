@@ -202,16 +202,32 @@ class PaintAtlas:
                                f"this part of the {w}x{h} paint image; was the image resized?")
         if not np.isfinite(px).all():
             raise NeuMeshError("the paint pixels hold NaN/inf values")
-        px = np.clip(px, 0.0, 1.0)
         cur = self.image.numpy()[y0:y1, x0:x1]
-        diff = np.abs(cur - px).max(-1) > 0
-        yy, xx = np.nonzero(diff)
-        if len(yy) == 0:
+        yy, xx = np.nonzero((cur != np.clip(px, 0.0, 1.0)).any(-1))
+        return self.set_texels((yy + y0) * w + (xx + x0), px[yy, xx])
+
+    def set_texels(self, texels, rgba) -> np.ndarray:
+        """Write RGBA (n,4) (straight alpha, clamped to [0, 1]) at flat texel indices (n,) of the paint
+        image (row-major, top row first): :meth:`set_image` for paint whose changed texels are known.
+        Returns the indices of the texels whose value changed."""
+        t = np.asarray(texels, np.int64).reshape(-1)
+        v = np.asarray(rgba, np.float32).reshape(-1, 4)
+        h, w = self.size
+        if len(t) != len(v):
+            raise NeuMeshError(f"{len(t)} texels but {len(v)} RGBA values")
+        if len(t) and (t.min() < 0 or t.max() >= h * w):
+            raise NeuMeshError(f"texel indices outside the {w}x{h} paint image")
+        if not np.isfinite(v).all():
+            raise NeuMeshError("the paint pixels hold NaN/inf values")
+        v = np.clip(v, 0.0, 1.0)
+        flat = self.image.view(-1, 4).numpy()
+        diff = (flat[t] != v).any(1)
+        t, v = t[diff], v[diff]
+        if len(t) == 0:
             return np.zeros(0, np.int64)
-        cur[yy, xx] = px[yy, xx]
-        idx = (yy + y0) * w + (xx + x0)
-        self.changed(idx)
-        return idx
+        flat[t] = v
+        self.changed(t)
+        return t
 
     def _pm(self) -> np.ndarray:
         if self._premultiplied is None:

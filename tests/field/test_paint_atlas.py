@@ -226,6 +226,19 @@ def test_set_image_updates_the_sampled_paint_as_a_full_rebuild_does(blob3):
     assert atlas.is_empty
     np.testing.assert_allclose(nm.render_camera(field, K, c2w, S, S).rgb, plain, atol=1e-6)
     assert np.abs(painted - plain).max() > 0.05
+    # set_texels (the changed texels known) writes the same image as set_image, its reference
+    other = _atlas(field, res=32)
+    yy, xx = np.mgrid[18:28, 8:20]
+    got = other.set_texels((yy * 32 + xx).ravel(), px.reshape(-1, 4))
+    np.testing.assert_array_equal(np.sort(got), np.sort(changed))
+    atlas.set_image(px, (18, 28, 8, 20))
+    np.testing.assert_allclose(other.image.numpy(), atlas.image.numpy(), atol=0)
+    np.testing.assert_allclose(other.sample(uv), atlas.sample(uv), atol=1e-6)
+    with pytest.raises(NeuMeshError, match="outside"):
+        other.set_texels([32 * 32], [[0, 0, 0, 1]])
+    with pytest.raises(NeuMeshError, match="RGBA values"):
+        other.set_texels([1, 2], [[0, 0, 0, 1]])
+    atlas.set_image(np.zeros((10, 12, 4), np.float32), (18, 28, 8, 20))
     with pytest.raises(NeuMeshError, match="outside"):
         atlas.set_image(px, (25, 35, 0, 12))
     with pytest.raises(NeuMeshError, match="resized"):
