@@ -78,6 +78,9 @@ class TexturePaintDriver:
         region = next(r for r in area.regions if r.type == "WINDOW")
         if self.state == "start":
             scene = bpy.context.scene
+            # a preview of two levels (1/8, 1/4) on this shared machine: each push re-renders the viewport
+            prefs = bpy.context.preferences.addons[addon_module().__name__].preferences
+            prefs.preview_start, prefs.preview_final = "8", "4"
             scene.render.engine = "NEUMESH"
             space = area.spaces.active
             space.region_3d.view_perspective = "CAMERA"

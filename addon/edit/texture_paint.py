@@ -145,7 +145,8 @@ def sync_object(obj, depsgraph=None, force: bool = False) -> int:
     if img is None or not props.has_field(obj):
         return 0
     t0 = time.perf_counter()
-    field = fields.get_field(obj.name_full, props.field_abspath(obj))   # the field the viewport shows
+    # the field the viewport shows (not waiting for a render that holds the cache's lock)
+    field = fields.cached_field(obj.name_full, props.field_abspath(obj))
     st = _STATE.setdefault(obj.name, {})
     w, h = img.size
     if getattr(field, "paint_atlas", None) is None or field.paint_atlas.size != (h, w):
@@ -275,15 +276,20 @@ class NEUMESH_OT_texture_paint_watch(bpy.types.Operator):
         if not _painting():
             self._end(context)
             return {"FINISHED"}
+        now = time.perf_counter()
         if event.type == "LEFTMOUSE" and event.value == "PRESS":
-            _WATCH["pending"] = True           # a stroke starts: follow it until the image settles
-        elif event.type == "TIMER" and _WATCH["pending"]:
-            now = time.perf_counter()
-            if now - _WATCH["last"] >= max(0.1, 2.0 * _WATCH["cost"]):
-                n = sync_all(only_painting=True)
-                _WATCH.update(last=time.perf_counter(), cost=time.perf_counter() - now)
-                if n == 0:
-                    _WATCH["pending"] = False
+            # a stroke starts (its own modal handler takes the events until it ends)
+            _WATCH.update(pending=True, stroke=True, event_t=now)
+        elif event.type != "TIMER":
+            if _WATCH.get("stroke"):           # the first event after a stroke: it has ended
+                _WATCH.update(pending=True, stroke=False, event_t=now)
+        elif _WATCH["pending"] and now - _WATCH["last"] >= max(0.1, 2.0 * _WATCH["cost"]):
+            n = sync_all(only_painting=True)
+            _WATCH.update(last=time.perf_counter(), cost=time.perf_counter() - now)
+            if n:
+                _WATCH["event_t"] = now
+            elif now - _WATCH.get("event_t", 0.0) > 0.5 and not _WATCH.get("stroke"):
+                _WATCH["pending"] = False      # the image has settled
         return {"PASS_THROUGH"}
 
     def cancel(self, context):
@@ -356,7 +362,7 @@ def unsaved_texels(obj) -> int:
     if st is None or img is None or st.get("saved") is None:
         return 0
     try:
-        field = fields.get_field(obj.name_full, props.field_abspath(obj))
+        field = fields.cached_field(obj.name_full, props.field_abspath(obj))
     except Exception:  # noqa: BLE001
         return 0
     if getattr(field, "paint_atlas", None) is None or field.paint_atlas.image.shape != st["saved"].shape:
