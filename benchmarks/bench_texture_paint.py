@@ -122,7 +122,7 @@ def main(argv=None) -> int:
     img.pixels.foreach_get(px)
     px = px.reshape(h, w, 4)
     colours = [(1.0, 0.0, 0.8), (0.0, 0.3, 1.0), (0.1, 0.9, 0.1), (1.0, 0.5, 0.0)]
-    tp._tick()                                             # the first poll after setup (nothing changed)
+    tp.tick()                                             # the first poll after setup (nothing changed)
     runs = []
     for i in range(a.repeat):
         for tx, ty in txy:                                 # the stroke: 5 x 5 dabs at the looked-up texels
@@ -131,7 +131,7 @@ def main(argv=None) -> int:
         img.pixels.foreach_set(px.ravel())
         load = os.getloadavg()
         t0 = time.perf_counter()
-        period = tp._tick()                                # the timer's poll: read, diff, push
+        period = tp.tick()                                # the timer's poll: read, diff, push
         t1 = time.perf_counter()
         texels = tp.STATS["texels"]
         split = dict(tp.STATS.get("last_split_s", {}))

@@ -90,6 +90,8 @@ class TexturePaintDriver:
             obj.select_set(True)
             with bpy.context.temp_override(window=win, area=area, region=region):
                 self.facts["texture_paint"] = sorted(bpy.ops.neumesh.texture_paint(resolution=1024))
+                # the undo step a click on the button pushes (operators called from Python push none)
+                bpy.ops.ed.undo_push(message="Texture Paint")
             self.facts["mode"] = obj.mode
             ip = scene.tool_settings.image_paint
             self.facts["canvas"] = ip.canvas.name if ip.canvas else None

@@ -80,7 +80,7 @@ def test_texture_paint_pixels_reach_the_rendered_field_undo_and_save(addon, trai
     # the UV map is the atlas's: loop corners carry the atlas UVs of the field's faces
     uv = np.empty(len(obj.data.loops) * 2, np.float32)
     obj.data.uv_layers[tp.UV_NAME].data.foreach_get("uv", uv)
-    loops = tp._triangles(obj.data)[1]
+    loops = tp.triangles(obj.data)[1]
     np.testing.assert_allclose(uv.reshape(-1, 2)[loops], field.paint_atlas.uv.numpy(), atol=1e-6)
 
     before, K, c2w = _render(field, cam)
@@ -89,7 +89,7 @@ def test_texture_paint_pixels_reach_the_rendered_field_undo_and_save(addon, trai
     row, col = _texel_under(field, K, c2w, before, y, x)
     old = _write_block(img, row, col, 3, (*GREEN, 1.0))
     assert img.is_dirty
-    n = tp._tick()                                   # the timer's poll (timers do not run in bpy scripts)
+    n = tp.tick()                                   # the timer's poll (timers do not run in bpy scripts)
     assert n >= tp.POLL_S and tp.STATS["texels"] == 49
     after, _, _ = _render(field, cam)
     a = float(before.opacity[y, x])                   # the paint over the field, the white background behind
@@ -100,7 +100,7 @@ def test_texture_paint_pixels_reach_the_rendered_field_undo_and_save(addon, trai
     assert 0 < changed.sum() < 0.2 * (before.opacity > 0.5).sum()
     # Blender's undo of the stroke puts the old pixels back: the field follows (undo_post handler)
     _write_block(img, row, col, 3, old)
-    tp._on_undo()
+    tp.on_undo()
     np.testing.assert_allclose(_render(field, cam)[0].rgb, before.rgb, atol=1e-6)
     # paint again, then Save paint: a new file beside the field's own, with the same paint
     _write_block(img, row, col, 3, (*GREEN, 1.0))
