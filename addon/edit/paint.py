@@ -25,6 +25,7 @@ from ..scene import camera, props
 from ..render import fields, frame
 from ..runtime.errors import UserError
 from .base import EditOperator, EditSubPanel, edit_copy
+from .paint_editor import OPENED_KEY, open_in_image_editor
 
 PAINT_IMAGE = "NeuMesh Paint"
 ORIGINAL_IMAGE = PAINT_IMAGE + " (unpainted)"
@@ -65,62 +66,7 @@ def _view(context):
     return cam, depsgraph, np.asarray(K, np.float32), np.asarray(c2w, np.float32), int(W), int(H)
 
 
-OPENED_KEY = "neumesh_opened_area"   # on the paint image: the add-on split a 3D View for it
-
-
-def _split_view(context):
-    """Split the largest 3D View of the window in two (side by side); the new right half, or None."""
-    window, screen = context.window, context.screen
-    views = [a for a in screen.areas if a.type == "VIEW_3D"]
-    if window is None or not views:
-        return None
-    area = max(views, key=lambda a: a.width * a.height)
-    before = set(screen.areas[:])
-    region = next((r for r in area.regions if r.type == "WINDOW"), None)
-    with context.temp_override(window=window, screen=screen, area=area, region=region):
-        bpy.ops.screen.area_split(direction="VERTICAL", factor=0.5)
-    new = [a for a in screen.areas if a not in before]
-    return new[0] if new else None
-
-
-def _open_in_image_editor(context, img) -> None:
-    """Show ``img`` in an Image Editor of the main window in Paint mode, its sidebar open on the NeuMesh
-    tab (Apply / Cancel): an existing Image Editor, else half of the largest 3D View; a new window only
-    when the screen has neither."""
-    screen = getattr(context, "screen", None)
-    if screen is None or bpy.app.background:
-        return
-    area = next((a for a in screen.areas if a.type == "IMAGE_EDITOR"), None)
-    if area is None:
-        try:
-            area = _split_view(context)
-        except Exception:  # noqa: BLE001 - a new window below
-            area = None
-        if area is not None:
-            area.type = "IMAGE_EDITOR"
-            img[OPENED_KEY] = True
-    if area is None:
-        try:
-            bpy.ops.wm.window_new()
-            area = bpy.context.window_manager.windows[-1].screen.areas[0]
-            area.type = "IMAGE_EDITOR"
-        except Exception:  # noqa: BLE001 - painting still works from any Image Editor the user opens
-            return
-    space = area.spaces.active
-    space.image = img
-    try:
-        space.show_region_ui = True
-    except Exception:  # noqa: BLE001
-        pass
-    try:
-        space.ui_mode = "PAINT"
-    except Exception:  # noqa: BLE001 - older Blender: mode on the space
-        try:
-            space.mode = "PAINT"
-        except Exception:  # noqa: BLE001
-            pass
-
-
+_SURFACE: dict = {}   # paint image name -> (K, c2w, W, H, opacity, depth) of the render painted on
 class NEUMESH_OT_paint_view(bpy.types.Operator):
     """Render the scene camera's view of the fields into an image to paint on (Image Editor, Paint
     mode); then press Apply painting"""
@@ -135,7 +81,7 @@ class NEUMESH_OT_paint_view(bpy.types.Operator):
             items = fields.collect(depsgraph, for_render=True)
             if not items:
                 raise UserError("no object with a field is in the scene; load or train a field first")
-            rgba = frame.render_items(items, K, c2w, W, H, transparent=False)
+            rgba, opacity, depth = frame.render_items_surface(items, K, c2w, W, H)
         except (UserError, core.CoreUnavailable) as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
@@ -156,7 +102,10 @@ class NEUMESH_OT_paint_view(bpy.types.Operator):
         img["neumesh_size"] = [W, H]
         img["neumesh_original"] = original.name
         img["neumesh_camera"] = cam.name
-        _open_in_image_editor(context, img)
+        # the surface under each pixel: paint into a field's paint atlas needs no render again
+        _SURFACE.clear()
+        _SURFACE[img.name] = (K.copy(), c2w.copy(), W, H, opacity, depth)
+        open_in_image_editor(context, img)
         self.report({"INFO"}, f"NeuMesh: paint on '{img.name}' ({W}x{H}) in the Image Editor, then Apply painting "
                               "(its sidebar, tab NeuMesh, or its header)")
         return {"FINISHED"}
@@ -210,12 +159,18 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
             raise UserError("no object with a field is in the scene")
 
         targets, posed, plans = [], [], []
+        surf = _SURFACE.get(img.name)
+        surface = None
+        if surf is not None and surf[2:4] == (W, H) and np.allclose(surf[0], K) and np.allclose(surf[1], c2w) \
+                and surf[4] is not None:
+            surface = (surf[4], surf[5])
         for it in items:
             obj = bpy.data.objects.get(it.key.split("#")[0])
             if it.field is None:                     # the object's own field, vertex by vertex
                 field = fields.posed_copy(it)        # paint lands on the surface as it is posed now
                 targets.append((obj, field, it.path))
-                plans.append(None)
+                # a field with a paint atlas takes the paint in its texels (as sharp as painted)
+                plans.append("atlas" if getattr(field, "paint_atlas", None) is not None else None)
                 posed.append(field)
                 continue
             shown = fields.posed_copy(it)            # a field remapped onto the object's mesh
@@ -232,10 +187,30 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
             plans.append((source, ids))
 
         def run(progress):
-            recs = nm.edit.paint_fields(posed, K, c2w, W, H, layer, progress=progress)
+            # fields with a paint atlas: texel paint (each alone; the render painted on gives the
+            # surface); the others: modification colours, solved jointly
+            recs = [None] * len(posed)
+            for i, (plan, shown) in enumerate(zip(plans, posed)):
+                if plan == "atlas":
+                    try:
+                        recs[i] = nm.edit.paint_atlas_from_view(shown, K, c2w, W, H, layer, surface=surface)
+                    except nm.EditError as exc:
+                        if "background" not in str(exc) and "no texel" not in str(exc):
+                            raise
+            rest = [i for i, plan in enumerate(plans) if plan != "atlas"]
+            if rest:
+                try:
+                    for i, rec in zip(rest, nm.edit.paint_fields([posed[i] for i in rest], K, c2w, W, H, layer,
+                                                                 progress=progress)):
+                        recs[i] = rec
+                except nm.EditError:
+                    if not any(r is not None for r in recs):
+                        raise
+            if not any(r is not None for r in recs):
+                raise UserError("the paint covers none of the fields; paint over an object")
             out = []
             for rec, plan, shown in zip(recs, plans, posed):
-                if rec is None or plan is None:
+                if rec is None or plan is None or plan == "atlas":
                     out.append(rec)
                 elif plan == "skip":
                     out.append(None)

@@ -67,6 +67,16 @@ def get_field(key: str, path: str):
         return field
 
 
+def cached_field(key: str, path: str):
+    """The field the viewport shows for object ``key`` from ``path`` without waiting for the cache's
+    lock (a render may hold it for seconds): the cached field when it is from ``path``, else
+    :func:`get_field` (which loads it).  For writes that a render may see half-done (paint pixels)."""
+    e = _CACHE.get(key)
+    if e is not None and e.path == path:
+        return e.field
+    return get_field(key, path)
+
+
 def adopt(key: str, path: str, field):
     """Make the cache hold ``field`` (already in memory, just saved to ``path``) for object ``key``, so
     an edit shows at once without reloading the file it wrote."""

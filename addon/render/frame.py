@@ -38,6 +38,15 @@ def render_items(items: list[Item], K, c2w, width: int, height: int, transparent
     return _rgba(out, width, height, transparent)
 
 
+def render_items_surface(items: list[Item], K, c2w, width: int, height: int):
+    """:func:`render_items` (opaque, on white) and the frame's (opacity, depth) (H,W) arrays: the
+    surface a paint layer painted on this image lies on (None, None without fields)."""
+    out = _render_out(items, K, c2w, width, height, False, None, 1)
+    if out is None:
+        return _empty(width, height, False), None, None
+    return _rgba(out, width, height, False), np.asarray(out.opacity), np.asarray(out.depth)
+
+
 def _render_out(items: list[Item], K, c2w, width: int, height: int, transparent: bool, progress,
                 supersample: int, far=None, background_model: bool = True):
     """``nm.render_camera`` of the posed fields of ``items`` (None when there is none)."""

@@ -177,7 +177,8 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
 
 def paint_texture(field, K, c2w, width: int, height: int, paint_rgba: np.ndarray,
                   config: Optional[PaintConfig] = None, settings=None,
-                  progress: Optional[Callable[[float], bool]] = None, target: Optional[str] = None) -> EditRecord:
+                  progress: Optional[Callable[[float], bool]] = None, target: Optional[str] = None,
+                  surface=None) -> EditRecord:
     """Paint ``paint_rgba`` (H,W,4 straight alpha, see :func:`paint_layer`) seen from (K, c2w) onto
     ``field``'s surface.
 
@@ -185,7 +186,9 @@ def paint_texture(field, K, c2w, width: int, height: int, paint_rgba: np.ndarray
     image (:func:`paint_atlas_from_view`; an atlas is made first when the field has none,
     :func:`create_paint_atlas`); "colours" solves for the per-vertex modification colours (paint at the
     vertex spacing: broad colour changes); None (default): the atlas when the field has one, else the
-    colours.  Returns the :class:`EditRecord`: ``record.undo(field)`` restores what it changed exactly."""
+    colours.  ``surface`` (atlas only): the render the layer was painted on (``render_camera``'s result
+    for this view of the field as it is now), so the painted pixels are not rendered again.  Returns
+    the :class:`EditRecord`: ``record.undo(field)`` restores what it changed exactly."""
     if target not in (None, "atlas", "colours"):
         raise EditError(f"target must be 'atlas', 'colours' or None, not {target!r}")
     if target is None:
@@ -193,7 +196,8 @@ def paint_texture(field, K, c2w, width: int, height: int, paint_rgba: np.ndarray
     if target == "atlas":
         if getattr(field, "paint_atlas", None) is None:
             create_paint_atlas(field)
-        return paint_atlas_from_view(field, K, c2w, width, height, paint_rgba, config, settings, progress)
+        return paint_atlas_from_view(field, K, c2w, width, height, paint_rgba, config, settings, progress,
+                                     surface=surface)
     return paint_fields([field], K, c2w, width, height, paint_rgba, config, settings, progress)[0]
 
 

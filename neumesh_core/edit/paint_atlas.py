@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from ..errors import EditError, NeuMeshError
-from .paint_view import PaintConfig, _cancel, _checked_layer, _rays, _render
+from .paint_view import PaintConfig, _cancel, _checked_layer, _rays
 from .record import EditRecord
 
 
@@ -100,7 +100,7 @@ class AtlasRecord(EditRecord):
             raise RuntimeError(f"cannot undo/redo '{self.op}': the field has no paint atlas")
         img = atlas.image.view(-1, 4)
         img[torch.as_tensor(self.texels)] = torch.as_tensor(values)
-        atlas.changed()
+        atlas.changed(self.texels)
 
     def undo(self, field) -> None:
         self._write_texels(field, self.texels_old)
@@ -148,84 +148,93 @@ def _grow_into_gutter(idx: np.ndarray, rgba: np.ndarray, covered: np.ndarray, si
     return idx, rgba
 
 
-def _forward_texels(atlas, field, layer, pts, hit, face, bary, box, bx, by, x0, y0, bw, bh, sub: int):
-    """Texels the render looks up from the painted pixels, with their pixel's paint: the bilinear
-    footprint (4 texels) of each painted pixel centre's lookup first, then the nearest texel of
-    ``sub`` x ``sub`` sub-pixel points per painted pixel (surface points interpolated between the four
-    pixel centres around them when all four hit one surface, else the pixel's own)."""
-    size = atlas.size[0]
-    a = layer[by, bx, 3]
-    live = np.nonzero(hit & (a > 0) & (face >= 0))[0]
-    out_i, out_c = [], []
-    if len(live) == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 4), np.float32)
-    col = layer[by[live], bx[live]]
-    xy = atlas.texel_coords(atlas.uv_at(face[live], bary[live])) - 0.5
+def _lookup_texels(atlas, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """(n,4) flat indices of the four texels a render's bilinear lookup at (face, bary) reads
+    (:meth:`PaintAtlas.sample`: between texel centres, clamped at the border)."""
+    h, w = atlas.size
+    xy = atlas.texel_coords(atlas.uv_at(face, bary)) - 0.5
     tx, ty = np.floor(xy[:, 0]).astype(np.int64), np.floor(xy[:, 1]).astype(np.int64)
-    for dy in (0, 1):
-        for dx in (0, 1):
-            out_i.append(np.clip(ty + dy, 0, size - 1) * size + np.clip(tx + dx, 0, size - 1))
-            out_c.append(col)
-    P = pts.reshape(bh, bw, 3)
-    H = hit.reshape(bh, bw)
-    depth_span = 0.5 * float(field.radius)
-    gx, gy = bx[live] - x0, by[live] - y0
-    for j in range(sub):
-        for i in range(sub):
-            fx, fy = (i + 0.5) / sub - 0.5, (j + 0.5) / sub - 0.5          # from the pixel centre
-            ix0 = gx + (fx < 0) * -1
-            iy0 = gy + (fy < 0) * -1
-            wx, wy = fx - (ix0 - gx), fy - (iy0 - gy)
-            ix1, iy1 = ix0 + 1, iy0 + 1
-            inb = (ix0 >= 0) & (iy0 >= 0) & (ix1 < bw) & (iy1 < bh)
-            c = [np.clip(v, 0, m - 1) for v, m in ((ix0, bw), (iy0, bh), (ix1, bw), (iy1, bh))]
-            p00, p10 = P[c[1], c[0]], P[c[1], c[2]]
-            p01, p11 = P[c[3], c[0]], P[c[3], c[2]]
-            four = inb & H[c[1], c[0]] & H[c[1], c[2]] & H[c[3], c[0]] & H[c[3], c[2]]
-            stack = np.stack([p00, p10, p01, p11])
-            spread = np.linalg.norm(stack - stack.mean(0), axis=2).max(0)
-            four &= spread <= depth_span
-            interp = ((1 - wx)[:, None] * (1 - wy)[:, None] * p00 + wx[:, None] * (1 - wy)[:, None] * p10 +
-                      (1 - wx)[:, None] * wy[:, None] * p01 + wx[:, None] * wy[:, None] * p11)
-            q = np.where(four[:, None], interp, pts[live])
-            f_, b_, d_ = atlas.closest_faces(field, q)
-            keep = d_ <= 2.5 * float(field.radius)
-            t = np.floor(atlas.texel_coords(atlas.uv_at(f_[keep], b_[keep]))).astype(np.int64)
-            out_i.append(np.clip(t[:, 1], 0, size - 1) * size + np.clip(t[:, 0], 0, size - 1))
-            out_c.append(col[keep])
-    return np.concatenate(out_i), np.concatenate(out_c).astype(np.float32)
+    out = [np.clip(ty + dy, 0, h - 1) * w + np.clip(tx + dx, 0, w - 1) for dy in (0, 1) for dx in (0, 1)]
+    return np.stack(out, 1)
 
 
-def _sample_nearest(layer: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """(n,4) the painted pixel (nearest: the pixel square) containing each image position q (x, y)."""
-    h, w = layer.shape[:2]
-    xi = np.clip(np.floor(q[:, 0]).astype(np.int64), 0, w - 1)
-    yi = np.clip(np.floor(q[:, 1]).astype(np.int64), 0, h - 1)
-    return layer[yi, xi]
+def _checked_surface(surface, width: int, height: int):
+    """(opacity, depth) flat float arrays of the render a layer was painted on, or an EditError."""
+    try:
+        if isinstance(surface, (tuple, list)):
+            op, depth = surface
+        else:
+            op, depth = surface.opacity, surface.depth
+        op, depth = np.asarray(op, np.float32), np.asarray(depth, np.float32)
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise EditError("surface must be the render the layer was painted on (render_camera's result, or "
+                        "(opacity, depth) arrays)") from exc
+    if op.shape != (height, width) or depth.shape != (height, width):
+        raise EditError(f"the render painted on is {op.shape[::-1]} / {depth.shape[::-1]}, not this {width}x{height} "
+                        "view; pass the render of this view, or none (the painted pixels are rendered again)")
+    return op.reshape(-1), depth.reshape(-1)
+
+
+def _render_pixels(field, K, c2w, width: int, height: int, pixels: np.ndarray, settings, chunk: int):
+    """(opacity, depth) of some pixels of a view, rendered as :func:`render_camera` renders them (the
+    same per-pixel ray ranges, so the same samples and the same expected depths)."""
+    K32, c2w32 = K.astype(np.float32), c2w.astype(np.float32)
+    device = field.rest_vertices.device
+    op = np.zeros(len(pixels), np.float32)
+    depth = np.full(len(pixels), np.inf, np.float32)
+    ranges = field.grid.camera_ranges(K32, c2w32, width, height, settings.empty_tile) if settings.skip_empty \
+        else None
+    rows = np.arange(len(pixels))
+    if ranges is not None:
+        pt = torch.as_tensor(pixels, device=ranges[0].device)
+        near, far = ranges[0][pt], ranges[1][pt]
+        live = (near <= far).cpu().numpy()
+        rows = rows[live]
+        near, far = near[torch.as_tensor(live, device=near.device)], far[torch.as_tensor(live, device=near.device)]
+    if len(rows) == 0:
+        return op, depth
+    o, d = _rays(K32, c2w32, width, height, pixels[rows], device)
+    from ..render.renderer import render_rays
+
+    with torch.no_grad():
+        for s in range(0, len(rows), chunk):
+            e = min(len(rows), s + chunk)
+            r = render_rays([field], o[s:e], d[s:e], None, settings, train=False,
+                            ranges=None if ranges is None else [(near[s:e], far[s:e])])
+            op[rows[s:e]] = r["opacity"].cpu().numpy()
+            depth[rows[s:e]] = r["depth"].cpu().numpy()
+    return op, depth
 
 
 def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np.ndarray,
                           config: Optional[PaintConfig] = None, settings=None,
-                          progress: Optional[Callable[[float], bool]] = None) -> AtlasRecord:
+                          progress: Optional[Callable[[float], bool]] = None, surface=None) -> AtlasRecord:
     """Write a painted layer seen from one view into the field's paint atlas, texel by texel.
 
-    1. The rays of the painted pixels' box (and a margin of 3 pixels) find their expected surface
-       points and each point's nearest scaffold point (the render's lookup).
-    2. The texels of the faces those points touch (and their one-ring) each search the line through
-       their scaffold point along the face normal (turned towards the camera) for where it meets the
-       surface this view renders (the first crossing, from the camera's side, of ray distance minus
-       rendered depth, over +-2.5 radii).  A texel is painted when it finds one and the pixel it
-       projects to has its nearest scaffold point within about a pixel of the texel's: the render
-       looks this texel up from that pixel.
-    3. Each painted texel takes the painted pixel it projects into (nearest: the paint is as sharp as
-       the painted image), composited over the atlas's paint with the layer's alpha.
+    1. The pixels of the paint's box (and a margin of 6 pixels) find their expected surface points
+       (from ``surface``, the render the layer was painted on: :class:`RenderResult` or (opacity,
+       depth) (H,W) arrays of this view of the field as it is now; else by rendering the box) and each
+       point's nearest scaffold point: the render's own lookup of the paint atlas.
+    2. Forward: the four texels each painted pixel's bilinear lookup reads take its paint, so the
+       painted view shows the painted pixels.
+    3. Backward, for other views and finer renders: every texel of the faces the painted pixels look up
+       takes the paint of the pixel whose lookup point lies nearest to it (within about a pixel's
+       footprint), painted or not: a texel between two painted pixels is painted, one nearer an
+       unpainted pixel is not.  Texels along chart borders that a bilinear lookup reads take the paint
+       of their painted neighbours (two texels into the gutter).
+    4. Texels that a pixel more than 2 px from the paint reads (its bilinear footprint; with
+       ``surface``, any pixel of the view whose surface point lies near the paint) are never written:
+       nothing farther than 2 px from the paint changes in the painted view.
+    5. Each painted texel takes its paint composited over the atlas's paint with the layer's alpha.
 
-    The render composites the atlas at every ray's expected surface point via the same nearest-face
-    lookup, so re-rendering the painted view shows the painted pixels.  Raises :class:`EditError`
-    (nothing changed) when nothing is painted or the paint covers only background.
+    Raises :class:`EditError` (nothing changed) when nothing is painted or the paint covers only
+    background.
     """
-    from ..render.renderer import RenderSettings
+    from scipy.ndimage import binary_dilation
+    from scipy.spatial import cKDTree
+
     from ..bake.texture import texel_coverage
+    from ..render.renderer import RenderSettings
 
     cfg = config or PaintConfig()
     settings = settings or RenderSettings()
@@ -233,136 +242,110 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     if atlas is None:
         raise EditError("the field has no paint atlas; make one first (create_paint_atlas)")
     atlas.check(field)
+    h_img, w_img = atlas.size
+    if h_img != w_img:
+        raise EditError("the paint atlas image must be square")
     t0 = time.perf_counter()
-    layer = _checked_layer(paint_rgba, width, height)
-    layer = np.clip(layer, 0, 1)
+    layer = np.clip(_checked_layer(paint_rgba, width, height), 0, 1)
+    given = None if surface is None else _checked_surface(surface, width, height)
     alpha = layer[..., 3]
     ys, xs = np.nonzero(alpha > 0)
     if len(ys) == 0:
         raise EditError("nothing is painted: paint on the image first (alpha > 0 marks painted pixels)")
     K = np.asarray(K, np.float64)
     c2w = np.asarray(c2w, np.float64)
-    cam = c2w[:3, 3]
     device = field.rest_vertices.device
     timing = {}
     _cancel(progress, 0.0)
+    lim = 2.5 * float(field.radius)          # the render paints surface points this near the scaffold
 
-    # 1. the box around the paint: expected surface points, their faces and offsets along the normals
-    m = 3
+    # 1. the box around the paint: expected surface points and their lookups
+    m = 6
     x0, x1 = max(0, xs.min() - m), min(width, xs.max() + m + 1)
     y0, y1 = max(0, ys.min() - m), min(height, ys.max() + m + 1)
-    bw, bh = x1 - x0, y1 - y0
     gy, gx = np.mgrid[y0:y1, x0:x1]
     box = (gy * width + gx).reshape(-1)
     t = time.perf_counter()
-    o, d = _rays(K.astype(np.float32), c2w.astype(np.float32), width, height, box, device)
-    _, op, depth = _render([field], o, d, settings, cfg.chunk_rays)
+    if given is None:
+        op, depth = _render_pixels(field, K, c2w, width, height, box, settings, cfg.chunk_rays)
+    else:
+        op, depth = given[0][box], given[1][box]
     timing["render_s"] = time.perf_counter() - t
-    _cancel(progress, 0.4)
+    _cancel(progress, 0.3)
     t = time.perf_counter()
-    hit = (op >= cfg.hit_opacity).numpy() & np.isfinite(depth.numpy())
-    painted_box = alpha[gy, gx].reshape(-1) > 0
-    if not (hit & painted_box).any():
+    stroke = alpha > 0
+    near_stroke = binary_dilation(stroke, iterations=2)       # "within 2 px" as the figures count it
+    hit = (op >= cfg.hit_opacity) & np.isfinite(depth)
+    if not (hit & stroke.reshape(-1)[box]).any():
         raise EditError(f"the paint covers only background ({len(ys)} painted pixels, none on the field); "
                         "paint over the object")
-    pts = (o + d * torch.where(torch.as_tensor(hit), depth, torch.zeros_like(depth))[:, None]).cpu().numpy()
-    pts = pts.astype(np.float64)
-    face = np.full(len(box), -1, np.int64)
-    hf, hb, hd = atlas.closest_faces(field, pts[hit])
-    V = atlas.lookup_vertices(field)             # the surface the lookups are made on
-    F = field.faces.cpu().numpy().astype(np.int64)
-    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
-    near = hd <= 2.5 * field.radius
-    hi = np.nonzero(hit)[0]
-    face[hi[near]] = hf[near]
-    cpt = (hb[near, :, None] * V[F[hf[near]]]).sum(1)
-    cbox = np.full((len(box), 3), np.nan)      # each box pixel's nearest scaffold point
-    cbox[hi[near]] = cpt
-    bbox_bary = np.zeros((len(box), 3))
-    bbox_bary[hi[near]] = hb[near]
+    pix = box[hit]
+    zpix = depth[hit].astype(np.float32)
+    if given is not None:
+        # every other pixel of the view whose surface point lies near the paint's surface points
+        g_op, g_depth = given
+        o_all, d_all = _rays(K.astype(np.float32), c2w.astype(np.float32), width, height, pix, "cpu")
+        p_box = (o_all + d_all * torch.as_tensor(zpix)[:, None]).numpy()
+        lo, hi = p_box.min(0) - 2 * lim, p_box.max(0) + 2 * lim
+        rest = np.ones(width * height, bool)
+        rest[box] = False
+        rest &= (g_op >= cfg.hit_opacity) & np.isfinite(g_depth)
+        cand = np.nonzero(rest)[0]
+        if len(cand):
+            o_c, d_c = _rays(K.astype(np.float32), c2w.astype(np.float32), width, height, cand, "cpu")
+            p_c = (o_c + d_c * torch.as_tensor(g_depth[cand])[:, None]).numpy()
+            inside = ((p_c >= lo) & (p_c <= hi)).all(1)
+            pix = np.concatenate([pix, cand[inside]])
+            zpix = np.concatenate([zpix, g_depth[cand[inside]]])
+    o, d = _rays(K.astype(np.float32), c2w.astype(np.float32), width, height, pix, device)
+    pts = (o + d * torch.as_tensor(zpix, device=o.device)[:, None]).cpu().numpy().astype(np.float64)
+    face, bary, dist = atlas.closest_faces(field, pts)
+    near = dist <= lim
+    pix, face, bary, z = pix[near], face[near], bary[near], zpix[near].astype(np.float64)
+    painted = stroke.reshape(-1)[pix]
+    far = ~near_stroke.reshape(-1)[pix]
     timing["surface_s"] = time.perf_counter() - t
+    _cancel(progress, 0.5)
 
-    # 2. the texels of the touched faces and their one-ring, on the field's surface, seen from the view
+    # 2. forward: what the painted pixels read; 4. what pixels far from the paint read
     t = time.perf_counter()
-    touched = np.unique(face[face >= 0])
-    ring_v = np.unique(F[touched])
-    is_v = np.zeros(len(V), bool)
-    is_v[ring_v] = True
-    cand = np.nonzero(is_v[F].any(1))[0]
-    h_img, w_img = atlas.size
-    if h_img != w_img:
-        raise EditError("the paint atlas image must be square")
-    texel, tf, tb = texel_coverage(atlas.uv.numpy()[cand].reshape(-1, 2), np.arange(3 * len(cand)).reshape(-1, 3),
-                                   h_img)
-    tf = cand[tf]
+    reads = _lookup_texels(atlas, face, bary)
+    col = layer.reshape(-1, 4)[pix]
+    fwd_idx = reads[painted].reshape(-1)
+    fwd_rgba = np.repeat(col[painted], 4, 0)
+    protected = np.unique(reads[far].reshape(-1))
+
+    # 3. backward: texels of the faces the painted pixels look up take the paint of the nearest lookup
+    V = atlas.lookup_vertices(field)
+    F = field.faces.cpu().numpy().astype(np.int64)
+    touched = np.unique(face[painted])
+    texel, tf, tb = texel_coverage(atlas.uv.numpy()[touched].reshape(-1, 2),
+                                   np.arange(3 * len(touched)).reshape(-1, 3), h_img)
+    tf = touched[tf]
     ps = (tb[:, :, None] * V[F[tf]]).sum(1)
-    # the face normal turned towards the camera: the render's nearest-face lookup does not care how a
-    # face is wound, so neither does this (a scaffold may hold flipped faces)
-    nrm = fn[tf] * np.where((fn[tf] * (cam[None] - ps)).sum(1) >= 0, 1.0, -1.0)[:, None]
-    w2c = np.linalg.inv(c2w)
-
-    def project(x):
-        c = x @ w2c[:3, :3].T + w2c[:3, 3]
-        z = np.maximum(c[:, 2], 1e-9)
-        return np.stack([K[0, 0] * c[:, 0] / z + K[0, 2], K[1, 1] * c[:, 1] / z + K[1, 2]], 1), c[:, 2]
-
-    def box_index(q):
-        xi = np.floor(q[:, 0]).astype(np.int64) - x0
-        yi = np.floor(q[:, 1]).astype(np.int64) - y0
-        inside = (xi >= 0) & (xi < bw) & (yi >= 0) & (yi < bh)
-        return np.where(inside, yi * bw + np.clip(xi, 0, bw - 1), -1), inside
-
-    # each texel's line along its face normal: where it meets the surface this view renders (the
-    # first crossing from outside of ray distance - rendered depth), found on 41 points over +-2.5 radii
-    # (the render paints surface points within 2.5 radii of the scaffold)
-    zmap = np.where(hit, depth.numpy().astype(np.float64), np.nan)
-    steps = np.linspace(2.5, -2.5, 41) * float(field.radius)
-    res_prev, s_prev = None, None
-    s_hit = np.full(len(ps), np.nan)
-    for sk in steps:
-        pk = ps + sk * nrm
-        qk, _ = project(pk)
-        bi, inside = box_index(qk)
-        dist_k = np.linalg.norm(pk - cam[None], axis=1)
-        res = np.where(inside, dist_k - zmap[np.maximum(bi, 0)], np.nan)
-        if res_prev is not None:
-            cross = np.isnan(s_hit) & (res_prev <= 0) & (res > 0)
-            frac = res_prev / np.where(res - res_prev != 0, res_prev - res, -1e-30)
-            s_hit = np.where(cross, s_prev + np.clip(frac, 0, 1) * (sk - s_prev), s_hit)
-        res_prev, s_prev = res, sk
-    ok = np.isfinite(s_hit)
-    p = ps + np.where(ok, s_hit, 0.0)[:, None] * nrm
-    q, z = project(p)
-    bi, inside = box_index(q)
-    ok &= inside & (z > 0)
-    bi_ok = np.maximum(bi, 0)
-    # the render looks this texel up from that pixel: the pixel's surface point has its nearest
-    # scaffold point within a pixel footprint or so of the texel's scaffold point
-    pix_foot = z / max(float(K[0, 0]), 1e-9)
-    ok &= hit[bi_ok] & (np.linalg.norm(cbox[bi_ok] - ps, axis=1) <= 2.0 * pix_foot + 0.05 * field.radius)
-    timing["texels_s"] = time.perf_counter() - t
-
-    # 3. paint: the painted pixel each texel lies in, over the atlas's paint.  Forward too (the render's
-    # own lookup): the texels around each painted pixel's lookup (its bilinear footprint) and those
-    # that 4 x 4 sub-pixel surface points (interpolated between pixel centres on one surface) look up
-    t = time.perf_counter()
-    fwd_idx, fwd_rgba = _forward_texels(atlas, field, layer, pts, hit, face, bbox_bary, box, gx.reshape(-1),
-                                        gy.reshape(-1), x0, y0, bw, bh, 4)
-    rgba = np.concatenate([fwd_rgba, _sample_nearest(layer, q[ok])])
-    idx = np.concatenate([fwd_idx, texel[ok]])
-    sel = rgba[:, 3] > 0
-    idx = idx[sel]
-    rgba = rgba[sel]
-    if len(idx) == 0:
-        raise EditError("no texel of the paint atlas lies under the paint; paint over the object")
+    cpt = (bary[:, :, None] * V[F[face]]).sum(1)                   # each pixel's lookup point
+    dj, j = cKDTree(cpt).query(ps, k=1)
+    foot = z[j] / max(float(K[0, 0]), 1e-9)                         # a pixel's footprint at its depth
+    back = painted[j] & (dj <= 1.5 * foot)
+    idx = np.concatenate([fwd_idx, texel[back]])
+    rgba = np.concatenate([fwd_rgba, col[j[back]]]).astype(np.float32)
     idx, first = np.unique(idx, return_index=True)
     rgba = rgba[first]
     # bilinear lookups at chart borders read texels outside every chart: grow the paint into those
     # (never into another triangle's texels) by two texels
     idx, rgba = _grow_into_gutter(idx, rgba, texel, h_img, 2, atlas.cell)
+    keep = ~np.isin(idx, protected, assume_unique=False)
+    idx, rgba = idx[keep], rgba[keep]
+    if len(idx) == 0:
+        raise EditError("no texel of the paint atlas lies under the paint; paint over the object")
+    timing["texels_s"] = time.perf_counter() - t
+    _cancel(progress, 0.8)
+
+    # 5. write: the paint over the atlas's paint
+    t = time.perf_counter()
     img = atlas.image.view(-1, 4)
-    old = img[torch.as_tensor(idx)].numpy().copy()
+    tid = torch.as_tensor(idx)
+    old = img[tid].numpy().copy()
     a = rgba[:, 3:4]
     out_a = a + (1 - a) * old[:, 3:4]
     out_rgb = (a * rgba[:, :3] + (1 - a) * old[:, 3:4] * old[:, :3]) / np.maximum(out_a, 1e-12)
@@ -370,15 +353,38 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     rec = AtlasRecord(op="paint_atlas", vertices=np.zeros(0, np.int64), old={}, texels=idx,
                       texels_old=old, texels_new=new, decoders_before=field.num_decoders,
                       decoders_after=field.num_decoders)
-    img[torch.as_tensor(idx)] = torch.as_tensor(new)
-    atlas.changed()
+    img[tid] = torch.as_tensor(new)
+    atlas.changed(idx)
     timing["write_s"] = time.perf_counter() - t
-    rec.info.update(painted_pixels=int(len(ys)), hit_pixels=int((hit & painted_box).sum()),
-                    painted_texels=int(len(idx)), candidate_faces=int(len(cand)), box_pixels=int(len(box)),
-                    atlas_resolution=int(h_img), seconds=time.perf_counter() - t0, **timing)
+    rec.info.update(painted_pixels=int(len(ys)), hit_pixels=int(painted.sum()), painted_texels=int(len(idx)),
+                    protected_texels=int(len(protected)), candidate_faces=int(len(touched)),
+                    box_pixels=int(len(box)), lookup_pixels=int(len(pix)), atlas_resolution=int(h_img),
+                    surface_given=given is not None, seconds=time.perf_counter() - t0, **timing)
     if progress is not None:
         progress(1.0)
     return rec
 
 
-__all__ = ["AtlasRecord", "create_paint_atlas", "paint_atlas_from_view"]
+def paint_image_record(field, before) -> AtlasRecord:
+    """The texels of the field's paint image that differ from ``before`` ((H,W,4) float, the image as
+    it was, e.g. when it was last saved) as an :class:`AtlasRecord`: the record of paint made outside
+    NeuMesh (Blender's Texture Paint writes the image directly), for saving it as an edit
+    (``save_edited``) and undoing it exactly.  Raises :class:`EditError` when the field has no atlas
+    or ``before`` is not an image of its size."""
+    atlas = getattr(field, "paint_atlas", None)
+    if atlas is None:
+        raise EditError("the field has no paint atlas; make one first (create_paint_atlas)")
+    prev = np.asarray(before, np.float32)
+    if prev.shape != tuple(atlas.image.shape):
+        raise EditError(f"the earlier paint image is {prev.shape}, the atlas's is {tuple(atlas.image.shape)}; "
+                        "they must be the same image")
+    now = atlas.image.numpy()
+    idx = np.nonzero((np.abs(now - prev) > 0).any(-1).reshape(-1))[0]
+    rec = AtlasRecord(op="paint_image", vertices=np.zeros(0, np.int64), old={}, texels=idx,
+                      texels_old=prev.reshape(-1, 4)[idx].copy(), texels_new=now.reshape(-1, 4)[idx].copy(),
+                      decoders_before=field.num_decoders, decoders_after=field.num_decoders)
+    rec.info.update(painted_texels=int(len(idx)), atlas_resolution=int(atlas.size[0]))
+    return rec
+
+
+__all__ = ["AtlasRecord", "create_paint_atlas", "paint_atlas_from_view", "paint_image_record"]

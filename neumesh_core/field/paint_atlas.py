@@ -28,65 +28,9 @@ import numpy as np
 import torch
 
 from ..errors import CheckpointError, NeuMeshError
+from .triangles import closest_faces_reference, closest_points_on_triangles  # noqa: F401  (re-exported)
 
 ATLAS_VERSION = 1
-
-
-def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray):
-    """Closest points of triangles (a, b, c) (n,3) to points p (n,3) (Ericson, Real-Time Collision
-    Detection 5.1.5, vectorised).  Returns barycentric coordinates (n,3) of the closest points."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
-    bp = p - b
-    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
-    cp = p - c
-    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    n = len(p)
-    out = np.zeros((n, 3))
-    done = np.zeros(n, bool)
-
-    def put(mask, bary):
-        m = mask & ~done
-        out[m] = bary[m] if bary.ndim == 2 else bary
-        done[m] = True
-
-    eps = 1e-30
-    put((d1 <= 0) & (d2 <= 0), np.array([1.0, 0, 0]))
-    put((d3 >= 0) & (d4 <= d3), np.array([0, 1.0, 0]))
-    put((d6 >= 0) & (d5 <= d6), np.array([0, 0, 1.0]))
-    v = d1 / np.where(np.abs(d1 - d3) > eps, d1 - d3, eps)
-    put((vc <= 0) & (d1 >= 0) & (d3 <= 0), np.stack([1 - v, v, np.zeros(n)], 1))
-    w = d2 / np.where(np.abs(d2 - d6) > eps, d2 - d6, eps)
-    put((vb <= 0) & (d2 >= 0) & (d6 <= 0), np.stack([1 - w, np.zeros(n), w], 1))
-    den = (d4 - d3) + (d5 - d6)
-    w = (d4 - d3) / np.where(np.abs(den) > eps, den, eps)
-    put((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), np.stack([np.zeros(n), 1 - w, w], 1))
-    den = va + vb + vc
-    den = np.where(np.abs(den) > eps, den, eps)
-    v, w = vb / den, vc / den
-    put(np.ones(n, bool), np.stack([1 - v - w, v, w], 1))
-    return out
-
-
-def closest_faces_reference(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray):
-    """Plain reference of :meth:`PaintAtlas.closest_faces`: every point against every face."""
-    p = np.asarray(points, np.float64)
-    V = np.asarray(vertices, np.float64)
-    F = np.asarray(faces, np.int64)
-    face = np.zeros(len(p), np.int64)
-    bary = np.zeros((len(p), 3))
-    dist = np.full(len(p), np.inf)
-    for i in range(len(p)):
-        q = np.repeat(p[i:i + 1], len(F), 0)
-        b = closest_points_on_triangles(q, V[F[:, 0]], V[F[:, 1]], V[F[:, 2]])
-        x = (b[:, :, None] * V[F]).sum(1)
-        d = np.linalg.norm(x - p[i], axis=1)
-        j = int(np.argmin(d))
-        face[i], bary[i], dist[i] = j, b[j], d[j]
-    return face, bary, dist
 
 
 def grid_atlas(faces: np.ndarray, resolution: int, gutter: float = 1.0) -> tuple:
@@ -170,9 +114,64 @@ class PaintAtlas:
         self._cache = None
         self._premultiplied = None
 
-    def changed(self) -> None:
-        """Call after writing :attr:`image` in place (the premultiplied copy used for sampling is rebuilt)."""
-        self._premultiplied = None
+    def changed(self, texels=None) -> None:
+        """Call after writing :attr:`image` in place: the premultiplied copy used for sampling is
+        rebuilt, or with ``texels`` (flat indices of the texels written) updated at those texels only."""
+        if texels is None or self._premultiplied is None:
+            self._premultiplied = None
+            return
+        t = np.asarray(texels, np.int64).reshape(-1)
+        if len(t) == 0:
+            return
+        rows = self.image.view(-1, 4).numpy()[t]
+        pm = self._premultiplied[0].reshape(-1, 4)
+        pm[t] = np.concatenate([rows[:, :3] * rows[:, 3:], rows[:, 3:]], 1).astype(np.float16)
+        any_paint = self._premultiplied[1] or bool((rows[:, 3] > 0).any())
+        if self._premultiplied[1] and not (rows[:, 3] > 0).all():
+            any_paint = bool((pm[:, 3] > 0).any())        # paint taken away (undo): look again
+        self._premultiplied = (self._premultiplied[0], any_paint)
+
+    def set_image(self, rgba, region=None) -> np.ndarray:
+        """Replace the paint image, or the part of it in ``region`` (y0, y1, x0, x1 in image rows/columns,
+        top row first), with ``rgba`` (straight alpha, float in [0, 1]; a paint program's pixels).  The
+        field is not rebuilt: the next render shows the new paint.  Returns the flat indices of the
+        texels that changed."""
+        h, w = self.size
+        y0, y1, x0, x1 = (0, h, 0, w) if region is None else (int(v) for v in region)
+        if not (0 <= y0 < y1 <= h and 0 <= x0 < x1 <= w):
+            raise NeuMeshError(f"region {region} lies outside the {w}x{h} paint image")
+        px = np.asarray(rgba, np.float32)
+        if px.shape != (y1 - y0, x1 - x0, 4):
+            raise NeuMeshError(f"the paint pixels are {px.shape}, expected ({y1 - y0}, {x1 - x0}, 4) RGBA for "
+                               f"this part of the {w}x{h} paint image; was the image resized?")
+        if not np.isfinite(px).all():
+            raise NeuMeshError("the paint pixels hold NaN/inf values")
+        cur = self.image.numpy()[y0:y1, x0:x1]
+        yy, xx = np.nonzero((cur != np.clip(px, 0.0, 1.0)).any(-1))
+        return self.set_texels((yy + y0) * w + (xx + x0), px[yy, xx])
+
+    def set_texels(self, texels, rgba) -> np.ndarray:
+        """Write RGBA (n,4) (straight alpha, clamped to [0, 1]) at flat texel indices (n,) of the paint
+        image (row-major, top row first): :meth:`set_image` for paint whose changed texels are known.
+        Returns the indices of the texels whose value changed."""
+        t = np.asarray(texels, np.int64).reshape(-1)
+        v = np.asarray(rgba, np.float32).reshape(-1, 4)
+        h, w = self.size
+        if len(t) != len(v):
+            raise NeuMeshError(f"{len(t)} texels but {len(v)} RGBA values")
+        if len(t) and (t.min() < 0 or t.max() >= h * w):
+            raise NeuMeshError(f"texel indices outside the {w}x{h} paint image")
+        if not np.isfinite(v).all():
+            raise NeuMeshError("the paint pixels hold NaN/inf values")
+        v = np.clip(v, 0.0, 1.0)
+        flat = self.image.view(-1, 4).numpy()
+        diff = (flat[t] != v).any(1)
+        t, v = t[diff], v[diff]
+        if len(t) == 0:
+            return np.zeros(0, np.int64)
+        flat[t] = v
+        self.changed(t)
+        return t
 
     def _pm(self) -> np.ndarray:
         if self._premultiplied is None:

@@ -153,3 +153,58 @@ def test_without_an_atlas_paint_goes_to_the_vertex_colours_and_bad_input_is_refu
     with pytest.raises(EditError, match="RGBA"):
         paint_atlas_from_view(f, K, c2w, S, S, np.zeros((S, S, 3), np.float32))
     assert f.paint_atlas.is_empty
+
+
+def test_the_render_painted_on_gives_the_same_paint_as_rendering_the_pixels_again(blob4):
+    """``surface=`` (the render the layer was painted on: no render in the apply) against the reference
+    that renders the painted pixels' box again: the same texels painted, the same picture, nothing
+    farther than 2 px from the paint changed."""
+    K, c2w = camera(10.0, size=S)
+    f_ref, f_fast = _field(blob4), _field(blob4)
+    before = nm.render_camera(f_ref, K, c2w, S, S)
+    mask = np.zeros((S, S), bool)
+    mask[26:29, 16:48] = True
+    mask[18:40, 30] = True
+    mask &= before.opacity > 0.95
+    layer = np.zeros((S, S, 4), np.float32)
+    layer[mask, :3] = RED
+    layer[mask, 3] = 1.0
+    ref = paint_atlas_from_view(f_ref, K, c2w, S, S, layer)
+    fast = paint_texture(f_fast, K, c2w, S, S, layer, surface=before)
+    assert fast.info["surface_given"] and not ref.info["surface_given"] and fast.info["render_s"] < ref.info["render_s"]
+    a, b = set(ref.texels.tolist()), set(fast.texels.tolist())
+    assert len(a & b) > 0.97 * max(len(a), len(b))
+    ra, rb = nm.render_camera(f_ref, K, c2w, S, S).rgb, nm.render_camera(f_fast, K, c2w, S, S).rgb
+    far = _far_from(mask, 2)
+    for r in (ra, rb):
+        assert psnr(np.clip(r[mask], 0, 1), np.broadcast_to(RED, (int(mask.sum()), 3))) > 30.0
+        assert (np.abs(r - before.rgb).max(-1)[far] <= 1 / 255).all()
+    with pytest.raises(EditError, match="render painted on"):
+        paint_atlas_from_view(f_fast, K, c2w, S, S, layer, surface=(before.opacity[:10], before.depth))
+
+
+def test_paint_made_in_the_image_is_recorded_saved_and_undone(blob4, tmp_path):
+    """Paint written straight into the atlas image (Blender's Texture Paint) becomes an AtlasRecord:
+    exactly the texels that changed, saved with the field as an edit, undone and redone exactly."""
+    from neumesh_core.edit import paint_image_record, save_edited
+
+    f = _field(blob4)
+    parent = str(tmp_path / "blob.neumesh")
+    nm.save_field(f, parent)
+    saved = f.paint_atlas.image.numpy().copy()
+    px = np.zeros((20, 30, 4), np.float32)
+    px[5:15, 5:25] = (*RED, 1.0)
+    changed = f.paint_atlas.set_image(px, (100, 120, 200, 230))
+    rec = paint_image_record(f, saved)
+    assert rec.op == "paint_image" and sorted(rec.texels.tolist()) == sorted(changed.tolist()) and len(changed) == 200
+    out = save_edited(f, parent, rec)
+    g = nm.load_field(out)
+    np.testing.assert_allclose(g.paint_atlas.image.numpy(), f.paint_atlas.image.numpy(), atol=0.5 / 255)
+    painted = f.paint_atlas.image.numpy().copy()
+    rec.undo(f)
+    np.testing.assert_allclose(f.paint_atlas.image.numpy(), saved, atol=0)
+    assert f.paint_atlas.is_empty
+    rec.redo(f)
+    np.testing.assert_allclose(f.paint_atlas.image.numpy(), painted, atol=0)
+    with pytest.raises(EditError, match="same image"):
+        paint_image_record(f, saved[:10])

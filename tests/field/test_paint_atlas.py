@@ -198,3 +198,50 @@ def test_surface_offsets_move_the_lookup_surface_and_are_saved(blob3, tmp_path):
     np.testing.assert_allclose(back.offsets.numpy(), off, atol=0)
     with pytest.raises(NeuMeshError, match="offsets"):
         PaintAtlas(base.uv, base.image, "given", None, off[:5]).lookup_vertices(field)
+
+
+def test_set_image_updates_the_sampled_paint_as_a_full_rebuild_does(blob3):
+    """set_image (a paint program's pixels, a region at a time) updates the premultiplied copy the
+    render samples texel by texel; the reference is the copy rebuilt from the whole image."""
+    field = textured_field(blob3, interpolation="early")
+    atlas = field.paint_atlas = _atlas(field, res=32)
+    K, c2w = camera(20.0, size=S)
+    plain = nm.render_camera(field, K, c2w, S, S).rgb
+    rng = np.random.default_rng(3)
+    px = rng.uniform(0, 1, (10, 12, 4)).astype(np.float32)
+    px[..., 3] = np.where(px[..., 3] > 0.4, px[..., 3], 0.0)
+    changed = atlas.set_image(px, (18, 28, 8, 20))
+    assert len(changed) == int((np.abs(px).max(-1) > 0).sum())
+    assert set((changed // 32).tolist()) <= set(range(18, 28)) and set((changed % 32).tolist()) <= set(range(8, 20))
+    np.testing.assert_allclose(atlas.image.numpy()[18:28, 8:20], px, atol=0)
+    uv = rng.uniform(0, 1, (500, 2))                    # (the view sees rows 14-32 of this atlas)
+    fast = atlas.sample(uv)
+    atlas.changed()                                        # the reference: rebuilt from the whole image
+    np.testing.assert_allclose(fast, atlas.sample(uv), atol=1e-6)
+    assert not atlas.is_empty
+    painted = nm.render_camera(field, K, c2w, S, S).rgb
+    # the same pixels again change nothing; clearing them brings the plain render back
+    assert len(atlas.set_image(px, (18, 28, 8, 20))) == 0
+    atlas.set_image(np.zeros((10, 12, 4), np.float32), (18, 28, 8, 20))
+    assert atlas.is_empty
+    np.testing.assert_allclose(nm.render_camera(field, K, c2w, S, S).rgb, plain, atol=1e-6)
+    assert np.abs(painted - plain).max() > 0.05
+    # set_texels (the changed texels known) writes the same image as set_image, its reference
+    other = _atlas(field, res=32)
+    yy, xx = np.mgrid[18:28, 8:20]
+    got = other.set_texels((yy * 32 + xx).ravel(), px.reshape(-1, 4))
+    np.testing.assert_array_equal(np.sort(got), np.sort(changed))
+    atlas.set_image(px, (18, 28, 8, 20))
+    np.testing.assert_allclose(other.image.numpy(), atlas.image.numpy(), atol=0)
+    np.testing.assert_allclose(other.sample(uv), atlas.sample(uv), atol=1e-6)
+    with pytest.raises(NeuMeshError, match="outside"):
+        other.set_texels([32 * 32], [[0, 0, 0, 1]])
+    with pytest.raises(NeuMeshError, match="RGBA values"):
+        other.set_texels([1, 2], [[0, 0, 0, 1]])
+    atlas.set_image(np.zeros((10, 12, 4), np.float32), (18, 28, 8, 20))
+    with pytest.raises(NeuMeshError, match="outside"):
+        atlas.set_image(px, (25, 35, 0, 12))
+    with pytest.raises(NeuMeshError, match="resized"):
+        atlas.set_image(px, (0, 12, 0, 10))
+    with pytest.raises(NeuMeshError, match="NaN"):
+        atlas.set_image(np.full((32, 32, 4), np.nan, np.float32))
