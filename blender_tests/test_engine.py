@@ -449,5 +449,7 @@ def test_device_copy_is_made_once_per_field_and_follows_deformation(addon):
     fields._CACHE["obj"] = fields._Entry("f2.neumesh", (1, 1), cpu, v0 + 1.0)  # an edit adopted
     b = fields.on_device(item, cpu, dev)
     assert b is not a and fields.STATS["mirrors"] == made + 2
+    cpu.paint_atlas = object()                          # Texture Paint made a layer / writes it in place
+    assert fields.on_device(item, cpu, dev).paint_atlas is cpu.paint_atlas   # shared, not copied
     assert fields.on_device(item, cpu, "cpu") is cpu and "obj" not in fields._MIRRORS  # CPU: the field itself
     fields.clear_cache()

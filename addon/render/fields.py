@@ -332,14 +332,25 @@ def on_device(item: Item, field, device):
                                         or not np.array_equal(m.vertices, e.last_vertices)):
         m.field.set_vertices(e.last_vertices)
         m.vertices = e.last_vertices.copy()
+    _share_paint(e.field, m.field)
     return m.field
+
+
+def _share_paint(cpu, dev) -> None:
+    """The device copy shows the cached field's paint layer itself (Texture Paint writes its texels in
+    place; the paint is composited from the CPU side, see field/paint_atlas.composite)."""
+    atlas = getattr(cpu, "paint_atlas", None)
+    if getattr(dev, "paint_atlas", None) is not atlas:
+        dev.paint_atlas = atlas
 
 
 def _fresh_mirror(key: str, e: _Entry, device):
     import copy
 
     _MIRRORS.pop(key, None)   # free the old copy's device memory before making the new one
-    dev = copy.deepcopy(e.field).to(device)
+    memo = {id(getattr(e.field, "paint_atlas", None)): None}   # not copied: shared (_share_paint)
+    dev = copy.deepcopy(e.field, memo).to(device)
+    _share_paint(e.field, dev)
     STATS["mirrors"] += 1
     _MIRRORS[key] = _Mirror(e, device, dev, None if e.last_vertices is None else e.last_vertices.copy())
     return dev
