@@ -17,6 +17,6 @@ if [ ! -x .venv/bin/python ]; then
 fi
 VPIP=".venv/bin/python -m pip --disable-pip-version-check -q"
 $VPIP install "torch==2.13.0"
-$VPIP install "numpy<2" "opencv-python-headless>=4.8,<4.12" -e ".[test,blender,dino,gpu,shape-diameter]"   # gpu: triton (~290 MB wheel, no CUDA; its kernels' tests run in its interpreter); shape-diameter: libigl
+$VPIP install "numpy<2" -e ".[test,blender,dino,gpu,shape-diameter]"   # gpu: triton (~290 MB wheel, no CUDA; its kernels' tests run in its interpreter); shape-diameter: libigl
 bash scripts/setup_blender.sh
 .venv/bin/python -c "import torch, neumesh_core, bpy, pycolmap, cv2; print('setup ok: torch', torch.__version__, '| bpy', bpy.app.version_string, '| pycolmap', pycolmap.__version__, '| opencv', cv2.__version__)"
