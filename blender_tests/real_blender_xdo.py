@@ -41,7 +41,6 @@ TOP_PANELS = ("NEUMESH_PT_data", "NEUMESH_PT_scaffold", "NEUMESH_PT_train", "NEU
 HIDDEN_EDIT = ("NEUMESH_PT_swap", "NEUMESH_PT_paint", "NEUMESH_PT_semantics")
 SHOWN = ("NEUMESH_PT_edit", "NEUMESH_PT_fill")
 FILL = "neumesh.fill_texture"
-SECOND = 1.0    # the issue's "within a second"
 
 
 def read_png(path):
@@ -204,6 +203,7 @@ class Driver:
                               "timings": [list(x) for x in pv.timings] if pv else [],
                               "paths": [os.path.basename(str(getattr(i, "path", ""))) for i in engine._items or []],
                               "before": before, "error": getattr(engine, "_error", ""), "id": id(engine),
+                              "message": list(engine_mod.VIEWPORT_MESSAGE.get("lines", []))[:2],
                               "gen": getattr(engine, "_generation", None)})
 
         cls.view_draw = view_draw
@@ -211,8 +211,10 @@ class Driver:
         refresh = base.refresh_viewports
 
         def refresh_viewports(*args, **kw):
-            pv = self.preview()
-            refreshes.append({"t": time.time(), "asked": pv._serial if pv else -1})
+            # per engine: Blender may hold more than one viewport engine instance (an old one lives on
+            # in the add-on's weak set until collected), each with its own preview serials
+            refreshes.append({"t": time.time(), "asked": {id(e): e._preview._serial for e in self.engines()
+                                                          if getattr(e, "_preview", None) is not None}})
             return refresh(*args, **kw)
 
         base.refresh_viewports = refresh_viewports
@@ -234,8 +236,8 @@ class Driver:
         w = self.watch
         r = w["refresh"]
         after = [d for d in self.draws if d["t"] >= r["t"] and w["path"] in d["paths"]]
-        asked = next((d for d in after if d["asked"] > r["asked"]), None)
-        shown = next((d for d in after if d["shown"] and d["shown"][0] > r["asked"]), None)
+        asked = next((d for d in after if d["asked"] > r["asked"].get(d["id"], -1)), None)
+        shown = next((d for d in after if d["shown"] and d["shown"][0] > r["asked"].get(d["id"], -1)), None)
         if shown is not None and asked is not None:
             k = w["key"]
             level = dict((int(dv), t) for dv, t in shown["timings"]).get(int(shown["shown"][1]))
@@ -249,6 +251,9 @@ class Driver:
             self.f[w["key"] + "_drawn_s"] = None
             self.f[w["key"] + "_draws"] = [dict(d, t=round(d["t"] - r["t"], 3)) for d in self.draws
                                            if d["t"] > r["t"] - 1]
+            self.f[w["key"] + "_refresh"] = {str(k): v for k, v in r["asked"].items()}
+            self.f[w["key"] + "_refreshes"] = [[round(x["t"] - r["t"], 3), {str(k): v for k, v in x["asked"].items()}]
+                                               for x in self.refreshes[-4:]]
             return True
         return False
 
