@@ -23,6 +23,10 @@ clicks, key presses), the way a mouse and keyboard do; Blender reads them from i
    ``execute`` with Scale 3 (recorded), a new file, drawn in the viewport within a second.
 5. Ctrl+Z: the object shows the file from before Fill again, drawn within a second.
 The facts (NEUMESH_FACTS) and the screenshots (OUT_DIR/*.png) go back to the test.
+
+Two more modes on the same OUT_DIR/ui.blend: ``swap`` (the refused swap preview, test_real_blender_redo.py)
+and ``sculpt`` (a measurement for docs/addon.md, issue 47.8: seconds to the preview's finest level in
+Object Mode and after a real Grab stroke in Sculpt Mode; run by hand as the test runs ``xdo``).
 """
 import os
 import subprocess
@@ -610,6 +614,82 @@ class SwapDriver(Driver):
         return None
 
 
+class SculptDriver(Driver):
+    """Issue 47.8, measured: seconds from a request to the preview's finest level in Object Mode, then
+    in Sculpt Mode after a real Grab stroke (xdotool: button down, eight moves, button up over the
+    object), the pointer then left alone.  Facts only (``object_levels``, ``sculpt_levels``: the
+    preview's (divisor, seconds since the request) of the image finally drawn; ``sculpt_done_s``:
+    seconds from the stroke's end to the finest level drawn)."""
+
+    def __init__(self, out_dir):
+        super().__init__(out_dir)
+        self.shown = ("NEUMESH_PT_edit",)
+
+    def prepare_object(self, obj, scene):
+        bpy.context.view_layer.objects.active = obj
+        obj.select_set(True)
+
+    def step_render(self, win, area, regions, scene, obj):
+        if not self.preview_done() and time.time() - self.state_t < 120:
+            return 0.5
+        pv = self.preview()
+        self.f["object_done"] = self.preview_done()
+        self.f["object_levels"] = [[d, round(t, 3)] for d, t in pv.timings]
+        self.f["viewport"] = [regions["WINDOW"].width, regions["WINDOW"].height]
+        with bpy.context.temp_override(window=win, area=area, region=regions["WINDOW"]):
+            bpy.ops.object.mode_set(mode="SCULPT")
+            bpy.ops.wm.tool_set_by_id(name="builtin_brush.Grab")
+        self.goto("sculpt_idle")
+        return 1.0
+
+    def step_sculpt_idle(self, win, area, regions, scene, obj):
+        if not self.preview_done() and time.time() - self.state_t < 120:
+            return 0.5
+        pv = self.preview()
+        self.f["sculpt_idle_done"] = self.preview_done()
+        self.f["serial_before_stroke"] = pv._serial
+        main = regions["WINDOW"]
+        from bpy_extras.view3d_utils import location_3d_to_region_2d
+        from mathutils import Vector
+
+        # the stroke starts on the object: its vertex nearest the camera-facing centre, projected
+        co = np.array([v.co[:] for v in obj.data.vertices])
+        centre = obj.matrix_world @ Vector(co[np.argmin(co[:, 1])])   # the camera looks along +y
+        p = location_3d_to_region_2d(main, area.spaces.active.region_3d, centre)
+        self.f["stroke_start"] = None if p is None else [round(p.x), round(p.y)]
+        bx, by = (p.x, p.y) if p is not None else (main.width / 2, main.height / 2)
+        x, y = self.to_x(win, main.x + bx, main.y + by)
+        moves = []
+        for i in range(1, 9):
+            moves += ["mousemove", "--window", self.win_id, x + 6 * i, y - 3 * i, "sleep", "0.05"]
+        self.xdo("mousemove", "--window", self.win_id, x, y, "sleep", "0.2", "mousedown", "1", "sleep", "0.1",
+                 *moves, "mouseup", "1")
+        self.goto("stroke")
+        return 0.05
+
+    def step_stroke(self, win, area, regions, scene, obj):   # runs once xdotool has finished
+        self.stroke_end = time.time()
+        pv = self.preview()
+        self.f["stroke_requests"] = pv._serial - self.f["serial_before_stroke"]
+        self.goto("sculpt_after")
+        return 0.1
+
+    def step_sculpt_after(self, win, area, regions, scene, obj):
+        if not self.preview_done() and time.time() - self.state_t < 150:
+            return 0.2
+        pv = self.preview()
+        self.f["sculpt_done"] = self.preview_done()
+        self.f["sculpt_done_s"] = round(time.time() - self.stroke_end, 2)
+        self.f["sculpt_levels"] = [[d, round(t, 3)] for d, t in pv.timings]
+        self.f["requests_after_stroke"] = pv._serial - self.f["serial_before_stroke"]
+        self.f["mode"] = obj.mode
+        self.finish()
+        return None
+
+
+if ARGS and ARGS[0] == "sculpt":
+    _driver = SculptDriver(ARGS[1])
+    bpy.app.timers.register(_driver.tick, first_interval=1.0)
 if ARGS and ARGS[0] == "swap":
     _driver = SwapDriver(ARGS[1])
     bpy.app.timers.register(_driver.tick, first_interval=1.0)
