@@ -219,6 +219,48 @@ def test_topology_change_gives_error_naming_modifier_and_no_image(addon, trained
         assert _read_png(str(out))[..., 3].max() == 0.0
 
 
+def test_field_lookups_do_not_wait_for_a_render_holding_the_cache_lock(addon, trained_field, tmp_path):
+    """The viewport's preview thread holds the field cache's lock for a whole level of its render; the
+    main thread looks fields up on every depsgraph update and after every undo. A lookup (cached, or a
+    load of another file, e.g. after Ctrl+Z) must not wait for that lock: Blender froze until the level
+    ended (93 s on a busy machine in the real-window redo test) before it could cancel the render."""
+    import shutil
+    import threading
+
+    render = addon.render.fields
+    render.clear_cache()
+    other = str(tmp_path / "other.neumesh")
+    shutil.copy(trained_field, other)
+    cached = render.get_field("obj", trained_field)
+    held, release = threading.Event(), threading.Event()
+
+    def hold():
+        with render._LOCK:
+            held.set()
+            release.wait(60)
+
+    t = threading.Thread(target=hold, daemon=True)
+    t.start()
+    assert held.wait(10)
+    out = {}
+
+    def look():
+        out["cached"] = render.get_field("obj", trained_field)
+        out["loaded"] = render.get_field("obj", other)   # the object now shows another file
+
+    u = threading.Thread(target=look, daemon=True)
+    u.start()
+    u.join(30)
+    finished = not u.is_alive()
+    release.set()
+    t.join(10)
+    u.join(30)
+    assert finished, "get_field waited for the lock a render holds"
+    assert out["cached"] is cached and out["loaded"] is not cached
+    assert render.get_field("obj", other) is out["loaded"]   # cached under the new path
+    render.clear_cache()
+
+
 def test_field_cache_reloads_on_change_and_skips_unchanged_vertices(addon, trained_field, tmp_path):
     import shutil
 

@@ -3,6 +3,7 @@
 #   * the Debian `blender` binary (3.4, headless `blender -b`), used by blender_tests/test_real_blender.py
 #   * Xvfb (`xvfb-run`), a virtual display in which blender_tests/test_real_blender_ui.py opens a real
 #     Blender window (software OpenGL) and takes screenshots of the add-on's panels
+#   * xdotool: real X input (pointer, clicks, keys) for blender_tests/test_real_blender_redo.py
 #   * a `pip install --target` folder (<repo>/.blender_torch) with torch & co for that binary's Python:
 #     the add-on's dependency list (addon/runtime/deps.py), every feature's packages included
 # The add-on finds the folder through NEUMESH_PYTHONPATH (the tests set it) or the add-on preference
@@ -21,6 +22,7 @@ TARGET="${NEUMESH_BLENDER_TORCH:-$ROOT/.blender_torch}"
 APT_PKGS=()
 command -v blender >/dev/null 2>&1 || APT_PKGS+=(blender)
 command -v xvfb-run >/dev/null 2>&1 || APT_PKGS+=(xvfb xauth libgl1-mesa-dri)  # software OpenGL for the window
+command -v xdotool >/dev/null 2>&1 || APT_PKGS+=(xdotool)  # real clicks and key presses in that window
 if [ "${#APT_PKGS[@]}" -gt 0 ]; then
     if [ "${SKIP_APT:-0}" != "1" ] && command -v apt-get >/dev/null 2>&1; then
         echo "[setup_blender] installing Debian ${APT_PKGS[*]}"
@@ -31,6 +33,9 @@ if [ "${#APT_PKGS[@]}" -gt 0 ]; then
 fi
 if ! command -v xvfb-run >/dev/null 2>&1; then
     echo "[setup_blender] no xvfb-run; the real-window test will be skipped"
+fi
+if ! command -v xdotool >/dev/null 2>&1; then
+    echo "[setup_blender] no xdotool; the real-input window test (test_real_blender_redo.py) will be skipped"
 fi
 if ! command -v blender >/dev/null 2>&1; then
     echo "[setup_blender] no blender binary; the real-Blender test will be skipped"

@@ -13,7 +13,7 @@ from bpy.props import BoolProperty, StringProperty
 
 from ..runtime import classes_factory, core
 from ..runtime.errors import UserError
-from ..runtime.text import text_width, wrapped_label
+from ..runtime.text import text_width, ui_scale, wrapped_label
 from ..scene import props
 from ..render.engine import refresh_viewports
 from .base import edit_copy
@@ -199,7 +199,9 @@ def draw_preview(context, col, obj):
     al = p["alignment"]
     f = al.figures
     box = col.box()
-    width = text_width(context) - 10
+    # a box in a sub-panel: its margins and the labels' padding leave ~40 px less than the region's text
+    # width (at -10 the refusal's lines were cut with '…' in Blender 3.4's 229 px sidebar)
+    width = max(40.0, text_width(context) - 40 * ui_scale(context))
     box.label(text=f"Overlap {100 * f.overlap:.0f}%", icon="CHECKMARK" if al.ok else "ERROR")
     box.label(text=f"Residual {f.target_residual:.2f} edge lengths")
     if not al.ok:

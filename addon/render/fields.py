@@ -19,6 +19,7 @@ from ..runtime.errors import UserError
 from ..scene import camera, identity, props, sync
 
 _LOCK = threading.RLock()  # guards every field in the cache (set_vertices + render are not re-entrant)
+_LOAD_LOCK = threading.Lock()  # one load per file at a time (get_field); taken after _LOCK, never before
 
 
 def user_message(exc) -> str:
@@ -57,7 +58,15 @@ def get_field(key: str, path: str):
     if not os.path.isfile(path):
         raise FileNotFoundError(f"object '{key}': NeuMesh field file not found: {path}")
     stamp = _stamp(path)
-    with _LOCK:
+    # Not under _LOCK: a render in another thread (the viewport's preview) holds it for a whole level,
+    # seconds on a big field, and the main thread asks here on every depsgraph update and after every
+    # undo. Waiting there froze Blender until the level ended (Ctrl+Z in a real window: 93 s on a busy
+    # machine) before the viewport could even ask for the new image, which cancels that render.
+    # A hit is one dict read; a load makes a new field object, never touching the one a render uses.
+    e = _CACHE.get(key)
+    if e is not None and e.path == path and e.stamp == stamp:
+        return e.field
+    with _LOAD_LOCK:
         e = _CACHE.get(key)
         if e is not None and e.path == path and e.stamp == stamp:
             return e.field
