@@ -127,3 +127,18 @@ def test_field_surface_bake_with_views_cancels_in_every_stage(shell, stop_at):
     # 0.45-0.75; a render reports at 80% of its view's share), not at the view's end
     assert seen[-1] < stop_at + 0.1, seen[-3:]
     assert all(b >= a - 1e-9 for a, b in zip(seen, seen[1:])), "progress went backwards"
+
+
+def test_bake_defaults_to_the_field_surface_with_projected_colours(shell):
+    """Issue 50's decision: ``bake_texture(field)`` bakes onto the field's own surface, decimated to
+    FIELD_FACES x the scaffold's faces, with colours from the field's renders (the scaffold with rays is
+    ``mesh=None, colours="rays"``)."""
+    from neumesh_core.bake import bake_texture
+    from neumesh_core.bake.texture import FIELD_FACES
+
+    with one_thread():
+        b = bake_texture(shell, resolution=32, vertex_colors=False, measure_texels=0,
+                         project=ProjectConfig(views=2, size=32))
+    assert b.info["mesh"] == "field" and "texels_unseen" in b.info and "fit" not in b.info
+    target = FIELD_FACES * len(shell.faces)
+    assert 0.8 * target <= b.info["mesh_faces"] <= 1.2 * target, (b.info["mesh_faces"], target)

@@ -46,12 +46,13 @@ SHADING_ITEMS = (
                                   "baked into it"),
 )
 TARGET_ITEMS = (
-    ("FIELD", "Field surface", "Bake onto a new mesh extracted from the field's own density (marching cubes, "
-                               "decimated): lies where the field renders, so part edges match; costs a density "
-                               "grid and marching cubes first (lego: 28 dB against the field with Views, 24 dB on the scaffold)"),
+    ("FIELD", "Field surface", "Bake onto a new mesh extracted from the field's own density (marching "
+                               "cubes, decimated): lies where the field renders, so part edges match; costs a "
+                               "density grid and marching cubes first (lego: 28 dB against the field with "
+                               "Views, 24 dB on the scaffold)"),
     ("SCAFFOLD", "Scaffold", "Bake onto the field's scaffold as it is posed now (optionally decimated): "
-                             "quickest, keeps the scaffold's topology, but sits up to a radius off the field's "
-                             "surface, so part edges come out a few pixels off"),
+                             "quickest, keeps the scaffold's topology, but sits up to a radius off the "
+                             "field's surface, so part edges come out a few pixels off"),
 )
 COLOUR_ITEMS = (
     ("VIEWS", "Views", "Texel colours from the field's renders on virtual cameras around the object (the "
