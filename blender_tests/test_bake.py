@@ -232,3 +232,18 @@ def test_bake_cancelled_in_each_stage_leaves_nothing(addon, trained_field, tmp_p
                                  bpy.data.materials)] == counts
         assert stop_at <= seen[-1] < stop_at + 0.15, seen[-3:]   # stopped in that stage, not at the end
         assert bpy.context.active_object == obj
+
+
+def test_field_surface_bake_names_its_missing_packages(addon, trained_field, tmp_path, monkeypatch):
+    """Target Field surface needs marching cubes (scikit-image) and a decimator: where Blender's Python
+    lacks them the operator says which to install before any work starts; Target Scaffold does not need
+    them."""
+    obj, _ = _load(trained_field, tmp_path)
+    deps = addon.runtime.deps
+    orig = deps.missing_for
+    monkeypatch.setattr(deps, "missing_for", lambda f: ["scikit-image"] if f == "bake_field" else orig(f))
+    n = len(bpy.data.objects)
+    with pytest.raises(RuntimeError, match="scikit-image"):
+        bpy.ops.neumesh.bake_material(resolution=64)
+    assert len(bpy.data.objects) == n
+    assert bpy.ops.neumesh.bake_material(resolution=64, target="SCAFFOLD", colours="RAYS") == {"FINISHED"}

@@ -208,6 +208,8 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
             path = field_path_of(obj)
             nm = core.get()
             core.require("bake")
+            if self.target == "FIELD":
+                core.require("bake_field")
             field, _ = fields.object_field(obj, context.evaluated_depsgraph_get())
             field = edit_copy(field)      # posed as it renders now; the thread works on its own copy
         except (UserError, core.CoreUnavailable, ValueError) as exc:
@@ -290,6 +292,8 @@ class NEUMESH_PT_bake(EditSubPanel, bpy.types.Panel):
     def draw_edit(self, context, col, obj):
         s = context.window_manager
         prefs.draw_missing(col, "bake", context)
+        if s.neumesh_bake_target == "FIELD":
+            prefs.draw_missing(col, "bake_field", context)
         col.prop(s, "neumesh_bake_resolution")
         col.prop(s, "neumesh_bake_target", text="")
         if s.neumesh_bake_target == "FIELD":
