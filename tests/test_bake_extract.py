@@ -102,3 +102,43 @@ def test_projected_colours_see_the_field_and_skip_hidden_points(shell):
     red = cols[outer][:, 0] - cols[outer][:, 2]
     far = seen & (np.abs(x) > 0.2 * np.abs(V[:, 0]).max())
     assert (np.sign(red[far]) == np.sign(x[far])).mean() > 0.95
+
+
+@pytest.mark.parametrize("stop_at", [0.02, 0.07, 0.3])
+def test_field_surface_bake_with_views_cancels_in_every_stage(shell, stop_at):
+    """``mesh="field"`` + ``colours="views"`` (the add-on's default): progress rises through extraction
+    (0-0.1: density grid, then the level's calibration renders) and projection (0.15-0.75, inside each
+    view's render), and answering False in any of them raises Cancelled there, not at the end."""
+    import neumesh_core as nm
+    from neumesh_core.bake import bake_texture
+
+    seen = []
+
+    def progress(f):
+        seen.append(float(f))
+        return f < stop_at
+
+    with one_thread(), pytest.raises(nm.Cancelled):
+        bake_texture(shell, resolution=32, mesh="field", colours="views", vertex_colors=False,
+                     extract=ExtractConfig(voxel=0.8, faces=300, views=2, view_size=32),
+                     project=ProjectConfig(views=2, size=32), progress=progress)
+    assert seen[-1] >= stop_at
+    # stopped at the first answer past the point: inside the view's render (2 views span 0.15-0.45 and
+    # 0.45-0.75; a render reports at 80% of its view's share), not at the view's end
+    assert seen[-1] < stop_at + 0.1, seen[-3:]
+    assert all(b >= a - 1e-9 for a, b in zip(seen, seen[1:])), "progress went backwards"
+
+
+def test_bake_defaults_to_the_field_surface_with_projected_colours(shell):
+    """Issue 50's decision: ``bake_texture(field)`` bakes onto the field's own surface, decimated to
+    FIELD_FACES x the scaffold's faces, with colours from the field's renders (the scaffold with rays is
+    ``mesh=None, colours="rays"``)."""
+    from neumesh_core.bake import bake_texture
+    from neumesh_core.bake.texture import FIELD_FACES
+
+    with one_thread():
+        b = bake_texture(shell, resolution=32, vertex_colors=False, measure_texels=0,
+                         project=ProjectConfig(views=2, size=32))
+    assert b.info["mesh"] == "field" and "texels_unseen" in b.info and "fit" not in b.info
+    target = FIELD_FACES * len(shell.faces)
+    assert 0.8 * target <= b.info["mesh_faces"] <= 1.2 * target, (b.info["mesh_faces"], target)

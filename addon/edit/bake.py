@@ -2,8 +2,12 @@
 Blender object with a UV map, an image texture and a Principled BSDF material, for Cycles, EEVEE and
 export (glTF, FBX, OBJ).
 
-The core (``neumesh_core.bake.bake_texture``) unwraps the field's scaffold in its current pose with
-xatlas and bakes the colour the field shows looking straight at each texel.  That colour already holds
+``target``: ``FIELD`` (default) bakes onto a mesh the core extracts from the field's own density
+(marching cubes, decimated to ``field_decimate`` x the scaffold's faces): it lies where the field
+renders; ``SCAFFOLD`` onto the field's scaffold in its current pose (the old default, quicker).
+``colours``: ``VIEWS`` (default) gives each texel the colour the field's renders from ``views``
+virtual cameras show there; ``RAYS`` the colour one short ray along the texel's normal sees (quicker).
+The core (``neumesh_core.bake.bake_texture``) unwraps the target with xatlas (docs/baking.md).  That colour already holds
 the lighting of the photos the field was trained on, so the material offers two ways to use it
 (``shading``):
 
@@ -40,6 +44,21 @@ SHADING_ITEMS = (
                              "under any lighting"),
     ("BASE_COLOR", "Base colour", "Texture as base colour: lit by the scene, on top of the photos' light "
                                   "baked into it"),
+)
+TARGET_ITEMS = (
+    ("FIELD", "Field surface", "Bake onto a new mesh extracted from the field's own density (marching "
+                               "cubes, decimated): lies where the field renders, so part edges match; costs a "
+                               "density grid and marching cubes first (lego: 28 dB against the field with "
+                               "Views, 24 dB on the scaffold)"),
+    ("SCAFFOLD", "Scaffold", "Bake onto the field's scaffold as it is posed now (optionally decimated): "
+                             "quickest, keeps the scaffold's topology, but sits up to a radius off the "
+                             "field's surface, so part edges come out a few pixels off"),
+)
+COLOUR_ITEMS = (
+    ("VIEWS", "Views", "Texel colours from the field's renders on virtual cameras around the object (the "
+                       "colour the field shows there; averages highlights); costs one render per view"),
+    ("RAYS", "Rays", "Texel colours from one short ray along each texel's normal: quickest, a little "
+                     "less faithful at part edges"),
 )
 UV_NAME = "NeuMesh bake"
 COLOR_NAME = "NeuMesh bake colour"   # UV maps are attributes too (Blender 3.5+): names must differ
@@ -171,6 +190,17 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
     decimate: FloatProperty(name="Decimate ratio", default=1.0, min=0.001, max=1.0, precision=3,
                             description="Bake onto a copy of the scaffold reduced by Blender's Decimate "
                                         "modifier to this fraction of its faces (1 = the scaffold itself)")
+    target: EnumProperty(name="Target", items=TARGET_ITEMS, default="FIELD")
+    field_decimate: FloatProperty(name="Faces", default=0.2, min=0.001, max=1.0, precision=3,
+                                  description="Field surface: the extracted mesh is decimated to this fraction "
+                                              "of the scaffold's face count (fewer: lighter asset, quicker "
+                                              "unwrap, rounder part edges)")
+    colours: EnumProperty(name="Colours", items=COLOUR_ITEMS, default="VIEWS")
+    views: IntProperty(name="Views", default=48, min=1, max=256,
+                       description="Views colours: virtual cameras around the object (more: fewer texels "
+                                   "left to the ray colour, one field render each)")
+    view_size: IntProperty(name="View size", default=512, min=16, max=4096,
+                           description="Views colours: width and height of each render in pixels")
 
     def _start(self, context):
         obj = context.active_object
@@ -178,6 +208,8 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
             path = field_path_of(obj)
             nm = core.get()
             core.require("bake")
+            if self.target == "FIELD":
+                core.require("bake_field")
             field, _ = fields.object_field(obj, context.evaluated_depsgraph_get())
             field = edit_copy(field)      # posed as it renders now; the thread works on its own copy
         except (UserError, core.CoreUnavailable, ValueError) as exc:
@@ -188,8 +220,13 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
             return None
         res, dirs = int(self.resolution), int(self.directions)
         self._source = (obj.name_full, path)
-        mesh = None
-        if self.decimate < 1.0:
+        colours = "views" if self.colours == "VIEWS" else "rays"
+        project = nm.bake.ProjectConfig(views=int(self.views), size=int(self.view_size))
+        mesh = extract = None
+        if self.target == "FIELD":
+            mesh = "field"
+            extract = nm.bake.ExtractConfig(faces=max(1, int(round(self.field_decimate * len(field.faces)))))
+        elif self.decimate < 1.0:
             try:
                 mesh = decimated_mesh(np.asarray(field.vertices, np.float32), field.faces.cpu().numpy(),
                                       self.decimate)
@@ -202,7 +239,8 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
                 return None
 
         def run(progress):
-            r = nm.bake_texture(field, resolution=res, directions=dirs, progress=progress, mesh=mesh)
+            r = nm.bake_texture(field, resolution=res, directions=dirs, progress=progress, mesh=mesh,
+                                extract=extract, colours=colours, project=project)
             r.info["field_path"] = path
             return r
         return Job("bake", run)
@@ -226,6 +264,10 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
         self.report({"INFO"}, f"NeuMesh: baked '{name}' into '{obj.name}' ({r.resolution}x{r.resolution} "
                               f"texture, {r.info.get('charts', 0)} charts, {len(r.faces)} faces, "
                               f"{r.seconds:.1f} s)")
+        so = r.info.get("surface_offset") or {}
+        if "median_radii" in so:
+            self.report({"INFO"}, f"NeuMesh: the baked mesh lies {so['median_radii']:.2f} field radii (median) "
+                                  "from the field's surface")
         if r.info.get("missed_texels"):
             self.report({"WARNING"}, f"NeuMesh: {r.info['missed_texels']} texels lie farther than the field "
                                      "radius from the field (filled from their neighbours)")
@@ -250,12 +292,25 @@ class NEUMESH_PT_bake(EditSubPanel, bpy.types.Panel):
     def draw_edit(self, context, col, obj):
         s = context.window_manager
         prefs.draw_missing(col, "bake", context)
+        if s.neumesh_bake_target == "FIELD":
+            prefs.draw_missing(col, "bake_field", context)
         col.prop(s, "neumesh_bake_resolution")
-        col.prop(s, "neumesh_bake_decimate")
+        col.prop(s, "neumesh_bake_target", text="")
+        if s.neumesh_bake_target == "FIELD":
+            col.prop(s, "neumesh_bake_field_decimate")
+        else:
+            col.prop(s, "neumesh_bake_decimate")
+        col.prop(s, "neumesh_bake_colours", text="")
+        if s.neumesh_bake_colours == "VIEWS":
+            col.prop(s, "neumesh_bake_views")
         col.prop(s, "neumesh_bake_shading", text="")
         op = col.operator("neumesh.bake_material", icon="RENDER_RESULT")
         op.resolution = s.neumesh_bake_resolution
+        op.target = s.neumesh_bake_target
         op.decimate = s.neumesh_bake_decimate
+        op.field_decimate = s.neumesh_bake_field_decimate
+        op.colours = s.neumesh_bake_colours
+        op.views = s.neumesh_bake_views
         op.shading = s.neumesh_bake_shading
 
 
@@ -267,6 +322,14 @@ register, unregister = classes_factory(classes, (
     (WM, "neumesh_bake_resolution", lambda: IntProperty(
         name="Texture size", default=1024, min=64, max=8192, description="Baked texture width and height (pixels)")),
     (WM, "neumesh_bake_shading", lambda: EnumProperty(name="Shading", items=SHADING_ITEMS, default="EMISSION")),
+    (WM, "neumesh_bake_target", lambda: EnumProperty(name="Target", items=TARGET_ITEMS, default="FIELD")),
+    (WM, "neumesh_bake_field_decimate", lambda: FloatProperty(
+        name="Faces", default=0.2, min=0.001, max=1.0, precision=3,
+        description="Field surface: decimate the extracted mesh to this fraction of the scaffold's face count")),
+    (WM, "neumesh_bake_colours", lambda: EnumProperty(name="Colours", items=COLOUR_ITEMS, default="VIEWS")),
+    (WM, "neumesh_bake_views", lambda: IntProperty(
+        name="Views", default=48, min=1, max=256,
+        description="Views colours: virtual cameras around the object (one field render each)")),
     (WM, "neumesh_bake_decimate", lambda: FloatProperty(
         name="Decimate ratio", default=1.0, min=0.001, max=1.0, precision=3,
         description="Bake onto a copy of the scaffold reduced by Blender's Decimate modifier to this fraction "

@@ -29,11 +29,13 @@ DEPENDENCIES = (
     ("numpy", "numpy", True, "numpy", ()),
     ("safetensors", "safetensors", True, "safetensors", ()),
     ("PIL", "pillow", True, "pillow", ()),
-    ("scipy", "scipy", False, "scipy", ("scaffold", "semantics", "select", "edit")),
+    ("scipy", "scipy", False, "scipy", ("scaffold", "semantics", "select", "edit", "bake_field")),
     ("pykdtree", "pykdtree", False, "pykdtree", ("select", "edit")),
     ("trimesh", "trimesh", False, "trimesh", ()),
     ("sklearn", "scikit-learn", False, "scikit-learn", ("semantics", "select")),   # PCA, DBSCAN
-    ("skimage", "scikit-image", False, "scikit-image", ("semantics", "scaffold")),  # superpixels, marching cubes
+    ("skimage", "scikit-image", False, "scikit-image", ("semantics", "scaffold", "bake_field")),  # superpixels, marching cubes
+    # the field-surface bake's decimation (issue 50; the core falls back to libigl's collapse)
+    ("fast_simplification", "fast-simplification", False, "fast-simplification", ("bake_field",)),
     ("xatlas", "xatlas", False, "xatlas", ("bake",)),                              # UV atlas
     ("pycolmap", "pycolmap", False, "pycolmap>=4", ("capture",)),                   # COLMAP folders, poses from photos
     ("cv2", "opencv-python-headless", False, "opencv-python-headless<4.12", ("capture",)),  # undistortion, video
@@ -42,7 +44,7 @@ DEPENDENCIES = (
 )
 FEATURES = {"scaffold": "Build scaffold", "semantics": "Distil semantics", "select": "Select by click",
             "edit": "Texture edits", "bake": "Bake to material", "capture": "Real captures (COLMAP, video)",
-            "shape": "Shape-aware selection"}
+            "shape": "Shape-aware selection", "bake_field": "Bake onto the field surface"}
 
 
 def numpy_requirement(blender_version=None) -> str:

@@ -127,8 +127,10 @@ def extract_surface(field, config: Optional[ExtractConfig] = None,
         cams = view_cameras(np.asarray(field.vertices), cfg.views, cfg.view_size)
         refs = []
         for K, c2w in cams:
-            out = render_camera(field, K, c2w, cfg.view_size, cfg.view_size, background=None)
+            out = render_camera(field, K, c2w, cfg.view_size, cfg.view_size, background=None,
+                                progress=None if progress is None else (lambda f: progress(0.5)))
             refs.append(np.where(out.opacity >= 0.5, out.depth, np.inf))
+            _cancel(progress, 0.5)
         scores = {}
         for i, (a, dens) in enumerate(zip(levels, to_density)):
             mesh, full = _mesh_at(vals, dens, lo, voxel, cfg.faces, cfg.min_component)

@@ -84,8 +84,15 @@ def projected_colours(field, vertices, faces, points, normals, config: Optional[
     wsum = np.zeros(len(P), np.float64)
     cams = view_cameras(V, cfg.views, cfg.size)
     S = int(cfg.size)
+    step = (span[1] - span[0]) / len(cams)
+
+    def view_progress(k):   # progress (and cancel) inside each render: one can take a minute on CPU
+        if progress is None:
+            return None
+        return lambda f: progress(span[0] + step * (k + 0.8 * float(f)))
+
     for k, (K, c2w) in enumerate(cams):
-        out = render_camera(field, K, c2w, S, S, background=None)
+        out = render_camera(field, K, c2w, S, S, background=None, progress=view_progress(k))
         op = out.opacity
         # premultiplied colour and opacity, sampled together and divided after (a silhouette pixel's
         # empty neighbour then adds no black)

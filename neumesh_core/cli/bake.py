@@ -22,18 +22,21 @@ def cmd_bake(args) -> int:
 
     mesh = None
     extract = None
+    if args.target is None:      # the field's surface, unless a mesh to bake onto is given
+        args.target = "scaffold" if args.mesh else "field"
     if args.target == "field":
         if args.mesh:
             raise SystemExit("error: --target field extracts the mesh from the field's density; leave out --mesh "
                              "(or use --target scaffold to bake onto your mesh)")
         from ..bake import ExtractConfig
 
-        faces = int(round(args.decimate * len(field.faces))) if args.decimate < 1.0 else 0
+        ratio = 0.2 if args.decimate is None else args.decimate
+        faces = int(round(ratio * len(field.faces))) if ratio < 1.0 else 0
         extract = ExtractConfig(faces=faces)
         mesh = "field"
     elif args.mesh:
         mesh = nm.load_mesh(args.mesh)
-    if args.decimate < 1.0 and extract is None:
+    if args.decimate is not None and args.decimate < 1.0 and extract is None:
         from ..bake import decimate
 
         src = mesh if mesh is not None else nm.Mesh(np.asarray(field.vertices), field.faces.cpu().numpy())
@@ -83,10 +86,10 @@ def add_commands(sub) -> None:
     p.add_argument("--mesh", help="bake onto this mesh (.ply/.obj/.glb, world space, lying near the field's "
                                   "surface: within the field radius) instead of the scaffold, e.g. a "
                                   "decimated copy")
-    p.add_argument("--decimate", type=float, default=1.0,
+    p.add_argument("--decimate", type=float, default=None,
                    help="bake onto a quadric-decimated copy of the scaffold (or of --mesh) with about this "
                         "fraction of its faces, e.g. 0.1 (needs the fast-simplification package; "
-                        "default 1 = no decimation)")
+                        "default 0.2 with --target field, else 1 = no decimation)")
     p.add_argument("--offset", type=float, default=None,
                    help="texel rays start this many field radii out along the mesh's normal and look back "
                         "through twice that (default 0.5 after the fit, 1 with --no-fit; raise it for a --mesh "
@@ -97,14 +100,15 @@ def add_commands(sub) -> None:
     p.add_argument("--level", type=float, default=None,
                    help="opacity (0-1) along the normal at which the field's surface lies, for the fit "
                         "(default: calibrated against the field's own renders)")
-    p.add_argument("--target", choices=("scaffold", "field"), default="scaffold",
-                   help="scaffold (default): bake onto the scaffold (or --mesh), decimated with --decimate; "
-                        "field: onto a mesh extracted from the field's own density (marching cubes), decimated "
-                        "to --decimate x the scaffold's faces: the surface the field renders")
-    p.add_argument("--colours", choices=("rays", "views"), default="rays",
-                   help="rays (default): each texel's colour from a short ray along its normal; views: from "
-                        "the field's renders on --views virtual cameras, projected onto the texels they see "
-                        "(closer to the field's look; slower)")
+    p.add_argument("--target", choices=("scaffold", "field"), default=None,
+                   help="field (default without --mesh): onto a mesh extracted from the field's own density "
+                        "(marching cubes), decimated to --decimate x the scaffold's faces (default 0.2): the "
+                        "surface the field renders; scaffold (default with --mesh): onto the scaffold (or "
+                        "--mesh), decimated with --decimate (default 1: none); quicker, part edges a little off")
+    p.add_argument("--colours", choices=("rays", "views"), default="views",
+                   help="views (default): from the field's renders on --views virtual cameras, projected onto "
+                        "the texels they see (closer to the field's look); rays: each texel's colour from a "
+                        "short ray along its normal (quicker)")
     p.add_argument("--views", type=int, default=48, help="--colours views: virtual cameras (default 48)")
     p.add_argument("--view-size", type=int, default=512, help="--colours views: their size in pixels (default 512)")
     p.add_argument("--no-glb", dest="glb", action="store_false", help="skip the .glb (trimesh)")

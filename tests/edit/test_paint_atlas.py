@@ -114,8 +114,9 @@ def test_the_bake_carries_the_paint(blob4):
     layer[mask, :3] = GREEN
     layer[mask, 3] = 1.0
     paint_atlas_from_view(f, K, c2w, S, S, layer)
-    plain = bake_texture(textured_field(blob4, interpolation="early"), resolution=128, fit=False)
-    b = bake_texture(f, resolution=128, fit=False)
+    plain = bake_texture(textured_field(blob4, interpolation="early"), resolution=128, fit=False, mesh=None,
+                         colours="rays")
+    b = bake_texture(f, resolution=128, fit=False, mesh=None, colours="rays")
     red = (np.abs(b.texture - GREEN).max(-1) < 0.15) & b.mask
     was = (np.abs(plain.texture - GREEN).max(-1) < 0.15) & plain.mask
     assert red.sum() > 100 and was.sum() < 0.1 * red.sum()
