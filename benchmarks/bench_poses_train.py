@@ -184,11 +184,11 @@ def main(argv=None) -> int:
     if args.arm:
         return run_arm(args)
     os.makedirs(args.work, exist_ok=True)
-    res = {"data": os.path.basename(os.path.normpath(args.data)), "recovered": args.recovered,
+    res = {"data": os.path.basename(os.path.normpath(args.data)), "recovered_model": args.recovered,
            "downscale": args.downscale, "minutes_each": args.minutes, "threads_each": args.threads,
            "seed": args.seed, "scaffold": args.scaffold or ("built by the given run, copied to the recovered run"
                                                            if not args.own_scaffold else "each run its own"),
-           "cpu_count": os.cpu_count(), "loadavg_at_start": os.getloadavg(),
+           "cpu_count": os.cpu_count(), ("loadavg_at_collect" if args.collect else "loadavg_at_start"): os.getloadavg(),
            "machine": "shared machine, loaded by other jobs: step counts and times are upper bounds"}
     align_path = os.path.join(args.work, "alignment.json")
     if not args.collect:
@@ -217,6 +217,7 @@ def main(argv=None) -> int:
     r_own = res["recovered"]["recovered_own"]["psnr"]
     r_at = res["recovered"]["recovered_at_given"]["psnr"]
     res["psnr_cost_db"] = {"recovered_own": g - r_own, "recovered_at_given": g - r_at}
+    res["psnr_recovered_minus_given_db"] = {"recovered_own": r_own - g, "recovered_at_given": r_at - g}
     res["goal_cost_le_0p5db"] = (g - r_own) <= 0.5
     res["loadavg_at_end"] = os.getloadavg()
     write_results(res, f"poses_train_{name}.json")
