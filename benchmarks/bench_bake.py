@@ -192,7 +192,7 @@ def main(argv=None) -> int:
                                          settings=nm.RenderSettings(supersample=2)).rgb, 0, 1) for i in views]
     field_depths = [np.where(o.opacity >= 0.5, o.depth, np.inf) for o in outs]
     field_render_s = (time.perf_counter() - t0) / len(views)
-    field_vs_photo = float(np.mean([psnr(refs[k], split.images[i]) for k, i in enumerate(views)]))
+    field_vs_photo = float(np.mean([psnr(refs[k], split.float_view(i)) for k, i in enumerate(views)]))
     print(f"field vs photos: {field_vs_photo:.2f} dB ({field_render_s:.2f} s per view)")
     runs = []
     best = None
@@ -226,7 +226,7 @@ def main(argv=None) -> int:
                    "psnr_vs_field_ss2": float(np.mean(per_view_ss2)), "psnr_vs_field_ss2_views": per_view_ss2,
                    "colours": args.colours, "texels_unseen": b.info.get("texels_unseen"),
                    "project_s": round(b.info.get("project_s", 0.0), 2),
-                   "psnr_vs_photos": float(np.mean([psnr(imgs[k], split.images[i]) for k, i in enumerate(views)])),
+                   "psnr_vs_photos": float(np.mean([psnr(imgs[k], split.float_view(i)) for k, i in enumerate(views)])),
                    "raster_s_per_view": round(raster_s, 3),
                    "fit_s": round(b.info.get("fit_s", 0.0), 2),
                    "fit_level": b.info["fit"]["level"] if "fit" in b.info else None,

@@ -5,7 +5,9 @@ downscales, and poses recovered from its photos with pycolmap against the poses 
         [--downscales 1 2 4] [--threads 2] [--max-image-size 1600] [--max-features 8192] [--skip-poses]
 
 Load: each downscale in a fresh process (peak RSS is per process), first with an empty undistortion
-cache (cold) then again (warm, the cache reused). Poses: ``estimate_poses`` on the photo folder (read in
+cache (cold) then again (warm, the cache reused). ``--before-repo DIR`` (a checkout of an older commit,
+e.g. ``git archive f2bf72a | tar -x -C /tmp/before``) measures the same loads with that code too
+(``load_before``: photos stored as float32 before the uint8 storage). Poses: ``estimate_poses`` on the photo folder (read in
 place), then a similarity (Umeyama on camera centres) maps the recovered cameras onto the given ones;
 rotation error = angle of R_given^T R_aligned per camera, centre error relative to the rig radius (mean
 distance of the given camera centres from their centroid). Goals (issue 48): all photos registered,
@@ -151,12 +153,20 @@ def main(argv=None) -> int:
                          "poses_report.json gives the times; --threads/--max-* must name what that run used)")
     ap.add_argument("--skip-poses", action="store_true")
     ap.add_argument("--skip-load", action="store_true")
+    ap.add_argument("--before-repo", default=None,
+                    help="also measure the loads with the code of this folder (an older checkout) as load_before")
     args = ap.parse_args(argv)
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     name = args.name or os.path.basename(os.path.normpath(args.data))
     res = {"data": name, "cpu_count": os.cpu_count(), "loadavg_at_start": os.getloadavg()[0]}
     if not args.skip_load:
         res["load"] = bench_load(os.path.abspath(args.data), args.downscales, repo)
+        if args.before_repo:
+            print(f"the same loads with {args.before_repo}:", flush=True)
+            res["load_before"] = bench_load(os.path.abspath(args.data), args.downscales,
+                                            os.path.abspath(args.before_repo))
+            res["load_before"]["repo"] = args.before_repo
+            res["load"]["loadavg_at_end"] = os.getloadavg()
     if not args.skip_poses:
         res["poses"] = bench_poses(os.path.abspath(args.data), args)
     from benchmarks._results import RESULTS_DIR
@@ -165,7 +175,7 @@ def main(argv=None) -> int:
     if os.path.isfile(old):  # a section skipped in this run keeps its earlier figures
         with open(old) as fh:
             prev = json.load(fh)
-        for key in ("load", "poses"):
+        for key in ("load", "load_before", "poses"):
             if key not in res and key in prev:
                 res[key] = prev[key]
     write_results(res, f"poses_{name}.json")

@@ -99,7 +99,7 @@ def main(argv=None) -> int:
             on = render_camera(field, cam.K[i], cam.c2w[i], cam.width, cam.height, background=(0, 0, 0))
             off = render_camera(field, cam.K[i], cam.c2w[i], cam.width, cam.height, background=(1, 1, 1),
                                 settings=RenderSettings(background_model=False))
-            side = np.concatenate([val.images[i], np.clip(on.rgb, 0, 1), np.clip(off.rgb, 0, 1)], 1)
+            side = np.concatenate([val.float_view(i), np.clip(on.rgb, 0, 1), np.clip(off.rgb, 0, 1)], 1)
             nm.save_image(os.path.join(args.pictures, f"heldout_{i}_photo_render_object.png"), side)
     res["peak_rss_gib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     res["total_s"] = time.perf_counter() - t0

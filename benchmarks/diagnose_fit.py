@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     for i in range(len(images)):
         cam = images.cameras
         out = render_camera(field, cam.K[i], cam.c2w[i], cam.width, cam.height, background=(0.0, 0.0, 0.0))
-        gt, mask = images.images[i], images.masks[i] > 0.5
+        gt, mask = images.float_view(i), images.float_mask(i) > 0.5
         pred = np.clip(out.rgb, 0.0, 1.0)
         covered = mask & (out.opacity >= 0.5)
         g = (gt[mask] * pred[mask]).sum(0) / np.maximum((pred[mask] ** 2).sum(0), 1e-12)

@@ -34,15 +34,16 @@ def evaluate(field, images: ImageSet, background=(1.0, 1.0, 1.0), masked: bool =
         out = render_camera(field, cam.K[i], cam.c2w[i], cam.width, cam.height,
                             background=background if background is not None else (0.0, 0.0, 0.0),
                             settings=settings)
-        gt = images.images[i]
+        gt = images.float_view(i)
         pred = np.clip(out.rgb, 0.0, 1.0)
         row = {"view": images.names[i] if images.names else str(i), "psnr": metrics.psnr(pred, gt),
                "ssim": metrics.ssim(pred, gt), "render_s": out.seconds}
         if lp_ok:
             row["lpips"] = metrics.compute_lpips(pred, gt, cache_dir=lpips_cache)
         if masked and images.masks is not None:
-            m = images.masks[i] > 0.5
-            row["psnr_fg"] = metrics.masked_psnr(pred, gt, images.masks[i])
+            mf = images.float_mask(i)
+            m = mf > 0.5
+            row["psnr_fg"] = metrics.masked_psnr(pred, gt, mf)
             row["ssim_fg"] = metrics.ssim(pred, gt, mask=m)
         rows.append(row)
         if out_dir:

@@ -48,3 +48,22 @@ def test_view_coverage_counts_unoccluded_in_frame_views():
     assert view_coverage(pts, cams, depths, rel_tol=0.2).tolist() == [2, 0, 0, 2]
     with pytest.raises(ValueError, match="depths must be"):
         view_coverage(pts, cams, depths[:2])
+
+
+def test_uint8_photos_evaluate_as_their_float32_reference(small_scene_dir):
+    """evaluate reads uint8 photos and masks through ImageSet.float_view/float_mask: the same figures
+    as the float32 storage of the same pixels (the old path)."""
+    import neumesh_core as nm
+    from neumesh_core.data.scene import ImageSet
+
+    scene = nm.load_scene(small_scene_dir)
+    va = scene.split("val").subset([0, 1])
+    img8, m8 = np.rint(va.images * 255).astype(np.uint8), np.rint(va.masks * 255).astype(np.uint8)
+    field = nm.create_field(nm.load_mesh(scene.mesh_path))
+    got = {}
+    for key, iset in {"uint8": ImageSet(va.cameras, img8, m8, va.names),
+                      "float32": ImageSet(va.cameras, img8 / np.float32(255), m8 / np.float32(255), va.names)}.items():
+        got[key] = nm.evaluate(field, iset, background=scene.background, masked=True)["mean"]
+    for k in ("psnr", "ssim", "psnr_fg", "ssim_fg"):
+        assert abs(got["uint8"][k] - got["float32"][k]) < 1e-4, k
+    assert 0 < got["uint8"]["psnr"] < 60

@@ -123,7 +123,7 @@ class NEUMESH_OT_import_dataset(bpy.types.Operator):
                 f = _find_image_file(path, names[i] if i < len(names) else "")
                 try:
                     im = bpy.data.images.load(f, check_existing=True) if f else \
-                        _image_from_array(co.name, iset.images[i])
+                        _image_from_array(co.name, iset.float_view(i))
                     bg = cd.background_images.new()
                     bg.image = im
                     cd.show_background_images = True

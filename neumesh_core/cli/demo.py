@@ -15,7 +15,7 @@ def _comparison_figure(images, renders_dir, result, path, n=4):
     import neumesh_core as nm
 
     n = min(n, len(images))
-    top = np.concatenate([images.images[i] for i in range(n)], 1)
+    top = np.concatenate([images.float_view(i) for i in range(n)], 1)
     views = result["views"][:n]
     bottom = np.concatenate([nm.read_image(os.path.join(renders_dir, f"{v['view'].replace('/', '_')}.png"))[..., :3]
                              for v in views], 1)

@@ -10,7 +10,7 @@ backgrounds.
 
 :func:`scene_from_capture` turns a capture into a :class:`~.scene.Scene`: photos read as uint8,
 reduced (``downscale``; None picks the smallest integer factor that brings the long side to at most
-1600 px), distortion removed once (cached), converted to float32 at the end. Held-out views: the
+1600 px), distortion removed once (cached), and kept as uint8 (``ImageSet.float_view`` converts). Held-out views: the
 splits the data names, else every 8th photo in name order (the Mip-NeRF 360 convention) in 'val'.
 Without masks, ``ImageSet.masks`` is None, ``scene.has_masks`` is False and ``scene.notes`` says so.
 """
@@ -194,14 +194,14 @@ def scene_from_capture(capture: Capture, downscale: float | None = None, holdout
     cache_dir = cache_dir or default_cache_dir()
     n = len(capture)
     w, h = reduced_size(W0, H0, downscale)
-    gib = n * h * w * 3 * 4 / 2**30
-    log(f"loading {n} photos at {w}x{h} ({gib:.2f} GiB as float32)"
+    gib = n * h * w * (3 + capture.has_masks) / 2**30
+    log(f"loading {n} photos at {w}x{h} ({gib:.2f} GiB as uint8)"
         + (", removing lens distortion (cached in " + cache_dir + ")" if capture.is_distorted else ""))
     total = _physical_memory()
     if total and gib * 2**30 > 0.8 * total:
-        fit = next((f for f in range(int(downscale) + 1, 64) if n * (-(-H0 // f)) * (-(-W0 // f)) * 12 < 0.5 * total),
+        fit = next((f for f in range(int(downscale) + 1, 64) if n * (-(-H0 // f)) * (-(-W0 // f)) * 4 < 0.5 * total),
                    64)
-        raise DataError(f"{n} photos at {w}x{h} need {gib:.1f} GiB as float32 but this machine has "
+        raise DataError(f"{n} photos at {w}x{h} need {gib:.1f} GiB but this machine has "
                         f"{total / 2**30:.1f} GiB; load them with --downscale {fit} (or fewer photos)")
     idx = _split_indices(capture, holdout_every)
     if len(idx["train"]) == 0:
@@ -213,8 +213,8 @@ def scene_from_capture(capture: Capture, downscale: float | None = None, holdout
     arrays = {}
     try:
         for name, ids in idx.items():
-            arrays[name] = (np.empty((len(ids), h, w, 3), dtype=np.float32),
-                            np.empty((len(ids), h, w), dtype=np.float32) if use_masks else None)
+            arrays[name] = (np.empty((len(ids), h, w, 3), dtype=np.uint8),
+                            np.empty((len(ids), h, w), dtype=np.uint8) if use_masks else None)
             for row, i in enumerate(ids):
                 where.setdefault(int(i), []).append((name, row))
     except MemoryError as exc:
@@ -237,9 +237,9 @@ def scene_from_capture(capture: Capture, downscale: float | None = None, holdout
             if m.shape[:2] != (h, w):
                 raise DataError(f"mask {capture.mask_paths[i]} does not match its photo's size {w}x{h}")
         for name, row in where[i]:
-            np.multiply(img, np.float32(1.0 / 255.0), out=arrays[name][0][row], casting="unsafe")
+            arrays[name][0][row] = img
             if m is not None:
-                np.multiply(m, np.float32(1.0 / 255.0), out=arrays[name][1][row], casting="unsafe")
+                arrays[name][1][row] = m
 
     workers = num_workers or min(4, os.cpu_count() or 2)
     with ThreadPoolExecutor(max_workers=workers) as pool:

@@ -77,7 +77,8 @@ def _load_rgb(path: str, downscale: float) -> np.ndarray:
     img = _read_scaled(path, downscale)
     if img.shape[2] in (1, 2):
         img = np.repeat(img[..., :1], 3, axis=2)
-    return np.ascontiguousarray(img[..., :3], dtype=np.float32)
+    # stored as uint8 (a quarter of float32's memory; exact for 8-bit photos, ImageSet.float_view converts)
+    return np.ascontiguousarray(np.clip(np.rint(img[..., :3] * 255.0), 0, 255).astype(np.uint8))
 
 
 def _load_mask(path: str, downscale: float, threshold: float) -> np.ndarray:
@@ -87,7 +88,7 @@ def _load_mask(path: str, downscale: float, threshold: float) -> np.ndarray:
     elif m.shape[2] == 2:
         m = m[..., :1]
     m = m.mean(axis=2)  # grey or 3-channel (DTU masks are 3 identical channels)
-    return (m > threshold).astype(np.float32)
+    return m > threshold  # bool: ImageSet.float_mask gives {0, 1}
 
 
 def load_dtu(root: str, downscale: float = 1, holdout_every: int = 10, mask_threshold: float = 0.5,

@@ -34,10 +34,13 @@ def _resize_for_density(imgs: ImageSet, max_side: int) -> ImageSet:
     if f <= 1:
         return imgs
     h, w = H // f, W // f
-    im = imgs.images[:, :h * f, :w * f].reshape(len(imgs), h, f, w, f, 3).mean((2, 4))
+    # one view at a time: uint8 photos are converted per view, never all at full size as float
+    im = np.stack([imgs.float_view(k)[:h * f, :w * f].reshape(h, f, w, f, 3).mean((1, 3))
+                   for k in range(len(imgs))])
     ms = None
     if imgs.masks is not None:
-        ms = imgs.masks[:, :h * f, :w * f].reshape(len(imgs), h, f, w, f).mean((2, 4))
+        ms = np.stack([imgs.float_mask(k)[:h * f, :w * f].reshape(h, f, w, f).mean((1, 3))
+                       for k in range(len(imgs))])
     cams = imgs.cameras.scaled(1.0 / f)
     from ..data.cameras import Cameras
 
@@ -140,7 +143,7 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
     if method in ("hull", "hull+mvs", "hull+density"):
         t0 = time.perf_counter()
         check("hull", 0.0)
-        views.sdf = torch.from_numpy(mask_sdf(images.masks, cfg.mask_threshold))[:, None]
+        views.sdf = torch.from_numpy(mask_sdf(images.float_masks(), cfg.mask_threshold))[:, None]
         dil = cfg.hull_dilate_px
         if dil < 0:
             dil = float(np.clip(max(cams.width, cams.height) / 800.0, 0.1, 0.5))
@@ -189,7 +192,7 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
         seen = np.isfinite(mres.values)
         carved_vals = np.where(seen, np.minimum(field_vals, mres.values), field_vals)
         carved_vals, kept = keep_silhouettes(carved_vals, field_vals, hull_grid.lo, hull_grid.voxel,
-                                             views, images.masks, cfg.mask_threshold)
+                                             views, images.float_masks(), cfg.mask_threshold)
         carved = (field_vals > 0) & (carved_vals <= 0)
         n_hull = max(int((field_vals > 0).sum()), 1)
         field_vals = carved_vals
@@ -267,7 +270,7 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
         from .quality import silhouette_iou
 
         check("metrics", 0.0)
-        iou = silhouette_iou(mesh, cams, images.masks, cfg.mask_threshold, cfg.iou_views or None)
+        iou = silhouette_iou(mesh, cams, images.float_masks(), cfg.mask_threshold, cfg.iou_views or None)
         rep.silhouette_iou = {k: v for k, v in iou.items() if k != "per_view"}
         rep.silhouette_iou["worst_view"] = int(np.argmin(iou["per_view"])) if not cfg.iou_views else None
     if cfg.chamfer_samples and ref_path and os.path.isfile(ref_path):

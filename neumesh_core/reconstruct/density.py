@@ -74,10 +74,10 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
     ext = (dims0 - 1) * voxel
     lo_t = torch.as_tensor(np.asarray(lo, np.float32))
     hi_t = lo_t + torch.as_tensor(ext, dtype=torch.float32)
-    imgs = torch.from_numpy(np.ascontiguousarray(images.images.reshape(N, H * W, 3), np.float32))
+    imgs = torch.from_numpy(np.ascontiguousarray(images.float_images().reshape(N, H * W, 3)))
     masks = None
     if use_masks and images.masks is not None:
-        masks = torch.from_numpy(np.ascontiguousarray(images.masks.reshape(N, H * W), np.float32))
+        masks = torch.from_numpy(np.ascontiguousarray(images.float_masks().reshape(N, H * W)))
     bg = None if background is None else torch.tensor(background, dtype=torch.float32)
     learn_bg = masks is None and bg is None
     bg_param = torch.full((N, 3), 0.0, requires_grad=True) if learn_bg else None

@@ -309,8 +309,8 @@ def refine_hull(images, hull: HullGrid, hull_vox: np.ndarray, cfg: MVSConfig | N
     t0 = time.perf_counter()
     cams = images.cameras
     N = len(cams)
-    grey = _grey(images.images)
-    masks = images.masks
+    grey = _grey(images.float_images())
+    masks = images.float_masks()
     hl = _Hull(hull_vox, hull.lo, hull.voxel)
     inside = hull_vox > 0
     ijk = np.argwhere(inside)

@@ -171,7 +171,7 @@ def build_bank(field, images: ImageSet, fmaps: list, cfg: DistillConfig, gen: to
     pix, raw = [], []
     for i in range(len(images)):
         if images.masks is not None:
-            ys, xs = np.nonzero(np.asarray(images.masks[i]) > 0.5)
+            ys, xs = np.nonzero(images.float_mask(i) > 0.5)
         else:
             ys, xs = np.divmod(np.arange(cams.width * cams.height), cams.width)
         if len(xs) == 0:
@@ -258,8 +258,7 @@ def distill_semantics(field, data: Union[Scene, ImageSet], extractor: Optional[F
     fmaps = []
     try:
         for i in range(len(images)):
-            mask = None if images.masks is None else images.masks[i]
-            fmaps.append(extractor(images.images[i], mask))
+            fmaps.append(extractor(images.float_view(i), images.float_mask(i)))
             if report("features", i + 1, len(images)) is False:
                 raise Cancelled("semantic distillation cancelled")
         timings["features_s"] = time.perf_counter() - t0

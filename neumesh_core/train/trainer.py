@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from ..data.cameras import batch_pixel_rays
-from ..data.scene import ImageSet, Scene
+from ..data.scene import ImageSet, Scene, as_float
 from ..render.renderer import RenderSettings, default_step, render_rays
 from ..field.io import load_optimizer_state, save_field
 from .optim import ParameterAverage, RowSparseAdam
@@ -110,12 +110,13 @@ class TrainResult:
 
 
 class _Batcher:
-    """Random pixels from all training images (held as one tensor)."""
+    """Random pixels from all training images (held as one tensor in their stored dtype: uint8 photos
+    stay uint8 on the device, each batch is converted to float32 by ``as_float``)."""
 
     def __init__(self, images: ImageSet, scene_bg, device, seed: int):
         self.images = torch.from_numpy(np.ascontiguousarray(images.images)).to(device)
         self.masks = None if images.masks is None else torch.from_numpy(
-            np.ascontiguousarray(images.masks, dtype=np.float32)).to(device)
+            np.ascontiguousarray(images.masks)).to(device)
         self.K = torch.from_numpy(images.cameras.K).to(device)
         self.c2w = torch.from_numpy(images.cameras.c2w).to(device)
         self.n, self.h, self.w = self.images.shape[:3]
@@ -129,8 +130,8 @@ class _Batcher:
         x = torch.randint(0, self.w, (b,), generator=g).to(self.device)
         y = torch.randint(0, self.h, (b,), generator=g).to(self.device)
         o, d = batch_pixel_rays(self.K[i], self.c2w[i], x, y)
-        rgb = self.images[i, y, x]
-        mask = None if self.masks is None else self.masks[i, y, x]
+        rgb = as_float(self.images[i, y, x])
+        mask = None if self.masks is None else as_float(self.masks[i, y, x])
         return o, d, rgb, mask
 
 
@@ -185,7 +186,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
         images, scene_bg = data, None
     if len(images) == 0:
         raise ValueError("no training images")
-    if not np.isfinite(images.images).all():
+    if images.images.dtype.kind == "f" and not np.isfinite(images.images).all():
         raise ValueError("training images contain NaN/inf values; check the dataset")
     if field.to_rest is not None:
         raise ValueError("the field is deformed; call field.reset_vertices() before training")

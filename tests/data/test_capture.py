@@ -140,8 +140,11 @@ def test_transforms_reads_cameras_and_holds_out_every_8th(tmp_path):
     tr = scene.split("train")
     np.testing.assert_allclose(tr.cameras.c2w, c2w[[1, 2, 3, 4, 5, 6, 7, 9]], atol=1e-5)
     np.testing.assert_allclose(tr.cameras.K[0], lens.K, atol=1e-4)
-    assert tr.images.dtype == np.float32 and tr.images.shape == (8, H, W, 3)
-    np.testing.assert_allclose(tr.images[0], to_u8(pinhole_render(lens.K)) / 255.0, atol=1e-6)
+    assert tr.images.dtype == np.uint8 and tr.images.shape == (8, H, W, 3)  # photos stay uint8
+    np.testing.assert_array_equal(tr.images[0], to_u8(pinhole_render(lens.K)))
+    f = tr.float_view(0)
+    assert f.dtype == np.float32 and f.shape == (H, W, 3)
+    np.testing.assert_allclose(f, to_u8(pinhole_render(lens.K)) / 255.0, atol=1e-6)
     assert scene.capture.aabb_scale == 4 and any("no masks" in n for n in scene.notes)
 
 
@@ -187,7 +190,8 @@ def test_transforms_named_splits_and_masks(tmp_path):
     scene = load_scene(root, log=lambda m: None)
     assert sorted(scene.splits) == ["test", "train"] and len(scene.split("test")) == 2
     assert scene.has_masks
-    m = scene.split("train").masks[0]
+    assert scene.split("train").masks.dtype == np.uint8
+    m = scene.split("train").float_mask(0)
     assert m[20, 30] == 1.0 and m[0, 0] == 0.0
 
 
@@ -226,7 +230,7 @@ def test_distortion_round_trip_matches_the_pinhole_render(tmp_path, model, dist)
     tr = scene.split("train")
     K = tr.cameras.K[0].astype(np.float64)
     ref = pinhole_render(K)
-    err = np.abs(tr.images[0] - ref)[3:-3, 3:-3]
+    err = np.abs(tr.float_view(0) - ref)[3:-3, 3:-3]
     plain = np.abs(to_u8(distorted_render(Lens(model, W, H, FX, FY, CX, CY, dist))) / 255.0 - ref)[3:-3, 3:-3]
     assert err.mean() < 0.01 and np.percentile(err, 99) < 0.05
     assert plain.mean() > 3 * err.mean()  # the distortion was real and was removed
@@ -304,7 +308,7 @@ def test_colmap_camera_models_load(tmp_path, model):
         np.testing.assert_allclose(scene.split("train").cameras.K[0], lens.K, atol=1e-4)
     else:  # distortion removed: the photo now matches the pinhole render of the new K
         tr = scene.split("train")
-        err = np.abs(tr.images[0] - pinhole_render(tr.cameras.K[0].astype(np.float64)))[3:-3, 3:-3]
+        err = np.abs(tr.float_view(0) - pinhole_render(tr.cameras.K[0].astype(np.float64)))[3:-3, 3:-3]
         assert err.mean() < 0.01
     np.testing.assert_allclose(np.sort(scene.capture.points, 0), np.sort(xyz, 0).astype(np.float32), atol=1e-6)
     assert (scene.capture.point_colors == [10, 20, 30]).all()
@@ -370,7 +374,7 @@ def test_too_many_pixels_for_the_memory_is_a_clear_error(tmp_path, monkeypatch):
 
     root = str(tmp_path / "cap")
     write_colmap(root, n=3)
-    monkeypatch.setattr(capture_mod, "_physical_memory", lambda: 60_000)  # 3 x 64x48 float32 = 110 KB
+    monkeypatch.setattr(capture_mod, "_physical_memory", lambda: 20_000)  # 3 x 64x48 x 3 uint8 = 27.6 KB
     with pytest.raises(DataError, match="--downscale 2"):
         load_scene(root, downscale=1, log=lambda m: None)
 

@@ -86,9 +86,11 @@ def test_load_dtu_recovers_cameras_splits_masks(tmp_path):
     np.testing.assert_allclose(tr.cameras.K, Ks[train_idx], atol=1e-4)
     np.testing.assert_allclose(tr.cameras.c2w, c2ws[train_idx], atol=1e-4)
     np.testing.assert_allclose(va.cameras.c2w, c2ws[val_idx], atol=1e-4)
-    np.testing.assert_allclose(va.images[1, 0, 0, 0], 5 / 12, atol=1 / 255)
-    assert set(np.unique(tr.masks)) == {0.0, 1.0}
-    assert tr.masks[0, 0, 0] == 0.0 and tr.masks[0, 5, 7] == 1.0 and tr.masks.sum() == 9 * 8 * 12
+    assert va.images.dtype == np.uint8 and tr.masks.dtype == np.bool_  # photos stay uint8
+    np.testing.assert_allclose(va.float_view(1)[0, 0, 0], 5 / 12, atol=1 / 255)
+    fm = tr.float_masks()
+    assert fm.dtype == np.float32 and set(np.unique(fm)) == {0.0, 1.0}
+    assert fm[0, 0, 0] == 0.0 and fm[0, 5, 7] == 1.0 and fm.sum() == 9 * 8 * 12
     assert scene.notes == []
     assert list(load_dtu(root, holdout_every=0).splits) == ["train"]
     assert load_scene(root).kind == "dtu"

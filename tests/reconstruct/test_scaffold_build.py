@@ -210,3 +210,28 @@ def test_cli_writes_mesh_and_report(small_scene_dir, tmp_path, capsys):
     assert "silhouette IoU" in capsys.readouterr().out
     rc = main(["scaffold", "--data", str(tmp_path / "nope"), "--out", str(out)])
     assert rc == 2
+
+
+def test_uint8_photos_build_the_scaffold_of_their_float32_reference(small_scene):
+    """Hull, stereo, density and the silhouette IoU read uint8 photos/masks through the ImageSet float
+    accessors (the density's downsampling one view at a time): the scaffold and report of the float32
+    storage of the same pixels (the old path)."""
+    from neumesh_core.reconstruct.build import _resize_for_density
+
+    tr = small_scene.split("train").subset(np.arange(0, 30, 2))
+    img8, m8 = np.rint(tr.images * 255).astype(np.uint8), np.rint(tr.masks * 255).astype(np.uint8)
+    sets = {"uint8": ImageSet(tr.cameras, img8, m8, tr.names),
+            "float32": ImageSet(tr.cameras, img8 / np.float32(255), m8 / np.float32(255), tr.names)}
+    small = {k: _resize_for_density(v, 32) for k, v in sets.items()}
+    assert small["uint8"].images.dtype == np.float32 and small["uint8"].images.shape[1:3] == (32, 32)
+    np.testing.assert_allclose(small["uint8"].images, small["float32"].images, atol=1e-6)
+    np.testing.assert_allclose(small["uint8"].masks, small["float32"].masks, atol=1e-6)
+    cfg = dict(method="hull+density", target_vertices=1500, hull_resolution=32, density_resolutions=(16,),
+               density_iters=(8,), density_batch_rays=256, density_max_image_side=32, iou_views=4,
+               chamfer_samples=0)
+    out = {k: build_scaffold(Scene(splits={"train": v}, bbox=small_scene.bbox), ScaffoldConfig(**cfg))
+           for k, v in sets.items()}
+    (m_u8, r_u8), (m_f, r_f) = out["uint8"], out["float32"]
+    assert m_u8.num_vertices == m_f.num_vertices > 100
+    np.testing.assert_allclose(m_u8.vertices, m_f.vertices, atol=1e-4)
+    assert abs(r_u8.silhouette_iou["mean"] - r_f.silhouette_iou["mean"]) < 1e-6

@@ -181,3 +181,30 @@ def test_code_levels_until_bakes_midway_and_trains_plain_codes_after(small_scene
         nm.TrainConfig(code_levels=2, code_levels_until=1.0)
     with pytest.raises(ValueError, match="code_levels is 0"):
         nm.TrainConfig(code_levels_until=0.3)   # nothing to fold
+
+
+def test_uint8_photos_train_as_their_float32_reference(small_scene_dir):
+    """The batcher keeps uint8 photos (and uint8 alpha) as stored and converts each batch: training on
+    them follows the float32 storage of the same pixels (the old path) step for step."""
+    import torch
+
+    from neumesh_core.data.scene import ImageSet
+
+    scene = nm.load_scene(small_scene_dir)
+    tr = scene.split("train").subset(np.arange(8))
+    img8 = np.rint(tr.images * 255).astype(np.uint8)
+    m8 = np.rint(tr.masks * 255).astype(np.uint8)
+    sets = {"uint8": ImageSet(tr.cameras, img8, m8, tr.names),
+            "float32": ImageSet(tr.cameras, img8.astype(np.float32) / 255, m8.astype(np.float32) / 255, tr.names)}
+    runs = {}
+    for key, iset in sets.items():
+        torch.manual_seed(0)
+        field = nm.create_field(nm.load_mesh(scene.mesh_path))
+        hist = []
+        nm.train(field, nm.Scene(splits={"train": iset}, background=scene.background),
+                 nm.TrainConfig(steps=12, rays_per_batch=256, log_every=1), callback=lambda p: hist.append(p.loss))
+        runs[key] = (np.array(hist), field.tex_codes.detach().clone())
+    assert sets["uint8"].images.nbytes * 4 == sets["float32"].images.nbytes
+    np.testing.assert_allclose(runs["uint8"][0], runs["float32"][0], rtol=1e-4, atol=1e-6)
+    assert torch.allclose(runs["uint8"][1], runs["float32"][1], atol=1e-5)
+    assert np.ptp(runs["uint8"][0]) > 0  # it trained
