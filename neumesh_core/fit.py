@@ -90,9 +90,9 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
         if box is not None:
             field.object_box = box
         if real and background_model:
-            from .field.background import attach_background, background_for
+            from .field.background import attach_background, fit_background_for
 
-            attach_background(field, background_for(scene.split("train").cameras.c2w, box,
+            attach_background(field, fit_background_for(scene.split("train").cameras.c2w, box,
                                                     None if scene.capture is None else scene.capture.points))
     res = train(field, scene, tcfg, callback=train_callback)
     if os.path.abspath(tcfg.checkpoint_path) != os.path.abspath(field_path):
