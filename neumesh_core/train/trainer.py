@@ -112,6 +112,7 @@ class TrainResult:
     interrupted: bool = False
     history: list = dc_field(default_factory=list)
     averaged: int = 0                 # parameter snapshots averaged into the result (0 = plain)
+    appearance: Optional[np.ndarray] = None   # per-image codes (n, 6: log-scale rgb, offset rgb), centred
 
 
 class _Batcher:
@@ -340,5 +341,6 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
         with torch.no_grad():
             field.grid.refresh(density, step_size, max_cells=None, generator=gen)
     save(step)
+    codes = None if appearance is None else (appearance - appearance.mean(0)).detach().cpu().numpy()
     return TrainResult(step, loss_v, psnr_v, time.perf_counter() - t_begin, cancelled, interrupted, history,
-                       averaged)
+                       averaged, codes)
