@@ -36,7 +36,8 @@ from .reconstruct.poses import PosesConfig, PosesError, PosesProgress, PosesRepo
 from .reconstruct.video import frames_from_video  # noqa: E402
 from . import deform  # noqa: E402  (nm.deform: ArapSolver, arap)
 from .data.frame import ObjectBox, SceneFrame, object_box, parse_box, scene_frame  # noqa: E402
-from .field.background import BackgroundModel, attach_background, background_for, background_of  # noqa: E402
+from .field.background import (BackgroundModel, attach_background, background_for, background_of,  # noqa: E402
+                               fit_background_for)
 
 __version__ = "0.1.0"
 
@@ -53,5 +54,5 @@ __all__ = [
     "Capture", "PosesConfig", "PosesError", "PosesProgress", "PosesReport", "estimate_poses", "frames_from_video",
     "read_capture", "undistorted_images",
     "ObjectBox", "SceneFrame", "object_box", "parse_box", "scene_frame", "BackgroundModel", "attach_background",
-    "background_for", "background_of",
+    "background_for", "background_of", "fit_background_for",
 ]

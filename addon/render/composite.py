@@ -172,6 +172,7 @@ def sync_companion(scene, companion):
     companion.frame_step = scene.frame_step
     companion.frame_current = scene.frame_current
     companion.neumesh.render_samples = scene.neumesh.render_samples
+    companion.neumesh.render_background = scene.neumesh.render_background
     c.film_transparent = True   # alpha = the field's opacity, for the Z Combine's alpha
     if companion.camera is not None and companion.camera.name not in companion.objects:
         companion.collection.objects.link(companion.camera)

@@ -106,7 +106,8 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
                 return not self.test_break()
 
             passes = frame.render_passes(items, K, c2w, w, h, transparent, progress=prog,
-                                          supersample=scene.neumesh.render_samples, occluder_z=occluder_z)
+                                          supersample=scene.neumesh.render_samples, occluder_z=occluder_z,
+                                          background_model=scene.neumesh.render_background)
             t2 = time.perf_counter()
         except Exception as exc:  # noqa: BLE001 - reported to the user, no (wrong) image written
             if type(exc).__name__ == "Cancelled":
@@ -191,10 +192,11 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
                 self._draw_message(context, self._error)
                 return
         pv = self._ensure_preview()
-        key = (self._generation, K.tobytes(), c2w.tobytes(), W, H, transparent)
+        room = bool(scene.neumesh.render_background)
+        key = (self._generation, K.tobytes(), c2w.tobytes(), W, H, transparent, room)
         if key != self._key:
             self._key = key
-            pv.request(self._items, K, c2w, W, H, transparent)
+            pv.request(self._items, K, c2w, W, H, transparent, background_model=room)
         latest = pv.latest
         if pv.error:
             self._draw_message(context, pv.error)

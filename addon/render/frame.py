@@ -22,21 +22,23 @@ LAST_TIMINGS: dict = {}
 
 
 def render_items(items: list[Item], K, c2w, width: int, height: int, transparent: bool = False,
-                 progress=None, supersample: int = 1) -> np.ndarray:
+                 progress=None, supersample: int = 1, background_model: bool = True) -> np.ndarray:
     """Render (H,W,4) float32 display-referred RGBA (sRGB-encoded like the field's training images).
 
-    ``supersample``: S x S rays per pixel, averaged (anti-aliasing).
+    ``supersample``: S x S rays per pixel, averaged (anti-aliasing).  ``background_model``: the room
+    of a field trained on a real capture (its background model) behind the fields (off: the object alone).
     Transparent: straight alpha = opacity, rgb composited on black (premultiplied).
     Otherwise: composited on white, alpha = 1.
     """
-    out = _render_out(items, K, c2w, width, height, transparent, progress, supersample)
+    out = _render_out(items, K, c2w, width, height, transparent, progress, supersample,
+                      background_model=background_model)
     if out is None:
         return _empty(width, height, transparent)
     return _rgba(out, width, height, transparent)
 
 
 def _render_out(items: list[Item], K, c2w, width: int, height: int, transparent: bool, progress,
-                supersample: int, far=None):
+                supersample: int, far=None, background_model: bool = True):
     """``nm.render_camera`` of the posed fields of ``items`` (None when there is none)."""
     nm = core.get()
     LAST_TIMINGS.clear()
@@ -57,7 +59,9 @@ def _render_out(items: list[Item], K, c2w, width: int, height: int, transparent:
         t1 = time.perf_counter()
         out = nm.render_camera(posed if len(posed) > 1 else posed[0], np.asarray(K, np.float32),
                                np.asarray(c2w, np.float32), int(width), int(height), background=bg,
-                               settings=nm.RenderSettings(supersample=int(supersample)), progress=progress,
+                               settings=nm.RenderSettings(supersample=int(supersample),
+                                                          background_model=bool(background_model)),
+                               progress=progress,
                                far=far)
         t2 = time.perf_counter()
     LAST_TIMINGS.update(pose_s=t1 - t0, core_s=t2 - t1, torch_threads=torch.get_num_threads(),
@@ -116,13 +120,14 @@ def holdout_z(depsgraph, K, c2w, width: int, height: int) -> np.ndarray | None:
 
 
 def render_passes(items: list[Item], K, c2w, width: int, height: int, transparent: bool = False,
-                  progress=None, supersample: int = 1, occluder_z: np.ndarray | None = None) -> Passes:
+                  progress=None, supersample: int = 1, occluder_z: np.ndarray | None = None,
+                  background_model: bool = True) -> Passes:
     """The passes of one frame (see :class:`Passes`). ``occluder_z`` (H,W) camera-axis distances of
     holdout surfaces (inf: none): the field behind them is not sampled, and there the background is
     left out (alpha = the field's opacity in front of the holdout, even without Film > Transparent)."""
     nm = core.get()
     far = None if occluder_z is None else nm.axis_to_ray_depth(occluder_z, K)
-    out = _render_out(items, K, c2w, width, height, transparent, progress, supersample, far)
+    out = _render_out(items, K, c2w, width, height, transparent, progress, supersample, far, background_model)
     if out is None:
         rgba = _empty(width, height, transparent)
         z = np.full((height, width), np.inf, np.float32)
@@ -153,7 +158,8 @@ def _empty(width: int, height: int, transparent: bool) -> np.ndarray:
 
 def _rgba(out, width: int, height: int, transparent: bool) -> np.ndarray:
     rgb = np.asarray(out.rgb, dtype=np.float32).reshape(height, width, 3)
-    alpha = np.asarray(out.opacity, dtype=np.float32).reshape(height, width, 1) if transparent else \
+    # alpha: the fields' opacity, and with a background model on, its opacity behind them (1: opaque)
+    alpha = np.asarray(getattr(out, "alpha", out.opacity), dtype=np.float32).reshape(height, width, 1) if transparent else \
         np.ones((height, width, 1), np.float32)
     return np.concatenate([rgb, alpha], axis=-1)
 

@@ -63,7 +63,8 @@ class NEUMESH_OT_render_images(bpy.types.Operator):
             written = []
             for i, cam in enumerate(cams):
                 K, c2w, W, H = camera.camera_K_c2w(cam, scene, depsgraph)
-                rgba = frame.render_items(items, K, c2w, W, H, transparent, supersample=s.render_samples)
+                rgba = frame.render_items(items, K, c2w, W, H, transparent, supersample=s.render_samples,
+                                          background_model=s.render_background)
                 if transparent:  # PNG wants straight alpha
                     a = rgba[..., 3:4]
                     rgba = np.concatenate([np.where(a > 1e-6, rgba[..., :3] / np.maximum(a, 1e-6), 0), a], -1)

@@ -53,11 +53,11 @@ class PreviewRenderer:
         self._thread = threading.Thread(target=self._loop, name="neumesh-preview", daemon=True)
         self._thread.start()
 
-    def request(self, items, K, c2w, width, height, transparent=False):
+    def request(self, items, K, c2w, width, height, transparent=False, background_model=True):
         with self._cv:
             self._serial += 1
             self._pending = (self._serial, items, K, c2w, int(width), int(height), bool(transparent),
-                             time.perf_counter())
+                             bool(background_model), time.perf_counter())
             self._cv.notify_all()
             return self._serial
 
@@ -99,7 +99,7 @@ class PreviewRenderer:
                 if self._stop:
                     return
                 job, self._pending = self._pending, None
-            serial, items, K, c2w, W, H, transparent, t0 = job
+            serial, items, K, c2w, W, H, transparent, background_model, t0 = job
             self.busy = True
             self.timings = []
             try:
@@ -111,7 +111,8 @@ class PreviewRenderer:
                     def prog(_f, serial=serial):
                         return self._serial == serial and not self._stop
 
-                    rgba = frame.render_items(items, Ks, c2w, w, h, transparent, progress=prog)
+                    rgba = frame.render_items(items, Ks, c2w, w, h, transparent, progress=prog,
+                                              background_model=background_model)
                     if self._serial != serial:
                         break
                     self.seconds_per_pixel = (time.perf_counter() - t_level) / (w * h)

@@ -163,11 +163,23 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
                                 description="Final renders (F12, Render to images) average S x S rays per "
                                             "pixel: smoother edges and fine texture, S^2 times the render "
                                             "time. The viewport uses 1")
+    render_background: BoolProperty(
+        name="Background", default=True, update=lambda self, context: _redraw_viewports(context),
+        description="Fields trained on photos without masks learned the room behind their object: on "
+                    "renders it (the photo-like frame); off renders the object alone (with Film > "
+                    "Transparent, a true alpha). Other fields are not affected")
     viewport_preview: BoolProperty(name="Progressive viewport", default=True,
                                    description="Rendered viewport shading draws low-resolution previews first")
     photo_colour_set: BoolProperty(name="Photo colours set", default=False, options={"HIDDEN"},
                                    description="The view transform was set to 'Standard' when NeuMesh was "
                                                "first chosen as this scene's render engine")
+
+
+def _redraw_viewports(context) -> None:
+    for window in getattr(getattr(context, "window_manager", None), "windows", ()):
+        for area in window.screen.areas:
+            if area.type == "VIEW_3D":
+                area.tag_redraw()
 
 
 def _objects_with_field_paths():

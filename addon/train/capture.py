@@ -74,6 +74,25 @@ def box_bounds(obj):
     return w[:, :3].min(0), w[:, :3].max(0)
 
 
+def box_of(obj):
+    """The "NeuMesh Box" Empty as an oriented box: (centre (3,), half extents (3,), rotation (3,3)),
+    world space, as the artist moved, rotated and scaled it (its cube is [-1, 1]^3 x
+    ``empty_display_size`` in local space).  A sheared box (a skewed parent) gives its axis-aligned
+    bounds (:func:`box_bounds`) instead."""
+    M = np.asarray([list(r) for r in obj.matrix_world], np.float64)
+    s = float(getattr(obj, "empty_display_size", 1.0) or 1.0)
+    axes = M[:3, :3] * s
+    half = np.linalg.norm(axes, axis=0)
+    if (half <= 1e-12).any():
+        raise ValueError(f"'{obj.name}' is scaled to zero along an axis; scale it back to give the object "
+                         "region a size")
+    rot = axes / half
+    if np.abs(rot.T @ rot - np.eye(3)).max() > 1e-4 or np.linalg.det(rot) < 0:
+        lo, hi = box_bounds(obj)
+        return (lo + hi) / 2, (hi - lo) / 2, np.eye(3)
+    return M[:3, 3].copy(), half, rot
+
+
 def srgb_to_linear(c):
     c = np.asarray(c, np.float32)
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)

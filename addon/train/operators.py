@@ -12,7 +12,7 @@ from ..runtime.errors import UserError
 from ..scene import camera, identity, props, sync
 from ..render import fields
 from ..render.images import DATASET_COLLECTION, dataset_cameras  # noqa: F401 (ui, tests)
-from . import worker
+from . import capture, worker
 
 def _report_exc(op, exc, what):
     msg = f"NeuMesh: {what}: {exc}" if not isinstance(exc, core.CoreUnavailable) else f"NeuMesh: {exc}"
@@ -204,6 +204,9 @@ class NEUMESH_OT_build_scaffold(bpy.types.Operator):
         wm.progress_begin(0, 100)
         try:
             ds = nm.load_scene(path, downscale=s.downscale, background="white")
+            box_obj = bpy.data.objects.get(capture.BOX_NAME)
+            if box_obj is not None:   # the scaffold is built inside the box the artist left
+                ds.bbox = np.stack(capture.box_bounds(box_obj)).astype(np.float64)
 
             def prog(*args):  # (stage, fraction)
                 frac = [a for a in args if isinstance(a, (int, float))]
@@ -279,9 +282,10 @@ class NEUMESH_OT_train(bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: '{obj.name}' has no faces")
             return {"CANCELLED"}
         try:
+            box_obj = bpy.data.objects.get(capture.BOX_NAME)
             job = worker.start(dataset_path=dataset, field_path=field_path, steps=self.steps or s.train_steps,
                                vertices=verts, faces=faces, resume=self.resume, downscale=s.downscale,
-                               object_name=obj.name)
+                               object_name=obj.name, box=None if box_obj is None else capture.box_of(box_obj))
         except Exception as exc:  # noqa: BLE001
             return _report_exc(self, exc, "cannot start training")
         if self.wait:

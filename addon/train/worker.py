@@ -18,8 +18,11 @@ class TrainJob(Job):
 
     def __init__(self, *, dataset_path: str, field_path: str, steps: int, vertices=None, faces=None,
                  resume: bool = False, downscale: int = 1, background: str = "white", train_kwargs=None,
-                 object_name: str = ""):
+                 object_name: str = "", box=None):
         super().__init__("train")
+        # (centre (3,), half extents (3,), rotation (3,3)) of the "NeuMesh Box" (world space) or None:
+        # a new field of a capture without masks gets it as its object box, and a background model outside
+        self.box = None if box is None else tuple(np.asarray(b, np.float64) for b in box)
         self.dataset_path = dataset_path
         self.field_path = field_path
         self.steps = int(steps)
@@ -93,6 +96,8 @@ class TrainJob(Job):
             if self.vertices is None or self.faces is None:
                 raise ValueError("no mesh given to train a new field on")
             field = nm.create_field(nm.Mesh(self.vertices, self.faces), nm.FieldConfig())
+            if self.box is not None:
+                attach_box_and_background(nm, field, scene, self.box)
         self.state = "TRAINING"
         os.makedirs(os.path.dirname(os.path.abspath(self.field_path)) or ".", exist_ok=True)
         kw = dict(self.train_kwargs)
@@ -126,6 +131,17 @@ def _duration(seconds: float) -> str:
 
 
 _job: TrainJob | None = None
+
+
+def attach_box_and_background(nm, field, scene, box) -> None:
+    """Give a new ``field`` the object box (what training treats as the object) and, when the photos
+    have no masks, the background model that learns the room outside it (as ``neumesh fit`` does)."""
+    ob = nm.ObjectBox(*box)
+    field.object_box = ob
+    if not scene.has_masks:
+        cap = getattr(scene, "capture", None)
+        nm.attach_background(field, nm.fit_background_for(scene.split("train").cameras.c2w, ob,
+                                                          None if cap is None else cap.points))
 
 
 def current() -> TrainJob | None:

@@ -104,6 +104,7 @@ class NEUMESH_PT_field(_Sidebar, bpy.types.Panel):
         col.separator()
         _labelled(col, s, "render_cameras", "Render cameras")
         col.prop(s, "render_samples")
+        col.prop(s, "render_background")
         _labelled(col, s, "output_dir", "Output folder")
         col.operator("neumesh.render_images", text="Render to Images", icon="RENDER_STILL")
         col.separator()
@@ -144,6 +145,7 @@ class NEUMESH_PT_render(bpy.types.Panel):
         col = self.layout.column()
         col.prop(scene.render, "film_transparent")
         col.prop(scene.neumesh, "render_samples")
+        col.prop(scene.neumesh, "render_background")
         issues = colour.photo_colour_issues(scene)
         width = text_width(context)
         if issues:
