@@ -33,6 +33,8 @@ def main(argv=None) -> int:
     ap.add_argument("--downscale", type=float, default=4)
     ap.add_argument("--minutes", type=float, default=15.0, help="training budget (wall minutes)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--steps", type=int, default=10**7, help="training steps (the budget is whichever ends first: "
+                    "equal-step comparisons on a busy machine)")
     ap.add_argument("--out", default=None, help="working folder (default: /tmp/bench_real_<name>)")
     ap.add_argument("--name", default=None)
     ap.add_argument("--smoke", action="store_true")
@@ -63,7 +65,7 @@ def main(argv=None) -> int:
     scfg = ScaffoldConfig(method="density", compute_iou=False, chamfer_samples=0)
     if args.smoke:
         scfg.density_iters, scfg.density_resolutions, scfg.target_vertices = (150, 150), (48, 96), 60_000
-    tcfg = TrainConfig(steps=10**7, max_seconds=args.minutes * 60.0, threads=args.threads, log_every=25,
+    tcfg = TrainConfig(steps=args.steps, max_seconds=args.minutes * 60.0, threads=args.threads, log_every=25,
                        checkpoint_every=10**9, appearance_codes=args.appearance)
     if args.scaffold:
         import shutil
