@@ -33,6 +33,8 @@ def main(argv=None) -> int:
     ap.add_argument("--downscale", type=float, default=4)
     ap.add_argument("--minutes", type=float, default=15.0, help="training budget (wall minutes)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--steps", type=int, default=10**7, help="training steps (the budget is whichever ends first: "
+                    "equal-step comparisons on a busy machine)")
     ap.add_argument("--out", default=None, help="working folder (default: /tmp/bench_real_<name>)")
     ap.add_argument("--name", default=None)
     ap.add_argument("--smoke", action="store_true")
@@ -40,6 +42,11 @@ def main(argv=None) -> int:
     ap.add_argument("--no-background-model", action="store_true")
     ap.add_argument("--pictures", default=None)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--appearance", action="store_true", help="per-image appearance codes while training")
+    ap.add_argument("--snapshot-minutes", type=float, default=None,
+                    help="also save the field at this training minute and evaluate it (e.g. 15 in a 60-minute run)")
+    ap.add_argument("--scaffold", default=None, help="reuse this scaffold.ply (its build time is not counted)")
+    ap.add_argument("--off-views", type=int, default=0, help="held-out photos evaluated with the background off (0: all)")
     args = ap.parse_args(argv)
 
     import numpy as np
@@ -58,9 +65,28 @@ def main(argv=None) -> int:
     scfg = ScaffoldConfig(method="density", compute_iou=False, chamfer_samples=0)
     if args.smoke:
         scfg.density_iters, scfg.density_resolutions, scfg.target_vertices = (150, 150), (48, 96), 60_000
-    tcfg = TrainConfig(steps=10**7, max_seconds=args.minutes * 60.0, threads=args.threads, log_every=100,
-                       checkpoint_every=10**9)
+    tcfg = TrainConfig(steps=args.steps, max_seconds=args.minutes * 60.0, threads=args.threads, log_every=25,
+                       checkpoint_every=10**9, appearance_codes=args.appearance)
+    if args.scaffold:
+        import shutil
+
+        shutil.copyfile(args.scaffold, os.path.join(out, "scaffold.ply"))
+    snap_path = os.path.join(out, "snapshot.neumesh")
+    snap = {}
+    fit_state = {"field": None}
+    import importlib
+
+    trainer_mod = importlib.import_module("neumesh_core.train.trainer")
+
+    plain_train = trainer_mod.train
+
+    def train_keeping_field(field, *a, **k):   # the snapshot needs the field fit() trains
+        fit_state["field"] = field
+        return plain_train(field, *a, **k)
+
+    trainer_mod.train = train_keeping_field
     t0 = time.perf_counter()
+    load_start = os.getloadavg()
     log_lines = []
 
     def log(m):
@@ -68,8 +94,14 @@ def main(argv=None) -> int:
         print(m, file=sys.stderr, flush=True)
 
     def cb(p):
-        if p.step % 500 == 0:
-            log(f"step {p.step} train psnr {p.psnr:.2f} {p.elapsed_s:.0f}s")
+        if p.step % 250 == 0:
+            log(f"step {p.step} train psnr {p.psnr:.2f} {p.elapsed_s:.0f}s load {os.getloadavg()[0]:.1f}")
+        if args.snapshot_minutes and not snap and p.elapsed_s >= args.snapshot_minutes * 60:
+            field_now = fit_state["field"]
+            if field_now is not None:
+                nm.save_field(field_now, snap_path)
+                snap.update(step=p.step, seconds=p.elapsed_s)
+                log(f"snapshot at step {p.step} ({p.elapsed_s:.0f}s): {snap_path}")
 
     summary = fit(args.data, out, downscale=args.downscale, background=None, scaffold_config=scfg,
                   train_config=tcfg, train_callback=cb, evaluate_split="none", log=log, device=args.device,
@@ -84,11 +116,20 @@ def main(argv=None) -> int:
            "background_model_trained": not args.no_background_model,
            "size": [val.cameras.width, val.cameras.height], "held_out_views": len(val),
            "scaffold": summary.get("scaffold"), "train": summary.get("train"),
-           "object_box": summary.get("object_box")}
+           "object_box": summary.get("object_box"), "load_start": load_start,
+           "background_config": (nm.background_of(field).config() if nm.background_of(field) is not None else None)}
+    res["load_before_eval"] = os.getloadavg()
+    if snap:
+        sf = nm.load_field(snap_path, device=args.device)
+        ev = nm.evaluate(sf, val, background=(0.0, 0.0, 0.0), settings=RenderSettings(background_model=True))
+        res["snapshot"] = dict(snap, psnr=ev["mean"]["psnr"], ssim=ev["mean"]["ssim"],
+                               note="the same run's field at this point (its lr schedule spans the whole run)")
+        log(f"held-out at the snapshot (step {snap['step']}): PSNR {ev['mean']['psnr']:.2f} SSIM {ev['mean']['ssim']:.3f}")
     for mode in ("on", "off"):
         st = RenderSettings(background_model=mode == "on")
-        ev = nm.evaluate(field, val, background=(0.0, 0.0, 0.0), settings=st)
-        res[f"background_{mode}"] = {"psnr": ev["mean"]["psnr"], "ssim": ev["mean"]["ssim"],
+        vv = val.subset(np.arange(min(args.off_views, len(val)))) if mode == "off" and args.off_views else val
+        ev = nm.evaluate(field, vv, background=(0.0, 0.0, 0.0), settings=st)
+        res[f"background_{mode}"] = {"views": len(vv), "psnr": ev["mean"]["psnr"], "ssim": ev["mean"]["ssim"],
                                      "render_s": ev["mean"]["render_s"], "lpips": ev["mean"].get("lpips")}
         log(f"held-out, background model {mode}: PSNR {ev['mean']['psnr']:.2f} SSIM {ev['mean']['ssim']:.3f} "
             f"render {ev['mean']['render_s']:.1f}s/frame")
@@ -101,6 +142,10 @@ def main(argv=None) -> int:
                                 settings=RenderSettings(background_model=False))
             side = np.concatenate([val.float_view(i), np.clip(on.rgb, 0, 1), np.clip(off.rgb, 0, 1)], 1)
             nm.save_image(os.path.join(args.pictures, f"heldout_{i}_photo_render_object.png"), side)
+    res["appearance_codes"] = args.appearance
+    res["machine"] = (f"2 cores shared with other developers' jobs (load 1-min avg {os.getloadavg()[0]:.1f} at the end); "
+                      f"{args.threads} torch thread(s): timings are upper bounds")
+    res["log"] = log_lines[-40:]
     res["peak_rss_gib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     res["total_s"] = time.perf_counter() - t0
     write_results(res, f"real_{name}.json")

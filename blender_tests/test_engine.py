@@ -495,3 +495,51 @@ def test_device_copy_is_made_once_per_field_and_follows_deformation(addon):
     assert fields.on_device(item, cpu, dev).paint_atlas is cpu.paint_atlas   # shared, not copied
     assert fields.on_device(item, cpu, "cpu") is cpu and "obj" not in fields._MIRRORS  # CPU: the field itself
     fields.clear_cache()
+
+
+def test_background_toggle_renders_the_room_or_the_object_alone(addon, trained_field, tmp_path):
+    """A field with a background model (a real capture's room): F12 with Render > NeuMesh >
+    Background on covers every pixel (alpha 1 on transparent film, the room's colour where the object is
+    not) and matches the core's render; off gives the object alone, alpha = the field's opacity."""
+    import neumesh_core as nm
+    import torch
+
+    field = nm.load_field(trained_field)
+    bg = nm.BackgroundModel([0.0, 0.0, 0.0], 3.0, nm.ObjectBox([0, 0, 0], [1.2, 1.2, 1.2]), planes=(8, 16),
+                            samples=8)
+    with torch.no_grad():   # a red room (the colour head's bias), dense enough to be seen
+        bg.mlp[2].weight.zero_()
+        bg.mlp[2].bias.copy_(torch.tensor([2.0, -2.0, -2.0]))
+    nm.attach_background(field, bg)
+    path = str(tmp_path / "room.neumesh")
+    nm.save_field(field, path)
+    _field_object(path)
+    cam = add_camera((0.0, -4.6, 0.8), lens=35.0)
+    scene = bpy.context.scene
+    scene.render.engine = "NEUMESH"
+    exact_colour_settings(scene, W, H)
+    scene.render.film_transparent = True
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    assert scene.neumesh.render_background is True          # the default: the photo-like frame
+    K, c2w = manual_K_c2w(cam, W, H)
+    got = {}
+    for on in (True, False):
+        scene.neumesh.render_background = on
+        scene.render.filepath = str(tmp_path / f"bg_{on}.exr")
+        bpy.ops.render.render(write_still=True)
+        got[on] = _read_exr(scene.render.filepath)
+    ref_on = nm.render_camera(field, K, c2w, W, H, background=(0, 0, 0))
+    ref_off = nm.render_camera(field, K, c2w, W, H, background=(0, 0, 0),
+                               settings=nm.RenderSettings(background_model=False))
+    assert 0.01 < float(ref_off.opacity.mean()) < 0.9
+    np.testing.assert_allclose(got[True][..., 3], 1.0, atol=1e-4)
+    np.testing.assert_allclose(got[False][..., 3], ref_off.opacity, atol=1e-4)
+    for on, ref in ((True, ref_on), (False, ref_off)):
+        exr = got[on]
+        a = exr[..., 3:4]
+        straight = np.where(a > 1e-3, exr[..., :3] / np.maximum(a, 1e-3), 0)
+        m = exr[..., 3] > 1e-3
+        assert np.abs(_linear_to_srgb(straight) * a - ref.rgb)[m].max() <= 2e-4
+    empty = ref_off.opacity < 0.01                           # where only the room is seen: red
+    assert empty.any() and (got[True][..., 0][empty] > 5 * got[True][..., 1][empty]).all()

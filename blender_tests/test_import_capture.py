@@ -163,3 +163,47 @@ def test_poses_from_photos_names_missing_packages_and_bad_sources(addon, tmp_pat
     monkeypatch.setattr(deps, "missing_for", lambda feature, statuses=None: ["pycolmap"] if feature == "capture" else [])
     with pytest.raises(RuntimeError, match="pycolmap"):
         bpy.ops.neumesh.poses_from_photos(source=str(tmp_path))
+
+
+def test_the_box_the_artist_left_drives_training(addon, tmp_path):
+    """Import Cameras of a capture without masks, move, rotate and scale the NeuMesh Box, train: the
+    field's object box is that box (oriented), and it trains a background model outside it."""
+    import math
+
+    import neumesh_core as nm
+
+    root = str(tmp_path / "tj")
+    write_transforms(root, n=5)
+    assert bpy.ops.neumesh.import_dataset(directory=root) == {"FINISHED"}
+    box = bpy.data.objects["NeuMesh Box"]
+    box.location = (0.1, -0.05, 0.02)
+    box.rotation_euler = (0.0, 0.0, math.radians(30))
+    box.scale = (0.5, 0.4, 0.3)
+    bpy.context.view_layer.update()
+    centre, half, rot = _cap(addon).scene_box(bpy.context.scene)
+    np.testing.assert_allclose(centre, [0.1, -0.05, 0.02], atol=1e-6)
+    np.testing.assert_allclose(half, [0.5, 0.4, 0.3], atol=1e-6)
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    np.testing.assert_allclose(rot, [[c, -s, 0], [s, c, 0], [0, 0, 1]], atol=1e-6)
+    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=2, radius=0.3)
+    obj = bpy.context.active_object
+    bpy.context.scene.neumesh.train_object = obj
+    assert bpy.ops.neumesh.train(steps=2, wait=True) == {"FINISHED"}
+    field = nm.load_field(bpy.path.abspath(obj.neumesh.field_path))
+    np.testing.assert_allclose(field.object_box.centre, centre, atol=1e-6)
+    np.testing.assert_allclose(field.object_box.half_extents, half, atol=1e-6)
+    np.testing.assert_allclose(field.object_box.rotation, rot, atol=1e-6)
+    bg = nm.background_of(field)
+    assert bg is not None and bg.box is not None and bg.planes   # the room outside the box
+    # a sheared box (non-uniform scale under a rotated parent) falls back to its axis-aligned bounds
+    parent = bpy.data.objects.new("tilt", None)
+    bpy.context.scene.collection.objects.link(parent)
+    parent.rotation_euler = (math.radians(40), 0, 0)
+    parent.scale = (1.0, 2.0, 1.0)
+    box.parent = parent
+    bpy.context.view_layer.update()
+    c2, h2, r2 = _cap(addon).scene_box(bpy.context.scene)
+    lo, hi = _cap(addon).box_bounds(box)
+    np.testing.assert_allclose(r2, np.eye(3))
+    np.testing.assert_allclose(h2, (hi - lo) / 2, atol=1e-6)
+    np.testing.assert_allclose(c2, (hi + lo) / 2, atol=1e-6)

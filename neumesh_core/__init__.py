@@ -37,7 +37,8 @@ from .reconstruct.poses import PosesConfig, PosesError, PosesProgress, PosesRepo
 from .reconstruct.video import frames_from_video  # noqa: E402
 from . import deform  # noqa: E402  (nm.deform: ArapSolver, arap)
 from .data.frame import ObjectBox, SceneFrame, object_box, parse_box, scene_frame  # noqa: E402
-from .field.background import BackgroundModel, attach_background, background_for, background_of  # noqa: E402
+from .field.background import (BackgroundModel, attach_background, background_for, background_of,  # noqa: E402
+                               fit_background_for)
 from .fit import capture_box, is_unmasked_capture, prepare_capture_field  # noqa: E402
 
 __version__ = "0.1.0"
@@ -55,6 +56,6 @@ __all__ = [
     "Capture", "PosesConfig", "PosesError", "PosesProgress", "PosesReport", "estimate_poses", "frames_from_video",
     "read_capture", "undistorted_images",
     "ObjectBox", "SceneFrame", "object_box", "parse_box", "scene_frame", "BackgroundModel", "attach_background",
-    "background_for", "background_of", "resolve_device", "capture_box", "is_unmasked_capture",
+    "background_for", "background_of", "fit_background_for", "resolve_device", "capture_box", "is_unmasked_capture",
     "prepare_capture_field",
 ]

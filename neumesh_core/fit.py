@@ -51,10 +51,10 @@ def prepare_capture_field(field, scene, box, background_model: bool = True) -> N
     if box is not None:
         field.object_box = box
     if background_model and box is not None:
-        from .field.background import attach_background, background_for
+        from .field.background import attach_background, fit_background_for
 
-        attach_background(field, background_for(scene.split("train").cameras.c2w, box,
-                                                None if scene.capture is None else scene.capture.points))
+        attach_background(field, fit_background_for(scene.split("train").cameras.c2w, box,
+                                                    None if scene.capture is None else scene.capture.points))
 
 
 def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, background="white",

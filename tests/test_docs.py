@@ -10,7 +10,8 @@ import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
-DOCS = ["README.md", "DEVELOPERS.md", os.path.join("docs", "benchmarks.md"), os.path.join("docs", "baking.md")]
+DOCS = ["README.md", "DEVELOPERS.md", os.path.join("docs", "benchmarks.md"), os.path.join("docs", "baking.md"),
+        os.path.join("docs", "real_captures.md")]
 
 
 def _read(rel):

@@ -77,7 +77,8 @@ def box_bounds(obj):
 def scene_box(scene):
     """The NeuMesh Box of ``scene`` as the artist left it (moved, rotated, scaled), as the core's object
     box: (centre (3,), half_extents (3,), rotation (3,3) whose columns are the box axes), or None when
-    the scene has none (training then finds the box itself). Shear is dropped (the nearest rotation)."""
+    the scene has none (training then finds the box itself). A sheared box (non-uniform scale under a
+    rotated parent) is no box: its axis-aligned bounds, which hold all of it, stand in."""
     obj = next((o for o in scene.objects if o.type == "EMPTY" and
                 (o.get("neumesh_box_source") is not None or o.name == BOX_NAME)), None)
     if obj is None:
@@ -88,8 +89,10 @@ def scene_box(scene):
     if not (half > 1e-9).all():
         raise ValueError(f"'{obj.name}' is flat (scale {np.round(half, 6).tolist()}): give it a size on "
                          "every axis, or delete it to let training find the object's box")
-    u, _s, vt = np.linalg.svd(A / half)
-    R = u @ vt
+    R = A / half
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-4):   # sheared: the bounds of its 8 corners
+        lo, hi = box_bounds(obj)
+        return (lo + hi) / 2, (hi - lo) / 2, np.eye(3)
     if np.linalg.det(R) < 0:   # a mirrored box: the same box with one axis flipped
         R[:, 2] *= -1
     return M[:3, 3].copy(), half, R

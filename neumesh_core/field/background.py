@@ -40,24 +40,74 @@ def ray_box_exit(o: torch.Tensor, d: torch.Tensor, centre, half, rot):
     return torch.minimum(t0, t1).amax(-1), torch.maximum(t0, t1).amin(-1)
 
 
+_PLANE_AXES = ((0, 1), (0, 2), (1, 2))   # the xy, xz and yz planes
+
+
+def plane_features(z: torch.Tensor, planes) -> torch.Tensor:
+    """K-Planes features of points ``z`` (S,3) in [-1,1]^3: per scale the product of the bilinear reads
+    of its three planes (each (1, F, n, n): xy, xz, yz) -> (S, scales*F)."""
+    feats = []
+    for k in range(0, len(planes), 3):
+        f = None
+        for (a, b), plane in zip(_PLANE_AXES, planes[k:k + 3]):
+            g = F.grid_sample(plane, z[:, (a, b)].view(1, -1, 1, 2), mode="bilinear", align_corners=True)
+            g = g.view(plane.shape[1], -1).t()
+            f = g if f is None else f * g
+        feats.append(f)
+    return torch.cat(feats, -1)
+
+
+def bilinear_reference(uv: torch.Tensor, plane: torch.Tensor) -> torch.Tensor:
+    """Reference of one plane read: ``plane`` (F, n, n) indexed [v, u], read bilinearly at ``uv`` (S,2) in
+    [-1,1]^2 (corners at the ends: align_corners=True) by explicit corner gathers."""
+    n = plane.shape[-1]
+    p = (uv.clamp(-1, 1) + 1) * 0.5 * (n - 1)
+    p0 = p.floor().clamp_max(n - 2)
+    f = p - p0
+    i0 = p0.long()
+    out = 0
+    for du in (0, 1):
+        for dv in (0, 1):
+            w = (f[:, 0] if du else 1 - f[:, 0]) * (f[:, 1] if dv else 1 - f[:, 1])
+            out = out + w[:, None] * plane[:, i0[:, 1] + dv, i0[:, 0] + du].t()
+    return out
+
+
 class BackgroundModel(nn.Module):
-    """Dense contracted-space grid (``resolution``^3 x (1 + ``features``)) + MLP colour head."""
+    """Contracted-space features + MLP colour head.  ``planes`` empty: one dense grid (``resolution``^3
+    x (1 + ``features``), read by grid_sample; the first version).  ``planes`` = resolutions (e.g. (128,
+    512)): per resolution three feature planes (xy, xz, yz; ``plane_features`` channels) multiplied as in
+    K-Planes, then a tiny density MLP: 512^2 per plane costs 3 x 0.26M x F numbers where a 512^3 grid
+    would cost 134M x F, so a fine background stays cheap to train on the CPU."""
 
     def __init__(self, centre, radius: float, box=None, resolution: int = 64, features: int = 8,
-                 hidden: int = 32, samples: int = 48, far_factor: float = 100.0):
+                 hidden: int = 32, samples: int = 48, far_factor: float = 100.0, planes=(),
+                 plane_features: int = 8):
         super().__init__()
+        planes = tuple(int(p) for p in planes)
         if resolution < 2 or features < 1 or samples < 2 or radius <= 0:
             raise ValueError("BackgroundModel: resolution >= 2, features >= 1, samples >= 2, radius > 0")
+        if any(p < 2 for p in planes) or plane_features < 1:
+            raise ValueError("BackgroundModel: plane resolutions >= 2 and plane_features >= 1")
         self.centre_np = np.asarray(centre, np.float64).reshape(3)
         self.radius = float(radius)
         self.box = box   # data.frame.ObjectBox or None (the whole ray is background)
         self.resolution, self.features, self.hidden = int(resolution), int(features), int(hidden)
         self.samples, self.far_factor = int(samples), float(far_factor)
-        r = self.resolution
-        grid = torch.zeros(1, 1 + self.features, r, r, r)
-        grid[:, 0] = -2.0   # low initial density: softplus(-2) ~ 0.13 per radius
-        grid[:, 1:].normal_(0, 0.1, generator=torch.Generator().manual_seed(0))
-        self.grid = nn.Parameter(grid)
+        self.planes, self.plane_features = planes, int(plane_features)
+        gen = torch.Generator().manual_seed(0)
+        if not self.planes:
+            r = self.resolution
+            grid = torch.zeros(1, 1 + self.features, r, r, r)
+            grid[:, 0] = -2.0   # low initial density: softplus(-2) ~ 0.13 per radius
+            grid[:, 1:].normal_(0, 0.1, generator=gen)
+            self.grid = nn.Parameter(grid)
+        else:   # K-Planes' initialisation: products of values near 0.1..0.5
+            self.plane_params = nn.ParameterList(
+                [nn.Parameter(torch.empty(1, self.plane_features, p, p).uniform_(0.1, 0.5, generator=gen))
+                 for p in self.planes for _ in range(3)])
+            self.density_mlp = nn.Sequential(nn.Linear(len(self.planes) * self.plane_features, self.hidden),
+                                             nn.ReLU(), nn.Linear(self.hidden, 1 + self.features))
         self.mlp = nn.Sequential(nn.Linear(self.features + 3, self.hidden), nn.ReLU(),
                                  nn.Linear(self.hidden, 3))
 
@@ -66,7 +116,8 @@ class BackgroundModel(nn.Module):
         return {"centre": self.centre_np.tolist(), "radius": self.radius,
                 "box": None if self.box is None else self.box.to_dict(), "resolution": self.resolution,
                 "features": self.features, "hidden": self.hidden, "samples": self.samples,
-                "far_factor": self.far_factor}
+                "far_factor": self.far_factor, "planes": list(self.planes),
+                "plane_features": self.plane_features}
 
     @classmethod
     def from_config(cls, cfg: dict) -> "BackgroundModel":
@@ -74,7 +125,8 @@ class BackgroundModel(nn.Module):
 
         box = None if cfg.get("box") is None else ObjectBox.from_dict(cfg["box"])
         return cls(cfg["centre"], cfg["radius"], box, int(cfg["resolution"]), int(cfg["features"]),
-                   int(cfg["hidden"]), int(cfg["samples"]), float(cfg["far_factor"]))
+                   int(cfg["hidden"]), int(cfg["samples"]), float(cfg["far_factor"]), tuple(cfg.get("planes", ())),
+                   int(cfg.get("plane_features", 8)))
 
     # -- sampling ------------------------------------------------------------------------------------
     def ray_start(self, o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
@@ -94,8 +146,11 @@ class BackgroundModel(nn.Module):
         """Density per radius (S,) and colour (S,3) at world points ``x`` (S,3) seen along ``d``."""
         c = torch.as_tensor(self.centre_np, dtype=x.dtype, device=x.device)
         z = contract((x - c) / self.radius) * 0.5          # in [-1, 1]^3 for grid_sample
-        g = F.grid_sample(self.grid, z.view(1, -1, 1, 1, 3), mode="bilinear", align_corners=True)
-        g = g.view(1 + self.features, -1).t()
+        if not self.planes:
+            g = F.grid_sample(self.grid, z.view(1, -1, 1, 1, 3), mode="bilinear", align_corners=True)
+            g = g.view(1 + self.features, -1).t()
+        else:
+            g = self.density_mlp(plane_features(z, list(self.plane_params)))
         sigma = F.softplus(g[:, 0])
         rgb = torch.sigmoid(self.mlp(torch.cat([g[:, 1:], d], -1)))
         return sigma, rgb
@@ -131,12 +186,27 @@ class BackgroundModel(nn.Module):
         return (w[..., None] * rgb).sum(1), w.sum(1)
 
 
-def background_for(c2w: np.ndarray, box, points: Optional[np.ndarray] = None, **kw) -> BackgroundModel:
-    """A background model framed by the cameras (``data.frame.scene_frame``) around ``box``."""
+def background_for(c2w: np.ndarray, box, points: Optional[np.ndarray] = None, radius: Optional[float] = None,
+                   **kw) -> BackgroundModel:
+    """A background model framed by the cameras (``data.frame.scene_frame``) around ``box``.  The
+    contraction radius (the ball kept at full resolution) is the frame's radius, or ``radius`` (world
+    units; e.g. twice the box's half-size, so the walls just behind the object get the fine texels)."""
     from ..data.frame import scene_frame
 
     fr = scene_frame(c2w, points)
-    return BackgroundModel(fr.centre, fr.radius, box, **kw)
+    return BackgroundModel(fr.centre, fr.radius if radius is None else radius, box, **kw)
+
+
+#: the background model of fitted real captures (neumesh fit): K-Planes at 128 and 512 texels, 32
+#: samples a ray, the contraction ball twice the object box's largest half-size
+#: (docs/real_captures.md: 64^3 dense grid 16.8 dB -> see the log there)
+FIT_BACKGROUND = {"planes": (128, 512), "samples": 32}
+
+
+def fit_background_for(c2w: np.ndarray, box, points: Optional[np.ndarray] = None) -> BackgroundModel:
+    """The background model ``neumesh fit`` trains for a real capture (:data:`FIT_BACKGROUND`)."""
+    radius = None if box is None else 2.0 * float(np.max(box.half_extents))
+    return background_for(c2w, box, points, radius=radius, **FIT_BACKGROUND)
 
 
 def attach_background(field, model: Optional[BackgroundModel]) -> None:

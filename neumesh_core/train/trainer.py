@@ -45,6 +45,11 @@ class TrainConfig:
     # without masks, a field's background model (field/background.py; real captures) trains with it on
     # full-frame colour; with masks it is left alone
     lr_background: float = 1e-2
+    # per-image appearance (NeRF-W's remedy for exposure changes, here 6 numbers an image: colour x
+    # exp(scale) + offset; their mean over the images is held at zero) applied to the rendered colour
+    # while training; held-out renders use none
+    appearance_codes: bool = False
+    lr_appearance: float = 1e-3
     occ_refresh_every: int = 16
     occ_warmup_steps: int = 200
     step_scale: Optional[float] = None  # marching step = radius x step_scale (None: the field's own)
@@ -107,6 +112,7 @@ class TrainResult:
     interrupted: bool = False
     history: list = dc_field(default_factory=list)
     averaged: int = 0                 # parameter snapshots averaged into the result (0 = plain)
+    appearance: Optional[np.ndarray] = None   # per-image codes (n, 6: log-scale rgb, offset rgb), centred
 
 
 class _Batcher:
@@ -132,6 +138,7 @@ class _Batcher:
         o, d = batch_pixel_rays(self.K[i], self.c2w[i], x, y)
         rgb = as_float(self.images[i, y, x])
         mask = None if self.masks is None else as_float(self.masks[i, y, x])
+        self.last_index = i   # which image each ray came from (per-image appearance codes)
         return o, d, rgb, mask
 
 
@@ -205,6 +212,11 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
     if cfg.resume and meta:
         start = int(meta.get("train_state", {}).get("step", 0))
         load_optimizer_state(field, opt)
+    appearance = None
+    if cfg.appearance_codes:   # (not saved: they explain the training photos only)
+        appearance = torch.zeros(batcher.n, 6, device=device, requires_grad=True)
+        opt.add_param_group({"params": [appearance], "lr": cfg.lr_appearance, "base_lr": cfg.lr_appearance,
+                             "name": "appearance"})
     settings = RenderSettings(step_scale=cfg.step_scale)
     step_size = default_step(field, settings)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
@@ -258,6 +270,9 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
             out = render_rays(field, o, d, background=bg, settings=settings, train=True, jitter=jitter,
                               vertex_ids=cfg.weight_tv > 0 and cfg.tv_vertices == "batch",
                               background_model=bg_model)
+            if appearance is not None:   # centred: the field keeps the photos' mean appearance
+                a = (appearance - appearance.mean(0))[batcher.last_index]
+                out["rgb"] = out["rgb"] * torch.exp(a[:, :3]) + a[:, 3:]
             if not bool(torch.isfinite(out["opacity"]).all()):
                 raise FloatingPointError(
                     f"the rendered opacity became NaN/inf at step {step}; lower lr_codes/lr_decoders and "
@@ -327,5 +342,6 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
         with torch.no_grad():
             field.grid.refresh(density, step_size, max_cells=None, generator=gen)
     save(step)
+    codes = None if appearance is None else (appearance - appearance.mean(0)).detach().cpu().numpy()
     return TrainResult(step, loss_v, psnr_v, time.perf_counter() - t_begin, cancelled, interrupted, history,
-                       averaged)
+                       averaged, codes)

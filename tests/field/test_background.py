@@ -6,7 +6,7 @@ import torch
 
 from neumesh_core.data.frame import ObjectBox, focus_point, object_box, parse_box, scene_frame
 from neumesh_core.field.background import (BackgroundModel, attach_background, background_for, background_of,
-                                           contract)
+                                           bilinear_reference, contract, fit_background_for, plane_features)
 from neumesh_core.render.renderer import RenderSettings, render_camera, render_rays
 from tests.conftest import one_thread, textured_field
 
@@ -60,11 +60,46 @@ def test_contract_bounds():
     assert torch.allclose(z[inner], y[inner])
 
 
-def test_compositing_alpha_is_the_fields_opacity(blob_mesh, room):
+def test_plane_features_match_the_reference():
+    """K-Planes' grid_sample reads equal explicit bilinear corner gathers, multiplied over the three
+    planes of each scale (xy, xz, yz)."""
+    g = torch.Generator().manual_seed(0)
+    planes = [torch.rand(1, 3, n, n, generator=g) for n in (5, 5, 5, 9, 9, 9)]
+    z = torch.rand(200, 3, generator=g) * 2 - 1
+    z[:4] = torch.tensor([[-1.0, -1, -1], [1, 1, 1], [1, -1, 0.3], [0, 0, 0]])   # the corners and middle
+    got = plane_features(z, planes)
+    want = []
+    for k in (0, 3):
+        f = 1
+        for (a, b), pl in zip(((0, 1), (0, 2), (1, 2)), planes[k:k + 3]):
+            f = f * bilinear_reference(z[:, (a, b)], pl[0])
+        want.append(f)
+    assert got.shape == (200, 6)
+    assert torch.allclose(got, torch.cat(want, -1), atol=1e-5)
+    # and the reference itself hits the texels at the corners
+    assert torch.allclose(bilinear_reference(torch.tensor([[-1.0, -1.0], [1.0, -1.0]]), planes[0][0]),
+                          planes[0][0][:, 0, [0, -1]].t())
+
+
+def test_fit_background_frames_the_box(room):
+    scene, _ = room
+    c2w = scene.split("train").cameras.c2w
+    box = object_box(c2w)
+    m = fit_background_for(c2w, box)
+    assert m.planes and m.radius == pytest.approx(2 * box.half_extents.max())
+    # an older header (no planes) is the dense grid it was
+    old = {k: v for k, v in m.config().items() if k not in ("planes", "plane_features")}
+    assert BackgroundModel.from_config(old).planes == () and hasattr(BackgroundModel.from_config(old), "grid")
+    with pytest.raises(ValueError, match="plane"):
+        BackgroundModel([0, 0, 0], 1.0, planes=(1,))
+
+
+@pytest.mark.parametrize("planes", [(), (8, 16)])
+def test_compositing_alpha_is_the_fields_opacity(blob_mesh, room, planes):
     """Background off: the object alone, alpha = the mesh field's opacity; on: the frame is
     rgb_field + (1 - opacity) * rgb_background, covering every pixel."""
     scene, _ = room
-    f = _with_background(blob_mesh, scene)
+    f = _with_background(blob_mesh, scene, planes=planes)
     cam = scene.split("val").cameras
     K, c2w, W, H = cam.K[0], cam.c2w[0], cam.width, cam.height
     with one_thread():
@@ -126,13 +161,15 @@ def test_far_cuts_the_background(blob_mesh, room):
     assert torch.allclose(op, torch.zeros(8))
 
 
-def test_save_load_round_trip(tmp_path, blob_mesh, room):
+@pytest.mark.parametrize("planes", [(), (8, 16)])
+def test_save_load_round_trip(tmp_path, blob_mesh, room, planes):
     import neumesh_core as nm
 
     scene, _ = room
-    f = _with_background(blob_mesh, scene)
+    f = _with_background(blob_mesh, scene, planes=planes)
     with torch.no_grad():
-        background_of(f).grid.normal_(0, 0.5)
+        for p in background_of(f).parameters():
+            p.normal_(0, 0.5)
     p = tmp_path / "f.neumesh"
     nm.save_field(f, str(p))
     g = nm.load_field(str(p))
@@ -176,15 +213,17 @@ def test_deformation_leaves_the_background(blob_mesh, room):
     assert all(torch.equal(before[k], v) for k, v in bgm.state_dict().items())
 
 
-def test_training_without_masks_keeps_the_object_in_the_box(blob_mesh, room):
+@pytest.mark.parametrize("planes", [(), (32, 64)])
+def test_training_without_masks_keeps_the_object_in_the_box(blob_mesh, room, planes):
     """Trained on full frames (no masks), the field renders its object inside the box (its alpha
-    matches the true silhouette) and the background model the room (better full-frame PSNR than off)."""
+    matches the true silhouette) and the background model the room (better full-frame PSNR than off),
+    with the dense grid and with the K-Planes background."""
     from neumesh_core import metrics
     from neumesh_core.train.trainer import TrainConfig, train
 
     scene, alphas = room
     assert not scene.has_masks
-    f = _with_background(blob_mesh, scene, plain=True, resolution=32)
+    f = _with_background(blob_mesh, scene, plain=True, resolution=32, planes=planes)
     with one_thread():
         res = train(f, scene, TrainConfig(steps=300, rays_per_batch=1024, log_every=100, seed=0))
     assert res.steps_done == 300
@@ -202,3 +241,30 @@ def test_training_without_masks_keeps_the_object_in_the_box(blob_mesh, room):
                          metrics.psnr(np.clip(off.rgb, 0, 1), val.images[i]))
     assert min(ious) > 0.85, ious
     assert min(gains) > 3.0, gains
+
+
+def test_appearance_codes_take_the_exposure_changes(blob_mesh, room):
+    """Half the training photos darker (an exposure change): the per-image appearance codes learn a
+    lower colour scale for them than for the others, and the codes are centred (mean zero)."""
+    import dataclasses
+
+    from neumesh_core.train.trainer import TrainConfig, train
+
+    scene, _ = room
+    tr = scene.split("train")
+    dark = np.arange(len(tr)) % 2 == 0
+    images = tr.images.copy()
+    images[dark] *= 0.6
+    data = dataclasses.replace(tr, images=images)
+    f = _with_background(blob_mesh, scene, plain=True, resolution=16, planes=(16, 32))
+    with one_thread():
+        res = train(f, data, TrainConfig(steps=150, rays_per_batch=1024, log_every=50, seed=0,
+                                         appearance_codes=True, lr_appearance=1e-2))
+    codes = res.appearance
+    assert codes.shape == (len(tr), 6)
+    assert np.allclose(codes.mean(0), 0, atol=1e-5)
+    scale = codes[:, :3].mean(1)
+    assert scale[dark].mean() < scale[~dark].mean() - 0.1, (scale[dark].mean(), scale[~dark].mean())
+    plain = train(_with_background(blob_mesh, scene, plain=True, resolution=16), data,
+                  TrainConfig(steps=2, rays_per_batch=64, log_every=1))
+    assert plain.appearance is None
