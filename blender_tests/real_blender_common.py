@@ -4,6 +4,8 @@
     (legacy add-on before 4.2, extension from 4.2 on), enables it and saves the user preferences, so
     later `blender` processes with the same BLENDER_USER_* folders have it enabled.
     facts(**kw): prints one line 'NEUMESH_FACTS {json}' that the test reads back.
+    viewport_engines() / preview_done(): the NeuMesh viewport engines, and whether the first one has
+    drawn its preview's last (finest) pass.
 """
 import json
 import os
@@ -39,3 +41,18 @@ def addon_module(module=None):
 
 def facts(**kw):
     print("NEUMESH_FACTS " + json.dumps(kw, default=str), flush=True)
+
+
+def viewport_engines():
+    """The add-on's live viewport render engines."""
+    return list(addon_module().render.engine._PollRedraw._engines)
+
+
+def preview_done():
+    """The viewport's NeuMesh preview has drawn its last (finest) pass (drawn, not only rendered)."""
+    for e in viewport_engines():
+        pv = getattr(e, "_preview", None)
+        if pv is None or pv.busy or pv.latest is None or pv.latest[1] != pv.divisors[-1]:
+            return False
+        return getattr(e, "_texture_serial", None) == pv.latest[:2]
+    return False

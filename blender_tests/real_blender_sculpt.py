@@ -16,7 +16,7 @@ import traceback
 import bpy
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, script_args  # noqa: E402
+from real_blender_common import addon_module, facts, preview_done, script_args, viewport_engines  # noqa: E402
 
 ARGS = script_args()
 MODE = ARGS[2] if len(ARGS) > 2 else "SCULPT"   # OBJECT: the same steps in Object Mode, for comparison
@@ -46,15 +46,10 @@ class SculptDriver:
         eng.view_draw = view_draw
 
     def engines(self):
-        return list(addon_module().render.engine._PollRedraw._engines)
+        return viewport_engines()
 
     def done(self):
-        for e in self.engines():
-            pv = getattr(e, "_preview", None)
-            if pv is None or pv.busy or pv.latest is None or pv.latest[1] != pv.divisors[-1]:
-                return False
-            return getattr(e, "_texture_serial", None) == pv.latest[:2]
-        return False
+        return preview_done()
 
     def generation(self):
         return max([e._generation for e in self.engines()] or [-1])

@@ -18,7 +18,7 @@ import bpy
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts  # noqa: E402
+from real_blender_common import addon_module, facts, preview_done, viewport_engines  # noqa: E402
 
 
 class TexturePaintDriver:
@@ -28,7 +28,7 @@ class TexturePaintDriver:
         self.facts = {"errors": []}
 
     def engines(self):
-        return list(addon_module().render.engine._PollRedraw._engines)
+        return viewport_engines()
 
     def latest(self):
         for e in self.engines():
@@ -38,12 +38,7 @@ class TexturePaintDriver:
         return None
 
     def done(self):
-        for e in self.engines():
-            pv = getattr(e, "_preview", None)
-            if pv is None or pv.busy or pv.latest is None or pv.latest[1] != pv.divisors[-1]:
-                return False
-            return getattr(e, "_texture_serial", None) == pv.latest[:2]
-        return False
+        return preview_done()
 
     def goto(self, s):
         self.state, self.state_t = s, time.time()

@@ -27,7 +27,7 @@ import traceback
 import bpy
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, install_addon, script_args  # noqa: E402
+from real_blender_common import addon_module, facts, install_addon, preview_done, script_args, viewport_engines  # noqa: E402
 
 ARGS = script_args()
 EDIT_PANELS = ("NEUMESH_PT_edit", "NEUMESH_PT_swap", "NEUMESH_PT_fill", "NEUMESH_PT_paint", "NEUMESH_PT_semantics")
@@ -274,24 +274,17 @@ class Driver:
 
     def preview_done(self):
         """The viewport's NeuMesh preview has drawn its last (finest) pass."""
-        for e in list(addon_module().render.engine._PollRedraw._engines):
-            pv = getattr(e, "_preview", None)
-            if pv is None or pv.busy or pv.latest is None or pv.latest[1] != pv.divisors[-1]:
-                return False
-            if getattr(e, "_texture_serial", None) != pv.latest[:2]:  # drawn, not only rendered
-                return False
-            return True
-        return False
+        return preview_done()
 
     def preview_serial(self):
         """The newest preview render's serial number (-1 before the first)."""
-        return max([e._preview.latest[0] for e in list(addon_module().render.engine._PollRedraw._engines)
+        return max([e._preview.latest[0] for e in viewport_engines()
                     if getattr(e, "_preview", None) is not None and e._preview.latest is not None] or [-1])
 
     def viewport_errors(self):
         """The messages the viewport's NeuMesh engines show instead of an image ('' = none)."""
         out = []
-        for e in list(addon_module().render.engine._PollRedraw._engines):
+        for e in viewport_engines():
             pv = getattr(e, "_preview", None)
             out.append(getattr(e, "_error", "") or (pv.error if pv is not None else ""))
         return out

@@ -38,7 +38,7 @@ import bpy
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, script_args  # noqa: E402
+from real_blender_common import addon_module, facts, preview_done, script_args, viewport_engines  # noqa: E402
 
 ARGS = script_args()
 TOP_PANELS = ("NEUMESH_PT_data", "NEUMESH_PT_scaffold", "NEUMESH_PT_train", "NEUMESH_PT_field")
@@ -159,7 +159,7 @@ class Driver:
         return path
 
     def engines(self):
-        return list(addon_module().render.engine._PollRedraw._engines)
+        return viewport_engines()
 
     def view_state(self):
         """(drawn texture serial, paths the viewport's items show) of the first viewport engine."""
@@ -170,12 +170,7 @@ class Driver:
         return -1, []
 
     def preview_done(self):
-        for e in self.engines():
-            pv = getattr(e, "_preview", None)
-            if pv is None or pv.busy or pv.latest is None or pv.latest[1] != pv.divisors[-1]:
-                return False
-            return getattr(e, "_texture_serial", None) == pv.latest[:2]
-        return False
+        return preview_done()
 
     def preview(self):
         return next((e._preview for e in self.engines() if getattr(e, "_preview", None) is not None), None)

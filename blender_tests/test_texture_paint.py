@@ -20,6 +20,11 @@ GREEN = (0.05, 0.9, 0.1)
 def _scene(trained_field, tmp_path):
     path = str(tmp_path / "A.neumesh")
     shutil.copy(trained_field, path)
+    return _scene_of(path)
+
+
+def _scene_of(path):
+    """The field at ``path`` on a new object, a camera, the NeuMesh engine at W x H."""
     assert bpy.ops.neumesh.load_field(filepath=path, new_object=True) == {"FINISHED"}
     obj = bpy.context.active_object
     cam = add_camera((0, -4.8, 0.6), look_at=(0, 0, 0), lens=35.0)
@@ -139,13 +144,7 @@ def test_paint_on_view_paints_the_atlas_of_a_field_that_has_one(addon, trained_f
     create_paint_atlas(src, resolution=256)
     path = str(tmp_path / "atlas.neumesh")
     nm.save_field(src, path)
-    assert bpy.ops.neumesh.load_field(filepath=path, new_object=True) == {"FINISHED"}
-    obj = bpy.context.active_object
-    cam = add_camera((0, -4.8, 0.6), look_at=(0, 0, 0), lens=35.0)
-    scene = bpy.context.scene
-    scene.render.engine = "NEUMESH"
-    scene.render.resolution_x, scene.render.resolution_y = W, H
-    bpy.context.view_layer.update()
+    obj, cam, _ = _scene_of(path)
     assert bpy.ops.neumesh.paint_view() == {"FINISHED"}
     paint = addon.edit.paint
     img = bpy.data.images[paint.PAINT_IMAGE]
