@@ -47,10 +47,11 @@ def capture_box(scene, box=None, log=None):
 
 def prepare_capture_field(field, scene, box, background_model: bool = True) -> None:
     """A new field for ``scene``: it keeps ``box`` (saved with it; edits and deformation act inside) and,
-    with ``background_model``, a background model for the photos outside the box. Nothing for None."""
+    with ``background_model`` and photos without masks (:func:`is_unmasked_capture`), a background
+    model for the photos outside the box. Nothing for None."""
     if box is not None:
         field.object_box = box
-    if background_model and box is not None:
+    if background_model and box is not None and is_unmasked_capture(scene):
         from .field.background import attach_background, fit_background_for
 
         attach_background(field, fit_background_for(scene.split("train").cameras.c2w, box,
@@ -80,7 +81,6 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
     t0 = time.perf_counter()
     scene = load_scene(data_dir, downscale=downscale, background=background)
     summary = {"data": os.path.abspath(data_dir), "downscale": downscale}
-    real = is_unmasked_capture(scene)
     box = capture_box(scene, box, log)
     if box is not None:
         summary["object_box"] = box.to_dict()
@@ -114,7 +114,7 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
         summary["resumed_from_step"] = done
     else:
         field = create_field(mesh, field_config or FieldConfig(), device=device)
-        prepare_capture_field(field, scene, box, background_model=real and background_model)
+        prepare_capture_field(field, scene, box, background_model=background_model)
     res = train(field, scene, tcfg, callback=train_callback)
     if os.path.abspath(tcfg.checkpoint_path) != os.path.abspath(field_path):
         save_field(field, field_path)  # (the trainer already wrote field_path with its step/optimiser)

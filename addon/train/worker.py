@@ -97,8 +97,7 @@ class TrainJob(Job):
                 raise ValueError("no mesh given to train a new field on")
             field = nm.create_field(nm.Mesh(self.vertices, self.faces), nm.FieldConfig())
             # photos without masks: the field keeps the box, a background model learns the rest
-            nm.prepare_capture_field(field, scene, box,
-                                     background_model=self.background_model and nm.is_unmasked_capture(scene))
+            nm.prepare_capture_field(field, scene, box, background_model=self.background_model)
         self.state = "TRAINING"
         os.makedirs(os.path.dirname(os.path.abspath(self.field_path)) or ".", exist_ok=True)
         kw = dict(self.train_kwargs)
