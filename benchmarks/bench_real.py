@@ -42,7 +42,10 @@ def main(argv=None) -> int:
     ap.add_argument("--no-background-model", action="store_true")
     ap.add_argument("--pictures", default=None)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--results-dir", default=None, help="where the JSON goes (default benchmarks/results)")
     ap.add_argument("--appearance", action="store_true", help="per-image appearance codes while training")
+    ap.add_argument("--background-tv", type=float, default=None,
+                    help="weight of the background planes' total variation (default: TrainConfig's)")
     ap.add_argument("--snapshot-minutes", type=float, default=None,
                     help="also save the field at this training minute and evaluate it (e.g. 15 in a 60-minute run)")
     ap.add_argument("--scaffold", default=None, help="reuse this scaffold.ply (its build time is not counted)")
@@ -67,6 +70,8 @@ def main(argv=None) -> int:
         scfg.density_iters, scfg.density_resolutions, scfg.target_vertices = (150, 150), (48, 96), 60_000
     tcfg = TrainConfig(steps=args.steps, max_seconds=args.minutes * 60.0, threads=args.threads, log_every=25,
                        checkpoint_every=10**9, appearance_codes=args.appearance)
+    if args.background_tv is not None:
+        tcfg.weight_background_tv = args.background_tv
     if args.scaffold:
         import shutil
 
@@ -113,6 +118,7 @@ def main(argv=None) -> int:
         val = val.subset(np.arange(min(args.eval_views, len(val))))
     res = {"data": os.path.abspath(args.data), "downscale": args.downscale, "threads": args.threads,
            "minutes": args.minutes, "smoke": args.smoke, "device": args.device,
+           "weight_background_tv": tcfg.weight_background_tv,
            "background_model_trained": not args.no_background_model,
            "size": [val.cameras.width, val.cameras.height], "held_out_views": len(val),
            "scaffold": summary.get("scaffold"), "train": summary.get("train"),
@@ -143,13 +149,15 @@ def main(argv=None) -> int:
             side = np.concatenate([val.float_view(i), np.clip(on.rgb, 0, 1), np.clip(off.rgb, 0, 1)], 1)
             nm.save_image(os.path.join(args.pictures, f"heldout_{i}_photo_render_object.png"), side)
     res["appearance_codes"] = args.appearance
-    res["machine"] = (f"2 cores shared with other developers' jobs (load 1-min avg {os.getloadavg()[0]:.1f} at the end); "
-                      f"{args.threads} torch thread(s): timings are upper bounds")
+    if str(args.device).startswith("cuda"):
+        res["machine"] = f"{torch.cuda.get_device_name(torch.device(args.device))}, {os.cpu_count()} CPU cores"
+    else:
+        res["machine"] = (f"{os.cpu_count()} cores, load 1-min avg {os.getloadavg()[0]:.1f} at the end (shared with "
+                          f"other jobs when above the thread count); {args.threads} torch thread(s)")
     res["log"] = log_lines[-40:]
     res["peak_rss_gib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     res["total_s"] = time.perf_counter() - t0
-    write_results(res, f"real_{name}.json")
-    print(f"wrote benchmarks/results/real_{name}.json")
+    write_results(res, f"real_{name}.json", args.results_dir)
     return 0
 
 

@@ -10,7 +10,7 @@ then makes, on the main thread (:func:`build_capture`):
 * one camera per photo in the "NeuMesh Dataset" collection, the photo (undistorted) as its background;
 * "NeuMesh Points": the capture's sparse points as a mesh of loose vertices with their colours as the
   point colour attribute "Color", drawn as small spheres by a Mesh to Points modifier;
-* "NeuMesh Box": an Empty drawn as a cube around the object region (:func:`object_box`).
+* "NeuMesh Box": an Empty drawn as a cube around the object region (the core's ``capture_object_box``).
 """
 from __future__ import annotations
 
@@ -31,37 +31,6 @@ VIDEO_EXTENSIONS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mts")
 
 
 # --------------------------------------------------------------------------------------------- numpy only
-def object_box(points, cameras_c2w=None, low: float = 2.0, high: float = 98.0, pad: float = 0.05):
-    """The object region of a capture as (centre (3,), half extents (3,), source text), world space.
-
-    With 8 or more sparse points: their ``low``-``high`` percentile box per axis (robust to the stray
-    points of the background and of mismatches), grown by ``pad`` of its size on each side; the same box
-    the core uses as the provisional bounds of a capture (``data/capture._bbox``). Without points, from
-    the cameras (OpenCV c2w): the point nearest to all their optical axes (least squares), half extents
-    a third of the median camera distance to it. ``None`` when neither is available.
-
-    The add-on shows it as the Empty "NeuMesh Box" (:func:`box_bounds` reads it back).
-    """
-    if points is not None and len(points) >= 8:
-        p = np.asarray(points, np.float64)
-        lo, hi = np.percentile(p, [low, high], axis=0)
-        size = np.maximum(hi - lo, 1e-6)
-        lo, hi = lo - pad * size, hi + pad * size
-        return (lo + hi) / 2, (hi - lo) / 2, f"sparse points ({low:g}-{high:g} %)"
-    if cameras_c2w is None or len(cameras_c2w) < 2:
-        return None
-    c2w = np.asarray(cameras_c2w, np.float64)
-    o, d = c2w[:, :3, 3], c2w[:, :3, 2]
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    A, b = proj.sum(0), np.einsum("nij,nj->i", proj, o)
-    if np.linalg.cond(A) > 1e8:   # all axes parallel: nothing they look at in common
-        return None
-    centre = np.linalg.solve(A, b)
-    r = np.median(np.linalg.norm(o - centre, axis=1)) / 3
-    return centre, np.full(3, r), "the cameras' common look-at point"
-
-
 def box_bounds(obj):
     """World-space (lo (3,), hi (3,)) of a "NeuMesh Box" Empty as the artist left it (moved, scaled,
     rotated: the axis-aligned bounds of its 8 corners). The Empty's local cube is [-1, 1]^3 times
@@ -289,11 +258,11 @@ def build_capture(context, cap, Ks, paths, max_cameras: int = 0, background_imag
         scene.camera = cams[0]
     if worst > 1e-3:
         warnings.append(f"fy differs from fx by {worst:.2%}; Blender cameras use fx")
-    box = object_box(cap.points, cap.c2w)
-    box_obj = box_object(coll, *box) if box is not None else None
+    box = core.get().capture_object_box(cap)   # the box `neumesh fit` finds for this capture
+    box_obj = box_object(coll, box.centre, box.half_extents, box.source)
     pts_obj = None
     if cap.points is not None and len(cap.points):
-        radius = 0.004 * float(np.linalg.norm(box[1])) if box is not None else 0.01
+        radius = 0.004 * float(np.linalg.norm(box.half_extents))
         pts_obj = points_object(coll, cap.points, cap.point_colors, max(radius, 1e-4))
     return cams, pts_obj, box_obj, warnings
 

@@ -245,7 +245,10 @@ def _default_field_path(obj, scene) -> str:
     fname = bpy.path.clean_name(obj.name) + ".neumesh"
     if bpy.data.filepath:
         return os.path.join(os.path.dirname(bpy.data.filepath), fname)
-    return os.path.join(bpy.path.abspath(scene.neumesh.dataset_path) or bpy.app.tempdir, fname)
+    # an unsaved file: beside the photos, unless that folder is read-only (a shared dataset)
+    data = bpy.path.abspath(scene.neumesh.dataset_path)
+    folder = data if data and os.path.isdir(data) and os.access(data, os.W_OK) else bpy.app.tempdir
+    return os.path.join(folder, fname)
 
 
 class NEUMESH_OT_train(bpy.types.Operator):

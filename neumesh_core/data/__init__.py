@@ -1,7 +1,7 @@
 """Dataset readers. All return a :class:`Scene` (see scene.py); cameras are OpenCV c2w."""
 from .cameras import Cameras, intrinsics_from_fov, opencv_to_opengl, opengl_to_opencv, pixel_rays
 from .scene import ImageSet, Scene
-from .capture import Capture, scene_from_capture, undistorted_images
+from .capture import Capture, capture_object_box, scene_from_capture, undistorted_images
 from .loader import read_capture
 from .undistort import Lens
 
@@ -9,6 +9,7 @@ __all__ = [
     "Cameras",
     "Capture",
     "Lens",
+    "capture_object_box",
     "read_capture",
     "scene_from_capture",
     "undistorted_images",

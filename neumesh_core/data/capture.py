@@ -150,6 +150,15 @@ def _bbox(capture: Capture, c2w: np.ndarray) -> tuple[np.ndarray, str]:
     return np.stack([lo, hi]).astype(np.float32), "the camera positions"
 
 
+def capture_object_box(capture: Capture, holdout_every: int = 8):
+    """The object box of ``capture`` (:func:`.frame.object_box` of its training cameras and sparse
+    points): the box ``neumesh fit`` finds for the scene loaded from it, without reading a photo (the
+    add-on's Import Cameras shows it as the NeuMesh Box)."""
+    from .frame import object_box
+
+    return object_box(capture.c2w[_split_indices(capture, holdout_every)["train"]], capture.points)
+
+
 def _split_indices(capture: Capture, holdout_every: int) -> dict:
     n = len(capture)
     if capture.splits:

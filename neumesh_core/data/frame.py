@@ -25,6 +25,8 @@ class ObjectBox:
     centre: np.ndarray
     half_extents: np.ndarray
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    #: how it was found (said to the user; not saved): see :func:`object_box`
+    source: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
         self.centre = np.asarray(self.centre, np.float64).reshape(3)
@@ -123,8 +125,9 @@ def object_box(c2w: np.ndarray, points: Optional[np.ndarray] = None, pad: float 
         if len(near) >= 8:
             lo, hi = np.percentile(near, [lo_pct, hi_pct], axis=0)
             size = np.maximum(hi - lo, 1e-3 * med)
-            return ObjectBox(0.5 * (lo + hi), 0.5 * size * (1 + 2 * pad))
-    return ObjectBox(centre, np.full(3, 0.3 * med))
+            return ObjectBox(0.5 * (lo + hi), 0.5 * size * (1 + 2 * pad),
+                             source=f"sparse points near the cameras' focus ({lo_pct:g}-{hi_pct:g} %)")
+    return ObjectBox(centre, np.full(3, 0.3 * med), source="the cameras' common look-at point")
 
 
 def parse_box(text: str) -> ObjectBox:

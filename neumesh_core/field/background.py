@@ -128,6 +128,17 @@ class BackgroundModel(nn.Module):
                    int(cfg["hidden"]), int(cfg["samples"]), float(cfg["far_factor"]), tuple(cfg.get("planes", ())),
                    int(cfg.get("plane_features", 8)))
 
+    def tv_loss(self) -> torch.Tensor:
+        """K-Planes' total variation of the feature planes: the mean squared difference of neighbouring
+        texels along both axes, summed over the planes (0 for the dense grid).  Smooths what few
+        photos see (the held-out views' walls), as ``TrainConfig.weight_background_tv`` weighs it."""
+        if not self.planes:
+            return self.mlp[0].weight.new_zeros(())
+        total = 0.0
+        for p in self.plane_params:
+            total = total + ((p[..., 1:, :] - p[..., :-1, :]) ** 2).mean() + ((p[..., 1:] - p[..., :-1]) ** 2).mean()
+        return total
+
     # -- sampling ------------------------------------------------------------------------------------
     def ray_start(self, o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         """Where each ray's background begins: the box exit, else its closest approach to the centre."""

@@ -414,3 +414,20 @@ def test_undistorted_images_for_blender_backgrounds(tmp_path):
     write_transforms(pin, n=2)
     Ks, paths = undistorted_images(rc(pin))
     assert paths == rc(pin).image_paths
+
+
+def test_capture_object_box_is_the_box_fit_finds(tmp_path):
+    """One rule for the object box: the capture's (read without its photos; the add-on's Import Cameras)
+    and the loaded scene's (neumesh fit) are the same box, from the training photos' cameras."""
+    import neumesh_core as nm
+
+    root = str(tmp_path / "c")
+    write_colmap(root, "PINHOLE", n=9, points=40)
+    cap = nm.read_capture(root)
+    box = nm.capture_object_box(cap)
+    found = nm.capture_box(nm.load_scene(root))
+    np.testing.assert_allclose(box.centre, found.centre, atol=1e-9)
+    np.testing.assert_allclose(box.half_extents, found.half_extents, atol=1e-9)
+    assert box.source == found.source and "sparse points" in box.source
+    cap.points = None   # without points: around the cameras' common look-at point
+    assert nm.capture_object_box(cap).source == "the cameras' common look-at point"

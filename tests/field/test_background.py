@@ -268,3 +268,18 @@ def test_appearance_codes_take_the_exposure_changes(blob_mesh, room):
     plain = train(_with_background(blob_mesh, scene, plain=True, resolution=16), data,
                   TrainConfig(steps=2, rays_per_batch=64, log_every=1))
     assert plain.appearance is None
+
+
+def test_plane_tv_is_the_mean_squared_neighbour_difference():
+    bg = BackgroundModel([0, 0, 0], 1.0, planes=(4, 8), plane_features=2)
+    with torch.no_grad():
+        for p in bg.plane_params:
+            p.fill_(0.3)
+    assert float(bg.tv_loss()) == 0.0                       # constant planes: nothing to smooth
+    with torch.no_grad():
+        bg.plane_params[1][0, 0, 2, 2] += 1.0               # an inner texel of a 4x4 plane: 4 neighbours
+    # 2 of the 3x4 vertical and 2 of the 4x3 horizontal pairs differ by 1 (x 2 channels: 24 pairs each)
+    assert float(bg.tv_loss()) == pytest.approx(2 / (2 * 3 * 4) + 2 / (2 * 4 * 3))
+    bg.tv_loss().backward()
+    assert float(bg.plane_params[1].grad[0, 0, 2, 2]) > 0     # the gradient pulls the texel back
+    assert float(BackgroundModel([0, 0, 0], 1.0, resolution=4).tv_loss()) == 0.0   # dense grid: none
