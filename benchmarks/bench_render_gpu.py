@@ -15,8 +15,8 @@ around the surface, the scaffold's mesh mask as the occupancy grid) on the built
 Each configuration renders ``--views`` views, each the best of ``--repeats`` frames of
 ``render_camera`` (synchronised; the images copied to the host as the add-on receives them); the figure
 is the median over the views.  ``--sweep`` first times the kernel's launch options (rays per program,
-neighbour-grid cells per radius, dot precision, warps) on one early-interpolation 800² view and keeps
-the fastest for the rest.  ``--budget-s`` stops starting new configurations after that many seconds (the
+warps, the static or refill schedule and its programs per multiprocessor) on one early-interpolation
+800² view and keeps the fastest for the rest.  ``--budget-s`` stops starting new configurations after that many seconds (the
 JSON then says which were skipped).  Writes benchmarks/results/render_gpu_<name>.json.
 """
 from __future__ import annotations
@@ -183,6 +183,26 @@ def sweep_options(field, cam, device, repeats, grid, size=800) -> list:
     return rows
 
 
+def sweep_grid(which: str) -> list:
+    """The launch options ``--sweep`` times.  "schedule": the static default (the fastest of the first
+    H200 sweep, docs/benchmarks.md) against the refill schedule, smaller blocks and a register cap.
+    "precision": tf32 products (tensor cores; they spill far less, benchmarks/kernel_resources.py) --
+    on an H200 with triton 3.6.0 they once ended in an illegal memory access that poisons the CUDA
+    context, so gpu_check.sh runs this set last, in a process of its own (``--sweep-only``)."""
+    base = {"block": 32, "cells_per_radius": 1, "num_warps": 4, "precision": "ieee", "schedule": "static",
+            "programs_per_sm": 8, "maxnreg": None}
+    if which == "precision":
+        return [{**base, "precision": "tf32"}, {**base, "precision": "tf32", "schedule": "refill"},
+                {**base, "precision": "tf32x3"}]
+    return [base,
+            {**base, "schedule": "refill", "programs_per_sm": 4},
+            {**base, "schedule": "refill", "programs_per_sm": 16},
+            {**base, "block": 16, "num_warps": 2},
+            {**base, "block": 16, "num_warps": 2, "schedule": "refill"},
+            {**base, "maxnreg": 128},
+            {**base, "maxnreg": 128, "schedule": "refill"}]
+
+
 def measure(field, cams, st, args, dev, key) -> dict:
     """One configuration: the first call (Triton compiles), frame times per size, the images at the
     largest size (``outs``, for the PSNR), one profiled frame."""
@@ -219,6 +239,9 @@ def main(argv=None) -> int:
     ap.add_argument("--backends", nargs="+", default=["triton", "torch"], choices=["triton", "torch"])
     ap.add_argument("--bend", type=float, default=20.0, help="degrees of the deformation's bend")
     ap.add_argument("--sweep", action="store_true", help="time the kernel's launch options first, keep the best")
+    ap.add_argument("--sweep-set", default="schedule", choices=["schedule", "precision"],
+                    help="which launch options --sweep times (see sweep_grid)")
+    ap.add_argument("--sweep-only", action="store_true", help="stop after the sweep (with --sweep)")
     ap.add_argument("--budget-s", type=float, default=1e9, help="start no new configuration after this")
     ap.add_argument("--no-profile", action="store_true")
     ap.add_argument("--device", default="cuda", help="cuda (default); cpu only to try the script out")
@@ -262,11 +285,7 @@ def main(argv=None) -> int:
     with torch.no_grad():
         if args.sweep and "triton" in args.backends:
             field.config.interpolation = "early"
-            base = {"block": 64, "cells_per_radius": 2, "num_warps": 8, "precision": "ieee"}   # the default
-            # tf32 products are left out: on an H200 (triton 3.6.0) they ended in an illegal memory access
-            # that poisons the CUDA context (docs/benchmarks.md, "Fused GPU renderer")
-            grid = [base, {**base, "block": 32, "num_warps": 4}, {**base, "cells_per_radius": 1},
-                    {**base, "block": 32, "num_warps": 4, "cells_per_radius": 1}]
+            grid = sweep_grid(args.sweep_set)
             if dev.type != "cuda":
                 grid = grid[:2]
             result["sweep"] = sweep_options(field, cams[0], dev, args.repeats, grid, max(args.sizes))
@@ -274,10 +293,11 @@ def main(argv=None) -> int:
             ok = [r for r in result["sweep"] if "error" not in r and r["psnr_vs_torch_db"] >= 50.0]
             if ok:
                 best = min(ok, key=lambda r: r["frame_s"])
-                ft.KERNEL_OPTIONS.update({k: best[k] for k in ("block", "cells_per_radius", "num_warps", "precision")})
+                ft.KERNEL_OPTIONS.update({k: best[k] for k in ft.KERNEL_OPTIONS if k in best})
         result["kernel_options"] = dict(ft.KERNEL_OPTIONS)
         print(f"kernel options: {ft.KERNEL_OPTIONS}", flush=True)
-        for mode, deformed in itertools.product(args.modes, (False, True)):
+        runs = [] if args.sweep_only else list(itertools.product(args.modes, (False, True)))
+        for mode, deformed in runs:
             field.config.interpolation = mode
             if deformed:
                 field.set_vertices(deformed_v.to(dev))
@@ -337,7 +357,8 @@ def main(argv=None) -> int:
         b = max(own, key=lambda r: r["fps_800"])
         result["best"] = {k: b[k] for k in ("mode", "backend", "fps_800", "frame_800_s") if k in b}
     print(json.dumps(summary, indent=1))
-    write_results(result, f"render_gpu_{name}.json", args.results_dir)
+    suffix = f"_sweep_{args.sweep_set}" if args.sweep_only else ""
+    write_results(result, f"render_gpu_{name}{suffix}.json", args.results_dir)
     return 0
 
 

@@ -207,6 +207,28 @@ if triton is not None:
         return tl.dot(h, a, input_precision=PREC) + tl.load(b3 + ro)[None, :]
 
     @triton.jit
+    def _store_out(out, rows, mask, acc_r, acc_g, acc_b, acc_o, acc_d, acc_mr, acc_mg, acc_mb, n_kept):
+        """A ray's outputs: premultiplied rgb, opacity, weighted depth, modification colour, samples kept."""
+        base = out + rows.to(tl.int64) * 10
+        tl.store(base, acc_r, mask=mask)
+        tl.store(base + 1, acc_g, mask=mask)
+        tl.store(base + 2, acc_b, mask=mask)
+        tl.store(base + 3, acc_o, mask=mask)
+        tl.store(base + 4, acc_d, mask=mask)
+        tl.store(base + 5, acc_mr, mask=mask)
+        tl.store(base + 6, acc_mg, mask=mask)
+        tl.store(base + 7, acc_mb, mask=mask)
+        tl.store(base + 8, n_kept.to(tl.float32), mask=mask)
+
+    @triton.jit
+    def _take3(ptr, rows, mask, x, y, z):
+        """Row ``rows`` of an (n, 3) float array where ``mask``; the lanes' old x, y, z elsewhere."""
+        x = tl.where(mask, tl.load(ptr + rows * 3, mask=mask, other=0.0), x)
+        y = tl.where(mask, tl.load(ptr + rows * 3 + 1, mask=mask, other=0.0), y)
+        z = tl.where(mask, tl.load(ptr + rows * 3 + 2, mask=mask, other=0.0), z)
+        return x, y, z
+
+    @triton.jit
     def _render_kernel(
             orig, dirs, gorig, gdirs, tnear, tfar, tstart, n_rays,
             occ, res_x, res_y, res_z,
@@ -214,26 +236,27 @@ if triton is not None:
             radius,
             vtab, geo, tex, modc, rest_n, rot,
             gw1, gb1, gw2, gb2, gw3, gb3, rw1, rb1, rw2, rb2, rw3, rb3,
-            out, step, log_eps, weight_thr,
+            out, step, log_eps, weight_thr, ray_counter,
             BLOCK: tl.constexpr, KP: tl.constexpr, K: tl.constexpr, WINDOW: tl.constexpr,
             MAX_EVAL: tl.constexpr, EARLY: tl.constexpr, DEFORMED: tl.constexpr,
             GEO_D: tl.constexpr, TEX_D: tl.constexpr, PE_F: tl.constexpr, SH_DEG: tl.constexpr,
             GI: tl.constexpr, RI: tl.constexpr, H: tl.constexpr, PREC: tl.constexpr,
-            C: tl.constexpr, NCP: tl.constexpr, SCAN: tl.constexpr):
-        rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-        inb = rows < n_rays
-        ox = tl.load(orig + rows * 3, mask=inb, other=0.0)
-        oy = tl.load(orig + rows * 3 + 1, mask=inb, other=0.0)
-        oz = tl.load(orig + rows * 3 + 2, mask=inb, other=0.0)
-        dx = tl.load(dirs + rows * 3, mask=inb, other=0.0)
-        dy = tl.load(dirs + rows * 3 + 1, mask=inb, other=0.0)
-        dz = tl.load(dirs + rows * 3 + 2, mask=inb, other=0.0)
-        gox = tl.load(gorig + rows * 3, mask=inb, other=0.0)
-        goy = tl.load(gorig + rows * 3 + 1, mask=inb, other=0.0)
-        goz = tl.load(gorig + rows * 3 + 2, mask=inb, other=0.0)
-        gdx = tl.load(gdirs + rows * 3, mask=inb, other=0.0)
-        gdy = tl.load(gdirs + rows * 3 + 1, mask=inb, other=0.0)
-        gdz = tl.load(gdirs + rows * 3 + 2, mask=inb, other=0.0)
+            C: tl.constexpr, NCP: tl.constexpr, SCAN: tl.constexpr, REFILL: tl.constexpr):
+        # static schedule: this program's lanes hold rays pid*BLOCK.. to the end; refill: the lanes start
+        # empty and a lane whose ray has finished stores it and takes the next ray of ray_counter
+        if REFILL:
+            rows = tl.zeros([BLOCK], tl.int32)
+            inb = rows < 0
+            more = tl.program_id(0) * 0 + 1
+        else:
+            rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+            inb = rows < n_rays
+            more = tl.program_id(0) * 0
+        zero = tl.zeros([BLOCK], tl.float32)
+        ox, oy, oz = _take3(orig, rows, inb, zero, zero, zero)
+        dx, dy, dz = _take3(dirs, rows, inb, zero, zero, zero)
+        gox, goy, goz = _take3(gorig, rows, inb, zero, zero, zero)
+        gdx, gdy, gdz = _take3(gdirs, rows, inb, zero, zero, zero)
         tn = tl.load(tnear + rows, mask=inb, other=0.0)
         tf = tl.load(tfar + rows, mask=inb, other=-1.0)
         t0 = tl.load(tstart + rows, mask=inb, other=0.0)
@@ -259,7 +282,43 @@ if triton is not None:
         acc_mb = tl.zeros([BLOCK], tl.float32)
         n_kept = tl.zeros([BLOCK], tl.int32)
 
-        while tl.max(active.to(tl.int32), 0) > 0:
+        while tl.max(inb.to(tl.int32), 0) + more > 0:
+            if REFILL:
+                # ---- lanes whose ray finished store it; free lanes take the next rays (one atomic a block)
+                done = inb & ~active
+                _store_out(out, rows, done, acc_r, acc_g, acc_b, acc_o, acc_d, acc_mr, acc_mg, acc_mb, n_kept)
+                inb = active
+                free = (~inb).to(tl.int32)
+                n_free = tl.sum(free, 0)
+                if (more > 0) & (n_free > 0):
+                    base = tl.atomic_add(ray_counter, n_free)
+                    new_id = base + tl.cumsum(free, 0) - 1
+                    take = (free > 0) & (new_id < n_rays)
+                    more = (base + n_free < n_rays).to(tl.int32)
+                    rows = tl.where(take, new_id, rows)
+                    ox, oy, oz = _take3(orig, rows, take, ox, oy, oz)
+                    dx, dy, dz = _take3(dirs, rows, take, dx, dy, dz)
+                    gox, goy, goz = _take3(gorig, rows, take, gox, goy, goz)
+                    gdx, gdy, gdz = _take3(gdirs, rows, take, gdx, gdy, gdz)
+                    tn = tl.where(take, tl.load(tnear + rows, mask=take, other=0.0), tn)
+                    tf = tl.where(take, tl.load(tfar + rows, mask=take, other=-1.0), tf)
+                    t0 = tl.where(take, tl.load(tstart + rows, mask=take, other=0.0), t0)
+                    j = tl.where(take, 0, j)
+                    nev = tl.where(take, 0, nev)
+                    walked = tl.where(take, 0, walked)
+                    log_t = tl.where(take, 0.0, log_t)
+                    log_tc = tl.where(take, 0.0, log_tc)
+                    acc_r = tl.where(take, 0.0, acc_r)
+                    acc_g = tl.where(take, 0.0, acc_g)
+                    acc_b = tl.where(take, 0.0, acc_b)
+                    acc_o = tl.where(take, 0.0, acc_o)
+                    acc_d = tl.where(take, 0.0, acc_d)
+                    acc_mr = tl.where(take, 0.0, acc_mr)
+                    acc_mg = tl.where(take, 0.0, acc_mg)
+                    acc_mb = tl.where(take, 0.0, acc_mb)
+                    n_kept = tl.where(take, 0, n_kept)
+                    inb = inb | take
+                    active = active | (take & (tf > tn))
             # ---- every live ray walks to its next occupied step inside its interval (or finishes)
             searching = active
             found = active & (tl.zeros([BLOCK], tl.int32) > 0)
@@ -468,36 +527,48 @@ if triton is not None:
                     acc_o += wc
                     acc_d += wc * (0.5 * (ts + te))
                     n_kept += keep.to(tl.int32)
+            if not REFILL:
+                inb = active
 
-        base = out + rows * 10
-        tl.store(base, acc_r, mask=inb)
-        tl.store(base + 1, acc_g, mask=inb)
-        tl.store(base + 2, acc_b, mask=inb)
-        tl.store(base + 3, acc_o, mask=inb)
-        tl.store(base + 4, acc_d, mask=inb)
-        tl.store(base + 5, acc_mr, mask=inb)
-        tl.store(base + 6, acc_mg, mask=inb)
-        tl.store(base + 7, acc_mb, mask=inb)
-        tl.store(base + 8, n_kept.to(tl.float32), mask=inb)
+        if not REFILL:
+            _store_out(out, rows, rows < n_rays, acc_r, acc_g, acc_b, acc_o, acc_d, acc_mr, acc_mg, acc_mb,
+                       n_kept)
 
 
 def default_block(device) -> int:
-    """Rays per program: 64 on a GPU (with 8 warps: the sm_90 build of 64 rays x 8 warps spills the least,
-    0.14 KB per thread against 0.6-0.7 KB for 32 rays; benchmarks/bench_render_gpu.py --sweep times
-    the others); in the interpreter (CPU) one big block, since there each operation costs about the same
-    for any block size."""
-    return 64 if torch.device(device).type == "cuda" else 1024
+    """Rays per program: 32 on a GPU (with 4 warps: on an H200 the fastest of the options timed by
+    ``benchmarks/bench_render_gpu.py --sweep``, 37.9 ms for lego 800² against 51.0 ms for 64 rays x 8
+    warps, although the sm_90 build of 64 x 8 spills less: a smaller block waits less for its slowest
+    ray); in the interpreter (CPU) one big block, since there each operation costs about the same for any
+    block size."""
+    return 32 if torch.device(device).type == "cuda" else 1024
 
 
 # launch options, chosen by benchmarks/bench_render_gpu.py (``--sweep``); render_rays_fused's defaults
 # (block / cells_per_radius None: by device, see default_block / default_cells; num_warps: per program)
-KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 8, "cells_per_radius": None, "scan": 8}
+KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 4, "cells_per_radius": None, "scan": 8,
+                  "schedule": "static", "programs_per_sm": 8, "maxnreg": None}
 
 
 def default_cells(device) -> int:
-    """Neighbour-grid cells per radius: 2 on a GPU (125 half-radius cells, fewer vertices measured),
-    1 in the interpreter (27 cells in one round: fewer operations, each costing the same)."""
-    return 2 if torch.device(device).type == "cuda" else 1
+    """Neighbour-grid cells per radius: 1 on a GPU and in the interpreter (27 cells a radius wide; on an
+    H200 37.9 ms for lego 800² against 42.2 ms with 125 half-radius cells, which measure fewer vertices
+    but walk more cells)."""
+    return 1
+
+
+SCHEDULES = ("static", "refill")
+
+
+def refill_programs(device, n_blocks: int, programs_per_sm: int) -> int:
+    """Programs launched by the refill schedule: enough to fill the GPU (``programs_per_sm`` on each of
+    its multiprocessors), never more than the static schedule's blocks; 2 in the interpreter (its
+    programs run one after another, so 2 exercise the shared ray counter)."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        sms = torch.cuda.get_device_properties(dev).multi_processor_count
+        return max(1, min(n_blocks, sms * int(programs_per_sm)))
+    return max(1, min(n_blocks, 2))
 
 
 @torch.no_grad()
@@ -509,8 +580,14 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
     (:func:`~neumesh_core.render.renderer.default_step`).  ``near``/``far``: a distance or (R,) per ray.
     ``options``: launch options overriding :data:`KERNEL_OPTIONS` (block: rays per program; precision:
     tl.dot's input precision, "ieee" (fp32) or "tf32x3"/"tf32"; num_warps; cells_per_radius: 1 or 2, the
-    neighbour grid's cells per radius; scan: occupancy steps looked at per marching iteration)."""
+    neighbour grid's cells per radius; scan: occupancy steps looked at per marching iteration; schedule:
+    "static" (a program's lanes keep their rays until the last one finishes) or "refill" (a persistent
+    program's lane takes the next ray as soon as its own finishes, so no lane idles beside a long ray;
+    programs_per_sm: how many such programs each multiprocessor runs); maxnreg: None or a cap on the
+    registers per thread (``benchmarks/kernel_resources.py`` shows what each cap spills)."""
     opts = {**KERNEL_OPTIONS, **options}
+    if opts["schedule"] not in SCHEDULES:
+        raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, not {opts['schedule']!r}")
     require_triton(origins.device)
     reason = supported(field)
     if reason is not None:
@@ -534,7 +611,14 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
         res = list(grid.occ.shape)   # host metadata: no device sync
         blk = int(opts["block"] or default_block(dev))
         rot = tb.rot if tb.rot is not None else tb.rest_n
-        launch = _render_kernel[(triton.cdiv(n, blk),)]
+        refill = opts["schedule"] == "refill"
+        n_prog = triton.cdiv(n, blk)
+        if refill:
+            n_prog = refill_programs(dev, n_prog, opts["programs_per_sm"])
+        counter = torch.zeros(1, dtype=torch.int32, device=dev)
+        # a register cap per thread (ptx .maxnreg): more programs resident per multiprocessor, more spills
+        extra = {} if not opts["maxnreg"] else {"maxnreg": int(opts["maxnreg"])}
+        launch = _render_kernel[(n_prog,)]
         with torch.cuda.device(dev) if dev.type == "cuda" else _nullcontext():
             launch(
                 origins, dirs, g_o.contiguous(), g_d.contiguous(), t_near.contiguous(), t_far.contiguous(),
@@ -543,12 +627,12 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
                 *tb.hash.args()[:11], float(field.radius),
                 tb.vtab, tb.geo, tb.tex, tb.mod, tb.rest_n, rot,
                 *tb.mlp,
-                out, float(step), float(math.log(settings.early_stop_eps)), float(settings.weight_threshold),
+                out, float(step), float(math.log(settings.early_stop_eps)), float(settings.weight_threshold), counter,
                 BLOCK=blk, KP=tb.kp, K=tb.k, WINDOW=int(settings.window), MAX_EVAL=8,
                 EARLY=field.config.interpolation == "early", DEFORMED=tb.rot is not None,
                 GEO_D=tb.geo_d, TEX_D=tb.tex_d, PE_F=int(field.config.pos_freqs), SH_DEG=int(field.config.sh_degree),
                 GI=tb.gi, RI=tb.ri, H=tb.h, PREC=opts["precision"], C=tb.hash.c, NCP=tb.hash.ncp,
-                SCAN=int(opts["scan"]), num_warps=int(opts["num_warps"]))
+                SCAN=int(opts["scan"]), REFILL=refill, num_warps=int(opts["num_warps"]), **extra)
     opacity = out[:, 3]
     depth = torch.where(opacity > 1e-6, out[:, 4] / opacity.clamp_min(1e-6), torch.full_like(opacity, float("inf")))
     return {"rgb": out[:, :3], "opacity": opacity, "depth": depth, "mod_rgb": out[:, 5:8],

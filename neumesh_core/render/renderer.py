@@ -395,12 +395,36 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     if background is not None:
         bg = torch.as_tensor(background, dtype=torch.float32, device=device)
         rgb = rgb + ((len(offsets) - opac) if bg_op is None else (len(offsets) - opac) * (1 - bg_op))[:, None] * bg
-    rgb, opac, depth, mod = ((rgb * inv).cpu(), (opac * inv).cpu(), depth.cpu(), (mod * inv).cpu())
-    return RenderOutput(rgb.view(height, width, 3).numpy(), opac.view(height, width).numpy(),
-                        depth.view(height, width).numpy(), mod.view(height, width, 3).numpy(),
+    planes = [rgb * inv, opac * inv, depth, mod * inv] + ([] if sem is None else [sem * inv]) + \
+        ([] if bg_op is None else [bg_op])
+    host = to_host(planes)
+    rgb, opac, depth, mod = host[:4]
+    return RenderOutput(rgb.reshape(height, width, 3), opac.reshape(height, width),
+                        depth.reshape(height, width), mod.reshape(height, width, 3),
                         n_samples, time.perf_counter() - t0,
-                        None if sem is None else (sem * inv).cpu().view(height, width, -1).numpy(),
-                        None if bg_op is None else bg_op.cpu().view(height, width).numpy())
+                        None if sem is None else host[4].reshape(height, width, -1),
+                        None if bg_op is None else host[-1].reshape(height, width))
+
+
+def to_host(tensors: Sequence[torch.Tensor]) -> list:
+    """float32 device tensors as numpy arrays of the same shapes, each contiguous.  On a GPU in one
+    copy: the tensors packed end to end, copied into page-locked host memory (torch's caching host
+    allocator, so no allocation after the first frame of a size), the arrays views of it; one copy of
+    ~20 MB instead of one pageable copy per output (the profile of a lego 800² frame: 4 copies,
+    9.9 ms).  On the CPU: the tensors themselves."""
+    if not tensors or tensors[0].device.type != "cuda":
+        return [t.detach().cpu().float().numpy() for t in tensors]
+    flat = torch.cat([t.detach().float().reshape(-1) for t in tensors])
+    host = torch.empty(flat.shape, dtype=torch.float32, pin_memory=True)
+    host.copy_(flat, non_blocking=True)
+    torch.cuda.current_stream(flat.device).synchronize()
+    out, s = [], 0
+    arr = host.numpy()
+    for t in tensors:
+        n = t.numel()
+        out.append(arr[s:s + n].reshape(t.shape))
+        s += n
+    return out
 
 
 def _background_model(fields):

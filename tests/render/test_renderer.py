@@ -139,3 +139,18 @@ def test_skip_empty_reports_progress_and_cancels(blob_mesh):
     assert len(seen) > 2 and seen == sorted(seen) and seen[-1] == pytest.approx(1.0)
     with pytest.raises(nm.Cancelled):
         nm.render_camera(f, K, c2w, 20, 16, progress=lambda x: False, settings=nm.RenderSettings(chunk_rays=37))
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA GPU (run on a GPU machine)"))])
+def test_to_host_returns_each_plane_contiguous_and_exact(device):
+    from neumesh_core.render.renderer import to_host
+
+    g = torch.Generator().manual_seed(0)
+    planes = [torch.rand(6, 3, generator=g), torch.rand(6, generator=g),
+              torch.full((6,), float("inf")), torch.rand(6, 5, generator=g)]
+    out = to_host([p.to(device) for p in planes])
+    assert [o.shape for o in out] == [tuple(p.shape) for p in planes]
+    for o, p in zip(out, planes):
+        assert o.flags["C_CONTIGUOUS"] and o.dtype == np.float32
+        assert np.array_equal(o, p.numpy())   # a copy, no arithmetic: exact
