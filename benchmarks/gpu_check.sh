@@ -9,8 +9,8 @@
 # 2. benchmarks/bench_render_gpu.py: a short sweep of the kernel's launch options (static and refill
 #    schedules, block sizes, a register cap), then both backends, both interpolation modes, at rest and
 #    deformed, 400² and 800², launches/syncs per frame, PSNR;
-# 3. the tf32 sweep (--sweep-set precision) in a process of its own, last: tf32 once poisoned the CUDA
-#    context on an H200 (triton 3.6.0), so nothing else may share its process;
+# 3. the precision sweep (--sweep-set precision: fp32, fp16 and tf32 products) in a process of its own,
+#    last: tf32 once poisoned the CUDA context on an H200 (triton 3.6.0), so nothing else may share it;
 # 4. a summary.  Logs and JSON go to $OUT (the device tool's folder that comes back), else to
 #    benchmarks/results/gpu_check/.  Meant to finish in about 7 minutes: each step has a timeout and the
 #    benchmark stops starting new configurations after BENCH_BUDGET_S seconds (default 150).
@@ -62,17 +62,17 @@ ARGS=(--sweep --budget-s "${BENCH_BUDGET_S:-150}" --results-dir "$OUT")
 timeout "${BENCH_TIMEOUT_S:-230}" $PY benchmarks/bench_render_gpu.py "${ARGS[@]}" 2>&1 | tee "$OUT/bench.log"
 BENCH_RC=${PIPESTATUS[0]}
 
-echo "== tf32 sweep (own process; may crash the CUDA context, which only ends this step)"
+echo "== precision sweep (own process; tf32 may crash the CUDA context, which only ends this step)"
 PARGS=(--sweep --sweep-set precision --sweep-only --results-dir "$OUT")
 [ -n "${FIELD:-}" ] && PARGS+=(--field "$FIELD")
-timeout "${PREC_TIMEOUT_S:-90}" $PY benchmarks/bench_render_gpu.py "${PARGS[@]}" 2>&1 | tee "$OUT/bench_tf32.log"
+timeout "${PREC_TIMEOUT_S:-180}" $PY benchmarks/bench_render_gpu.py "${PARGS[@]}" 2>&1 | tee "$OUT/bench_precision.log"
 PREC_RC=${PIPESTATUS[0]}
 
 echo "== summary ($(( $(date +%s) - T0 )) s)" | tee "$OUT/summary.txt"
 {
     head -2 "$OUT/env.txt"
     echo "tests: exit $TEST_RC; $(grep -E '[0-9]+ (passed|failed)' "$OUT/tests.log" | tail -1)"
-    echo "benchmark: exit $BENCH_RC; tf32 sweep: exit $PREC_RC"
+    echo "benchmark: exit $BENCH_RC; precision sweep: exit $PREC_RC"
     grep -E "sweep|kernel options|fps|PSNR|skipped" "$OUT/bench.log" | head -40
-    grep -E "sweep|kernel options|error" "$OUT/bench_tf32.log" | head -8
+    grep -E "sweep|kernel options|error" "$OUT/bench_precision.log" | head -14
 } 2>&1 | tee -a "$OUT/summary.txt"

@@ -15,7 +15,6 @@ benchmarks/results/kernel_resources_sm<arch>.json.
 from __future__ import annotations
 
 import argparse
-import inspect
 import os
 import re
 import subprocess
@@ -27,51 +26,12 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _results import write_results  # noqa: E402
 
-# the kernel's pointer arguments that are not float32, and its integer scalars
-_PTR_TYPES = {"occ": "*u8", "cell_start": "*i32", "cell_count": "*i32", "ids_sorted": "*i32",
-              "ray_counter": "*i32"}
-_INTS = {"n_rays", "res_x", "res_y", "res_z", "h_dx", "h_dy", "h_dz"}
-_POINTERS = {"orig", "dirs", "gorig", "gdirs", "tnear", "tfar", "tstart", "occ", "cell_start", "cell_count",
-             "v_sorted", "ids_sorted", "vtab", "geo", "tex", "modc", "rest_n", "rot", "gw1", "gb1", "gw2",
-             "gb2", "gw3", "gb3", "rw1", "rb1", "rw2", "rb2", "rw3", "rb3", "out", "ray_counter"}
-
 DEFAULT_VARIANTS = ("static,early,rest,32,4,1;refill,early,rest,32,4,1;static,early,rest,64,8,2;"
                     "static,early,rest,16,2,1;refill,early,rest,16,2,1;static,post,rest,32,4,1;"
                     "refill,post,rest,32,4,1;static,early,deformed,32,4,1;refill,post,deformed,32,4,1;"
                     "static,early,rest,32,4,1,tf32;static,early,rest,32,4,1,tf32x3;"
-                    "static,early,rest,32,4,1,ieee,128;refill,early,rest,32,4,1,ieee,128")
-
-
-def constants(cfg, *, refill, early, deformed, block, cells, precision="ieee") -> dict:
-    """The kernel's constexpr arguments for a field of config ``cfg`` (as FieldTables derives them)."""
-    from neumesh_core.field.knn_triton import TritonHashGrid, next_pow2
-
-    pe = 1 + 2 * cfg.pos_freqs
-    return dict(BLOCK=block, KP=next_pow2(cfg.k), K=cfg.k, WINDOW=64, MAX_EVAL=8, EARLY=early,
-                DEFORMED=deformed, GEO_D=cfg.geo_dim, TEX_D=cfg.tex_dim, PE_F=cfg.pos_freqs,
-                SH_DEG=cfg.sh_degree, GI=next_pow2(cfg.geo_dim + pe + 1, 16),
-                RI=next_pow2(cfg.tex_dim + pe + 1 + cfg.sh_degree ** 2 + 3, 16), H=next_pow2(cfg.hidden, 16),
-                PREC=precision, C=cells, NCP=TritonHashGrid.ncp, SCAN=8, REFILL=refill)
-
-
-def compile_variant(kernel, consts: dict, warps: int, arch: int, maxnreg=None):
-    import triton
-    from triton.backends.compiler import GPUTarget
-    from triton.compiler import ASTSource
-
-    sig = {}
-    for p in inspect.signature(kernel.fn).parameters:
-        if p in consts:
-            sig[p] = "constexpr"
-        elif p in _POINTERS:
-            sig[p] = _PTR_TYPES.get(p, "*fp32")
-        else:
-            sig[p] = "i32" if p in _INTS else "fp32"
-    src = ASTSource(fn=kernel, signature=sig, constexprs=consts)
-    opts = {"num_warps": warps}
-    if maxnreg:
-        opts["maxnreg"] = int(maxnreg)
-    return triton.compile(src, target=GPUTarget("cuda", arch, 32), options=opts)
+                    "static,early,rest,32,4,1,ieee,128;refill,early,rest,32,4,1,ieee,128;"
+                    "static,early,rest,32,4,1,fp16;refill,early,rest,32,4,1,fp16;static,post,rest,32,4,1,fp16")
 
 
 def resource_usage(cubin: bytes) -> dict:
@@ -118,9 +78,9 @@ def main(argv=None) -> int:
                "maxnreg": maxnreg}
         t = time.perf_counter()
         try:
-            kern = compile_variant(ft._render_kernel, constants(
-                cfg, refill=sched == "refill", early=mode == "early", deformed=pose == "deformed",
-                block=int(block), cells=int(cells), precision=prec), int(warps), args.arch, maxnreg)
+            kern = ft.compile_for(cfg, args.arch, interpolation=mode, deformed=pose == "deformed",
+                                  schedule=sched, block=int(block), num_warps=int(warps),
+                                  cells_per_radius=int(cells), precision=prec, maxnreg=maxnreg)
             use = resource_usage(kern.asm["cubin"])
         except Exception as e:   # a variant the compiler rejects: record it, go on
             rows.append({**key, "error": repr(e)[:300]})

@@ -100,6 +100,15 @@ def _version_key(*tensors) -> tuple:
     return tuple((t.data_ptr(), t._version, tuple(t.shape)) if t is not None else None for t in tensors)
 
 
+def decoder_widths(cfg) -> tuple:
+    """(geometry input, radiance input, hidden) widths of the kernel's decoder tiles: the decoders'
+    widths rounded up to powers of two of at least 16 (tl.dot's smallest), zero-padded."""
+    pe = 1 + 2 * int(cfg.pos_freqs)
+    return (next_pow2(int(cfg.geo_dim) + pe + 1, 16),
+            next_pow2(int(cfg.tex_dim) + pe + 1 + int(cfg.sh_degree) ** 2 + 3, 16),
+            next_pow2(int(cfg.hidden), 16))
+
+
 class FieldTables:
     """What the kernel reads of a field, rebuilt only when the tensors behind it change: the hash grid
     of the current vertices, the (position, normal) table, the code tables and the padded decoders."""
@@ -109,11 +118,7 @@ class FieldTables:
         sc = field.scaffold
         dev = sc.vertices_.device
         self.geo_d, self.tex_d = int(cfg.geo_dim), int(cfg.tex_dim)
-        self.pe = 1 + 2 * int(cfg.pos_freqs)
-        self.sh = int(cfg.sh_degree) ** 2
-        self.gi = next_pow2(self.geo_d + self.pe + 1, 16)
-        self.ri = next_pow2(self.tex_d + self.pe + 1 + self.sh + 3, 16)
-        self.h = next_pow2(int(cfg.hidden), 16)
+        self.gi, self.ri, self.h = decoder_widths(cfg)
         self.k = int(cfg.k)
         self.kp = next_pow2(self.k)
         grid_key = _version_key(sc.vertices_) + (cells_per_radius, float(cfg.radius))
@@ -192,6 +197,15 @@ if triton is not None:
         return out
 
     @triton.jit
+    def _dot(x, a, PREC: tl.constexpr):
+        """x @ a, fp32 out: fp32 operands at tl.dot's input precision PREC, or ("fp16") operands rounded to
+        half precision (10-bit mantissa as tf32's, the tensor cores' most common path)."""
+        if PREC == "fp16":
+            return tl.dot(x.to(tl.float16), a.to(tl.float16), out_dtype=tl.float32)
+        else:
+            return tl.dot(x, a, input_precision=PREC)
+
+    @triton.jit
     def _mlp3(x, w1, b1, w2, b2, w3, b3, IN: tl.constexpr, H: tl.constexpr, OUT: tl.constexpr,
               PREC: tl.constexpr):
         """Linear-ReLU-Linear-ReLU-Linear of a (B, IN) tile -> (B, OUT) (padded weights)."""
@@ -199,12 +213,12 @@ if triton is not None:
         rh = tl.arange(0, H)
         ro = tl.arange(0, OUT)
         a = tl.load(w1 + ri[:, None] * H + rh[None, :])
-        h = tl.dot(x, a, input_precision=PREC) + tl.load(b1 + rh)[None, :]
+        h = _dot(x, a, PREC) + tl.load(b1 + rh)[None, :]
         h = tl.maximum(h, 0.0)
         a = tl.load(w2 + rh[:, None] * H + rh[None, :])
-        h = tl.maximum(tl.dot(h, a, input_precision=PREC) + tl.load(b2 + rh)[None, :], 0.0)
+        h = tl.maximum(_dot(h, a, PREC) + tl.load(b2 + rh)[None, :], 0.0)
         a = tl.load(w3 + rh[:, None] * OUT + ro[None, :])
-        return tl.dot(h, a, input_precision=PREC) + tl.load(b3 + ro)[None, :]
+        return _dot(h, a, PREC) + tl.load(b3 + ro)[None, :]
 
     @triton.jit
     def _store_out(out, rows, mask, acc_r, acc_g, acc_b, acc_o, acc_d, acc_mr, acc_mg, acc_mb, n_kept):
@@ -282,7 +296,7 @@ if triton is not None:
         acc_mb = tl.zeros([BLOCK], tl.float32)
         n_kept = tl.zeros([BLOCK], tl.int32)
 
-        while tl.max(inb.to(tl.int32), 0) + more > 0:
+        while tl.max(active.to(tl.int32), 0) + more > 0:
             if REFILL:
                 # ---- lanes whose ray finished store it; free lanes take the next rays (one atomic a block)
                 done = inb & ~active
@@ -527,17 +541,14 @@ if triton is not None:
                     acc_o += wc
                     acc_d += wc * (0.5 * (ts + te))
                     n_kept += keep.to(tl.int32)
-            if not REFILL:
-                inb = active
 
-        if not REFILL:
-            _store_out(out, rows, rows < n_rays, acc_r, acc_g, acc_b, acc_o, acc_d, acc_mr, acc_mg, acc_mb,
-                       n_kept)
+        # static: every ray of the block; refill: the rays finished since the last refill
+        _store_out(out, rows, inb, acc_r, acc_g, acc_b, acc_o, acc_d, acc_mr, acc_mg, acc_mb, n_kept)
 
 
 def default_block(device) -> int:
     """Rays per program: 32 on a GPU (with 4 warps: on an H200 the fastest of the options timed by
-    ``benchmarks/bench_render_gpu.py --sweep``, 37.9 ms for lego 800² against 51.0 ms for 64 rays x 8
+    ``benchmarks/bench_render_gpu.py --sweep``, 37.7 ms for lego 800² against 44.7 ms for 64 rays x 8
     warps, although the sm_90 build of 64 x 8 spills less: a smaller block waits less for its slowest
     ray); in the interpreter (CPU) one big block, since there each operation costs about the same for any
     block size."""
@@ -552,12 +563,75 @@ KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 4, "cells_per
 
 def default_cells(device) -> int:
     """Neighbour-grid cells per radius: 1 on a GPU and in the interpreter (27 cells a radius wide; on an
-    H200 37.9 ms for lego 800² against 42.2 ms with 125 half-radius cells, which measure fewer vertices
+    H200 37.7 ms for lego 800² against 41.8 ms with 125 half-radius cells, which measure fewer vertices
     but walk more cells)."""
     return 1
 
 
 SCHEDULES = ("static", "refill")
+PRECISIONS = ("ieee", "tf32", "tf32x3", "fp16")
+
+
+def kernel_constants(cfg, *, early: bool, deformed: bool, block: int, cells: int, precision: str = "ieee",
+                     scan: int = 8, refill: bool = False, window: int = 64) -> dict:
+    """The kernel's compile-time (constexpr) arguments for a field of config ``cfg``: each set of them is
+    one compiled variant."""
+    gi, ri, h = decoder_widths(cfg)
+    return dict(BLOCK=int(block), KP=next_pow2(int(cfg.k)), K=int(cfg.k), WINDOW=int(window), MAX_EVAL=8,
+                EARLY=bool(early), DEFORMED=bool(deformed), GEO_D=int(cfg.geo_dim), TEX_D=int(cfg.tex_dim),
+                PE_F=int(cfg.pos_freqs), SH_DEG=int(cfg.sh_degree), GI=gi, RI=ri, H=h, PREC=precision,
+                C=int(cells), NCP=TritonHashGrid.ncp, SCAN=int(scan), REFILL=bool(refill))
+
+
+# the kernel's pointer arguments that are not float32, its other pointers, and its integer scalars (the
+# rest are float32 scalars): the signature of an ahead-of-time build
+_PTR_TYPES = {"occ": "*u8", "cell_start": "*i32", "cell_count": "*i32", "ids_sorted": "*i32",
+              "ray_counter": "*i32"}
+_POINTERS = {"orig", "dirs", "gorig", "gdirs", "tnear", "tfar", "tstart", "occ", "cell_start", "cell_count",
+             "v_sorted", "ids_sorted", "vtab", "geo", "tex", "modc", "rest_n", "rot", "gw1", "gb1", "gw2",
+             "gb2", "gw3", "gb3", "rw1", "rb1", "rw2", "rb2", "rw3", "rb3", "out", "ray_counter"}
+_INTS = {"n_rays", "res_x", "res_y", "res_z", "h_dx", "h_dy", "h_dz"}
+
+
+def compile_for(cfg, arch: int = 90, *, interpolation: str = "early", deformed: bool = False, **options):
+    """Build the kernel ahead of time for a CUDA target (compute capability x10; 90: H100/H200) without a
+    GPU: Triton's compiler and the ptxas it ships.  ``options`` as :func:`render_rays_fused`'s (block and
+    cells_per_radius default to a GPU's).  Returns Triton's compiled kernel (``.asm["cubin"]``, ...).
+    Used to check that each variant compiles with the installed Triton, and by
+    ``benchmarks/kernel_resources.py`` to read its registers and spills."""
+    import inspect
+
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    if triton is None or type(_render_kernel).__name__ == "InterpretedFunction":
+        raise RuntimeError("compile_for needs triton imported without TRITON_INTERPRET=1 (the interpreter "
+                           "runs kernels, it does not build them): run it in a process without that variable")
+    opts = _checked({**KERNEL_OPTIONS, **options})
+    consts = kernel_constants(cfg, early=interpolation == "early", deformed=deformed,
+                              block=opts["block"] or 32, cells=opts["cells_per_radius"] or 1,
+                              precision=opts["precision"], scan=opts["scan"], refill=opts["schedule"] == "refill")
+    sig = {}
+    for p in inspect.signature(_render_kernel.fn).parameters:
+        if p in consts:
+            sig[p] = "constexpr"
+        elif p in _POINTERS:
+            sig[p] = _PTR_TYPES.get(p, "*fp32")
+        else:
+            sig[p] = "i32" if p in _INTS else "fp32"
+    build = {"num_warps": int(opts["num_warps"])}
+    if opts["maxnreg"]:
+        build["maxnreg"] = int(opts["maxnreg"])
+    return triton.compile(ASTSource(fn=_render_kernel, signature=sig, constexprs=consts),
+                          target=GPUTarget("cuda", int(arch), 32), options=build)
+
+
+def _checked(opts: dict) -> dict:
+    if opts["schedule"] not in SCHEDULES:
+        raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, not {opts['schedule']!r}")
+    if opts["precision"] not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, not {opts['precision']!r}")
+    return opts
 
 
 def refill_programs(device, n_blocks: int, programs_per_sm: int) -> int:
@@ -579,15 +653,14 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
     ``n_samples`` the number of samples composited.  ``step``: the marching step
     (:func:`~neumesh_core.render.renderer.default_step`).  ``near``/``far``: a distance or (R,) per ray.
     ``options``: launch options overriding :data:`KERNEL_OPTIONS` (block: rays per program; precision:
-    tl.dot's input precision, "ieee" (fp32) or "tf32x3"/"tf32"; num_warps; cells_per_radius: 1 or 2, the
+    tl.dot's input precision, "ieee" (fp32) or "tf32x3"/"tf32", or "fp16" (operands rounded to half
+    precision, fp32 sums); num_warps; cells_per_radius: 1 or 2, the
     neighbour grid's cells per radius; scan: occupancy steps looked at per marching iteration; schedule:
     "static" (a program's lanes keep their rays until the last one finishes) or "refill" (a persistent
     program's lane takes the next ray as soon as its own finishes, so no lane idles beside a long ray;
     programs_per_sm: how many such programs each multiprocessor runs); maxnreg: None or a cap on the
     registers per thread (``benchmarks/kernel_resources.py`` shows what each cap spills)."""
-    opts = {**KERNEL_OPTIONS, **options}
-    if opts["schedule"] not in SCHEDULES:
-        raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, not {opts['schedule']!r}")
+    opts = _checked({**KERNEL_OPTIONS, **options})
     require_triton(origins.device)
     reason = supported(field)
     if reason is not None:
@@ -628,11 +701,11 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
                 tb.vtab, tb.geo, tb.tex, tb.mod, tb.rest_n, rot,
                 *tb.mlp,
                 out, float(step), float(math.log(settings.early_stop_eps)), float(settings.weight_threshold), counter,
-                BLOCK=blk, KP=tb.kp, K=tb.k, WINDOW=int(settings.window), MAX_EVAL=8,
-                EARLY=field.config.interpolation == "early", DEFORMED=tb.rot is not None,
-                GEO_D=tb.geo_d, TEX_D=tb.tex_d, PE_F=int(field.config.pos_freqs), SH_DEG=int(field.config.sh_degree),
-                GI=tb.gi, RI=tb.ri, H=tb.h, PREC=opts["precision"], C=tb.hash.c, NCP=tb.hash.ncp,
-                SCAN=int(opts["scan"]), REFILL=refill, num_warps=int(opts["num_warps"]), **extra)
+                **kernel_constants(field.config, early=field.config.interpolation == "early",
+                                   deformed=tb.rot is not None, block=blk, cells=tb.hash.c,
+                                   precision=opts["precision"], scan=int(opts["scan"]), refill=refill,
+                                   window=int(settings.window)),
+                num_warps=int(opts["num_warps"]), **extra)
     opacity = out[:, 3]
     depth = torch.where(opacity > 1e-6, out[:, 4] / opacity.clamp_min(1e-6), torch.full_like(opacity, float("inf")))
     return {"rgb": out[:, :3], "opacity": opacity, "depth": depth, "mod_rgb": out[:, 5:8],

@@ -7,6 +7,7 @@ imported): slow, so the scenes are tiny.  With a GPU (benchmarks/gpu_check.sh) t
 Skipped, with the reason, where triton does not import (install the optional extra: ``.[gpu]``).
 """
 import os
+import subprocess
 import sys
 
 import numpy as np
@@ -27,6 +28,7 @@ from neumesh_core.metrics import psnr  # noqa: E402
 from ..conftest import textured_field  # noqa: E402
 
 DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 if not knn_triton.triton_runs_on(DEVICE):
     pytest.skip("triton was imported before TRITON_INTERPRET=1 could be set and there is no GPU; run "
                 "this module on its own or with TRITON_INTERPRET=1", allow_module_level=True)
@@ -123,6 +125,49 @@ def test_backend_choice_and_errors():
     with pytest.raises(NeuMeshError, match="backend='auto'"):
         use_triton(nm.RenderSettings(backend="triton"), [two], DEVICE)
     assert not use_triton(nm.RenderSettings(backend="auto"), [field, field], "cuda")
+
+
+def test_half_precision_products_stay_close_to_the_reference(monkeypatch):
+    """precision="fp16": the decoders' products with operands rounded to half precision (tensor cores
+    on a GPU), fp32 sums.  Rounding shows (the image is not the fp32 one) but stays far under what an
+    eye sees; an unknown precision is refused before anything runs."""
+    from neumesh_core.render import fused_triton as ft
+
+    field, K, c2w = _scene("post", False)
+    ref = nm.render_camera(field, K, c2w, 12, 12, settings=nm.RenderSettings(backend="torch"))
+    fp32 = nm.render_camera(field, K, c2w, 12, 12, settings=nm.RenderSettings(backend="triton"))
+    monkeypatch.setitem(ft.KERNEL_OPTIONS, "precision", "fp16")
+    half = nm.render_camera(field, K, c2w, 12, 12, settings=nm.RenderSettings(backend="triton"))
+    assert psnr(half.rgb, ref.rgb) >= 50.0, psnr(half.rgb, ref.rgb)
+    assert abs(half.n_samples - ref.n_samples) <= max(2, ref.n_samples // 100)
+    if DEVICE == "cpu":   # the interpreter rounds the operands too: the images differ, a little
+        assert 0 < np.abs(half.rgb - fp32.rgb).max() < 1e-3
+    monkeypatch.setitem(ft.KERNEL_OPTIONS, "precision", "fp64")
+    with pytest.raises(ValueError, match="precision"):
+        nm.render_camera(field, K, c2w, 12, 12, settings=nm.RenderSettings(backend="triton"))
+
+
+def test_the_kernel_builds_for_a_gpu_ahead_of_time(tmp_path):
+    """Every schedule must compile for a real GPU, not only run in the interpreter: an sm_90 build (no
+    GPU needed; Triton's own ptxas) of the default (static, early, fp32) and of refill + post + bent +
+    fp16.  Once a restructured loop ran in the interpreter and failed in Triton 3.6's layout passes."""
+    pytest.importorskip("triton.backends.nvidia")
+    code = ("import sys, neumesh_core as nm\n"
+            "from neumesh_core.render import fused_triton as ft\n"
+            "for kw in ({}, dict(schedule='refill', interpolation='post', deformed=True, precision='fp16')):\n"
+            "    k = ft.compile_for(nm.FieldConfig(), 90, **kw)\n"
+            "    assert len(k.asm['cubin']) > 10000, kw\n"
+            "print('built')\n")
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    env["TRITON_CACHE_DIR"] = str(tmp_path)   # a real build, not a cached one
+    env["PYTHONPATH"] = os.pathsep.join([ROOT, env.get("PYTHONPATH", "")])
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0 and "built" in run.stdout, run.stderr[-3000:]
+    if DEVICE == "cpu":   # this process imported triton in interpreter mode: a clear error, no crash
+        from neumesh_core.render import fused_triton as ft
+
+        with pytest.raises(RuntimeError, match="TRITON_INTERPRET"):
+            ft.compile_for(nm.FieldConfig(), 90)
 
 
 def test_refill_schedule_renders_what_the_static_one_does(monkeypatch):
