@@ -7,13 +7,14 @@
 # 1. the CUDA tests: tests/render/test_fused_triton.py (the kernels compiled for the GPU, against the torch
 #    path on the same GPU) and tests/test_device.py (the CUDA path against the CPU path);
 # 2. benchmarks/bench_render_gpu.py: a short sweep of the kernel's launch options (static and refill
-#    schedules, block sizes, a register cap), then both backends, both interpolation modes, at rest and
-#    deformed, 400² and 800², launches/syncs per frame, PSNR;
+#    schedules, block sizes, a register cap, the neighbour search's early out), then both backends,
+#    both interpolation modes, at rest and deformed, 400² and 800², launches/syncs per frame, PSNR;
 # 3. the precision sweep (--sweep-set precision: fp32, fp16 and tf32 products) in a process of its own,
 #    last: tf32 once poisoned the CUDA context on an H200 (triton 3.6.0), so nothing else may share it;
 # 4. a summary.  Logs and JSON go to $OUT (the device tool's folder that comes back), else to
-#    benchmarks/results/gpu_check/.  Meant to finish in about 7 minutes: each step has a timeout and the
-#    benchmark stops starting new configurations after BENCH_BUDGET_S seconds (default 150).
+#    benchmarks/results/gpu_check/.  Meant to finish in about 5 minutes, at most 9.7 (the steps'
+#    timeouts, under the device tool's 10 a call); the benchmark stops starting new configurations
+#    after BENCH_BUDGET_S seconds (default 150).
 #
 # Wheels: the GPU machine's image (python3 3.12, torch 2.11.0+cu130, triton 3.6.0, numpy 2, scipy,
 # pytest, pillow, opencv, scikit-image, safetensors) has everything this script needs; pykdtree, trimesh
@@ -50,7 +51,7 @@ export PYTHONPATH="$PWD:${PYTHONPATH:-}"
 } 2>&1 | tee "$OUT/env.txt"
 
 echo "== tests (kernels compiled for the GPU; first calls include Triton's compilation)"
-timeout "${TEST_TIMEOUT_S:-200}" $PY -m pytest -q -p no:cacheprovider --durations=8 \
+timeout "${TEST_TIMEOUT_S:-150}" $PY -m pytest -q -p no:cacheprovider --durations=8 \
     tests/render/test_fused_triton.py tests/test_device.py 2>&1 | tee "$OUT/tests.log"
 TEST_RC=${PIPESTATUS[0]}
 echo "tests exit code: $TEST_RC (124: timed out)" | tee -a "$OUT/tests.log"
@@ -59,13 +60,13 @@ echo "== benchmark"
 ARGS=(--sweep --budget-s "${BENCH_BUDGET_S:-150}" --results-dir "$OUT")
 [ -n "${FIELD:-}" ] && ARGS+=(--field "$FIELD")
 [ -n "${DATA:-}" ] && ARGS+=(--data "$DATA")
-timeout "${BENCH_TIMEOUT_S:-230}" $PY benchmarks/bench_render_gpu.py "${ARGS[@]}" 2>&1 | tee "$OUT/bench.log"
+timeout "${BENCH_TIMEOUT_S:-260}" $PY benchmarks/bench_render_gpu.py "${ARGS[@]}" 2>&1 | tee "$OUT/bench.log"
 BENCH_RC=${PIPESTATUS[0]}
 
 echo "== precision sweep (own process; tf32 may crash the CUDA context, which only ends this step)"
 PARGS=(--sweep --sweep-set precision --sweep-only --results-dir "$OUT")
 [ -n "${FIELD:-}" ] && PARGS+=(--field "$FIELD")
-timeout "${PREC_TIMEOUT_S:-180}" $PY benchmarks/bench_render_gpu.py "${PARGS[@]}" 2>&1 | tee "$OUT/bench_precision.log"
+timeout "${PREC_TIMEOUT_S:-170}" $PY benchmarks/bench_render_gpu.py "${PARGS[@]}" 2>&1 | tee "$OUT/bench_precision.log"
 PREC_RC=${PIPESTATUS[0]}
 
 echo "== summary ($(( $(date +%s) - T0 )) s)" | tee "$OUT/summary.txt"

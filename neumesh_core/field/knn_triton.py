@@ -131,15 +131,28 @@ if triton is not None:
     _NONE_KEY = tl.constexpr(0x7FFFFFFFFFFFFFFF)
 
     @triton.jit
+    def _merge_best(keys, cand, none):
+        """The best candidate of each row replaces the row's worst key where it is better; then it is
+        struck from the candidates (K of these in a row merge a row's K best, nearest first)."""
+        best = tl.min(cand, 1)
+        worst = tl.max(keys, 1)
+        better = best < worst
+        keys = tl.where((keys == worst[:, None]) & better[:, None], best[:, None], keys)
+        cand = tl.where(cand == best[:, None], none, cand)
+        return keys, cand
+
+    @triton.jit
     def knn_keys(px, py, pz, live,
                  lo_x, lo_y, lo_z, cell, dim_x, dim_y, dim_z,
                  cell_start, cell_count, v_sorted, ids_sorted, radius,
                  BLOCK: tl.constexpr, KP: tl.constexpr, K: tl.constexpr, C: tl.constexpr,
-                 NCP: tl.constexpr):
+                 NCP: tl.constexpr, EARLY_OUT: tl.constexpr):
         """The K nearest vertices within ``radius`` of points (px, py, pz) (BLOCK,) where ``live``:
         (BLOCK, KP) int64 keys, unsorted (C: grid cells per radius; NCP: cells per round); a key's high
         word is the float bits of the distance (+inf for a slot that found nothing), the low word the
-        vertex id.  Slots K..KP-1 are padding (-1)."""
+        vertex id.  Slots K..KP-1 are padding (-1).  EARLY_OUT: each round merges only as many of its
+        candidates as the block's row with the most candidates nearer than its worst key has (at most
+        K): the same keys, fewer merges once the rows hold near vertices."""
         slot = tl.arange(0, KP)
         inf_key = (tl.full([BLOCK, KP], _INF_BITS, tl.int64) << 32) + slot[None, :].to(tl.int64)
         keys = tl.where(slot[None, :] < K, inf_key, tl.full([BLOCK, KP], -1, tl.int64))
@@ -183,12 +196,16 @@ if triton is not None:
                 d = tl.sqrt(dx * dx + dy * dy + dz * dz)
                 ok = m & (d <= radius)
                 cand = tl.where(ok, (d.to(tl.int32, bitcast=True).to(tl.int64) << 32) | vid.to(tl.int64), none)
-                for _r in tl.static_range(K):
-                    best = tl.min(cand, 1)
+                if EARLY_OUT:
+                    # a candidate no nearer than the row's worst key now never enters it (the worst only
+                    # gets nearer): min(K, the most such candidates of a row) merges give the same keys
                     worst = tl.max(keys, 1)
-                    better = best < worst
-                    keys = tl.where((keys == worst[:, None]) & better[:, None], best[:, None], keys)
-                    cand = tl.where(cand == best[:, None], none, cand)
+                    n_near = tl.sum((cand < worst[:, None]).to(tl.int32), 1)
+                    for _r in range(tl.minimum(tl.max(n_near, 0), K)):
+                        keys, cand = _merge_best(keys, cand, none)
+                else:
+                    for _r in tl.static_range(K):
+                        keys, cand = _merge_best(keys, cand, none)
         return keys
 
     @triton.jit
@@ -196,14 +213,15 @@ if triton is not None:
                     lo_x, lo_y, lo_z, cell, dim_x, dim_y, dim_z,
                     cell_start, cell_count, v_sorted, ids_sorted, radius,
                     BLOCK: tl.constexpr, KP: tl.constexpr, K: tl.constexpr, C: tl.constexpr,
-                    NCP: tl.constexpr):
+                    NCP: tl.constexpr, EARLY_OUT: tl.constexpr):
         rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
         live = rows < n_points
         px = tl.load(points + rows * 3, mask=live, other=0.0)
         py = tl.load(points + rows * 3 + 1, mask=live, other=0.0)
         pz = tl.load(points + rows * 3 + 2, mask=live, other=0.0)
         keys = knn_keys(px, py, pz, live, lo_x, lo_y, lo_z, cell, dim_x, dim_y, dim_z,
-                        cell_start, cell_count, v_sorted, ids_sorted, radius, BLOCK, KP, K, C, NCP)
+                        cell_start, cell_count, v_sorted, ids_sorted, radius, BLOCK, KP, K, C, NCP,
+                        EARLY_OUT)
         slot = tl.arange(0, KP)
         tl.store(out_keys + rows[:, None] * KP + slot[None, :], keys, mask=live[:, None])
 
@@ -225,9 +243,11 @@ def decode_keys(keys: torch.Tensor, k: int):
     return idx, dist
 
 
-def knn_radius_triton(points: torch.Tensor, grid: TritonHashGrid, k: int, block: int = 64):
+def knn_radius_triton(points: torch.Tensor, grid: TritonHashGrid, k: int, block: int = 64,
+                      early_out: bool = False):
     """K nearest vertices of ``grid`` within its radius of ``points`` (M,3): (idx (M,K) long,
-    dist (M,K) float32) sorted by distance, as :func:`~neumesh_core.field.knn.knn_radius_reference`."""
+    dist (M,K) float32) sorted by distance, as :func:`~neumesh_core.field.knn.knn_radius_reference`.
+    ``early_out``: skip the merges no candidate needs (:func:`knn_keys`; the same result)."""
     require_triton(points.device)
     p = points.detach().float().contiguous()
     m = len(p)
@@ -239,7 +259,7 @@ def knn_radius_triton(points: torch.Tensor, grid: TritonHashGrid, k: int, block:
         return (torch.full((m, k), -1, dtype=torch.long, device=p.device),
                 torch.full((m, k), float("inf"), device=p.device))
     _knn_kernel[(triton.cdiv(m, block),)](p, m, keys, *grid.args(), BLOCK=block, KP=kp, K=k, C=grid.c,
-                                           NCP=grid.ncp)
+                                           NCP=grid.ncp, EARLY_OUT=bool(early_out))
     return decode_keys(keys, k)
 
 

@@ -255,7 +255,8 @@ if triton is not None:
             MAX_EVAL: tl.constexpr, EARLY: tl.constexpr, DEFORMED: tl.constexpr,
             GEO_D: tl.constexpr, TEX_D: tl.constexpr, PE_F: tl.constexpr, SH_DEG: tl.constexpr,
             GI: tl.constexpr, RI: tl.constexpr, H: tl.constexpr, PREC: tl.constexpr,
-            C: tl.constexpr, NCP: tl.constexpr, SCAN: tl.constexpr, REFILL: tl.constexpr):
+            C: tl.constexpr, NCP: tl.constexpr, SCAN: tl.constexpr, REFILL: tl.constexpr,
+            KNN_EO: tl.constexpr):
         # static schedule: this program's lanes hold rays pid*BLOCK.. to the end; refill: the lanes start
         # empty and a lane whose ray has finished stores it and takes the next ray of ray_counter
         if REFILL:
@@ -376,7 +377,8 @@ if triton is not None:
                 py = oy + dy * t
                 pz = oz + dz * t
                 keys = knn_keys(px, py, pz, found, h_lo_x, h_lo_y, h_lo_z, h_cell, h_dx, h_dy, h_dz,
-                                cell_start, cell_count, v_sorted, ids_sorted, radius, BLOCK, KP, K, C, NCP)
+                                cell_start, cell_count, v_sorted, ids_sorted, radius, BLOCK, KP, K, C, NCP,
+                                KNN_EO)
                 dist = (keys >> 32).to(tl.int32).to(tl.float32, bitcast=True)
                 valid = (slot[None, :] < K) & (dist < 3.0e38) & found[:, None]
                 idx = tl.where(valid, (keys & 0xFFFFFFFF).to(tl.int32), 0)
@@ -558,7 +560,7 @@ def default_block(device) -> int:
 # launch options, chosen by benchmarks/bench_render_gpu.py (``--sweep``); render_rays_fused's defaults
 # (block / cells_per_radius None: by device, see default_block / default_cells; num_warps: per program)
 KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 4, "cells_per_radius": None, "scan": 8,
-                  "schedule": "static", "programs_per_sm": 8, "maxnreg": None}
+                  "schedule": "static", "programs_per_sm": 8, "maxnreg": None, "knn_early_out": False}
 
 
 def default_cells(device) -> int:
@@ -573,14 +575,16 @@ PRECISIONS = ("ieee", "tf32", "tf32x3", "fp16")
 
 
 def kernel_constants(cfg, *, early: bool, deformed: bool, block: int, cells: int, precision: str = "ieee",
-                     scan: int = 8, refill: bool = False, window: int = 64) -> dict:
+                     scan: int = 8, refill: bool = False, window: int = 64,
+                     knn_early_out: bool = False) -> dict:
     """The kernel's compile-time (constexpr) arguments for a field of config ``cfg``: each set of them is
     one compiled variant."""
     gi, ri, h = decoder_widths(cfg)
     return dict(BLOCK=int(block), KP=next_pow2(int(cfg.k)), K=int(cfg.k), WINDOW=int(window), MAX_EVAL=8,
                 EARLY=bool(early), DEFORMED=bool(deformed), GEO_D=int(cfg.geo_dim), TEX_D=int(cfg.tex_dim),
                 PE_F=int(cfg.pos_freqs), SH_DEG=int(cfg.sh_degree), GI=gi, RI=ri, H=h, PREC=precision,
-                C=int(cells), NCP=TritonHashGrid.ncp, SCAN=int(scan), REFILL=bool(refill))
+                C=int(cells), NCP=TritonHashGrid.ncp, SCAN=int(scan), REFILL=bool(refill),
+                KNN_EO=bool(knn_early_out))
 
 
 # the kernel's pointer arguments that are not float32, its other pointers, and its integer scalars (the
@@ -610,7 +614,8 @@ def compile_for(cfg, arch: int = 90, *, interpolation: str = "early", deformed: 
     opts = _checked({**KERNEL_OPTIONS, **options})
     consts = kernel_constants(cfg, early=interpolation == "early", deformed=deformed,
                               block=opts["block"] or 32, cells=opts["cells_per_radius"] or 1,
-                              precision=opts["precision"], scan=opts["scan"], refill=opts["schedule"] == "refill")
+                              precision=opts["precision"], scan=opts["scan"], refill=opts["schedule"] == "refill",
+                              knn_early_out=opts["knn_early_out"])
     sig = {}
     for p in inspect.signature(_render_kernel.fn).parameters:
         if p in consts:
@@ -659,7 +664,8 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
     "static" (a program's lanes keep their rays until the last one finishes) or "refill" (a persistent
     program's lane takes the next ray as soon as its own finishes, so no lane idles beside a long ray;
     programs_per_sm: how many such programs each multiprocessor runs); maxnreg: None or a cap on the
-    registers per thread (``benchmarks/kernel_resources.py`` shows what each cap spills)."""
+    registers per thread (``benchmarks/kernel_resources.py`` shows what each cap spills); knn_early_out:
+    the neighbour search skips the merges no candidate needs (``knn_triton.knn_keys``; the same image)."""
     opts = _checked({**KERNEL_OPTIONS, **options})
     require_triton(origins.device)
     reason = supported(field)
@@ -704,7 +710,7 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
                 **kernel_constants(field.config, early=field.config.interpolation == "early",
                                    deformed=tb.rot is not None, block=blk, cells=tb.hash.c,
                                    precision=opts["precision"], scan=int(opts["scan"]), refill=refill,
-                                   window=int(settings.window)),
+                                   window=int(settings.window), knn_early_out=bool(opts["knn_early_out"])),
                 num_warps=int(opts["num_warps"]), **extra)
     opacity = out[:, 3]
     depth = torch.where(opacity > 1e-6, out[:, 4] / opacity.clamp_min(1e-6), torch.full_like(opacity, float("inf")))

@@ -54,6 +54,22 @@ def test_knn_kernel_matches_the_reference(cells_per_radius):
     assert torch.equal(idx, ref_i)   # random positions: no ties
 
 
+@pytest.mark.parametrize("cells_per_radius", [1, 2])
+def test_knn_early_out_finds_the_same_neighbours(cells_per_radius):
+    """early_out merges only the candidates nearer than a row's worst key: dense vertices (~40 within
+    the radius of a point, so most rounds need fewer than K merges) must give the reference's keys."""
+    g = torch.Generator().manual_seed(1)
+    verts = torch.rand(6000, 3, generator=g)
+    pts = torch.rand(200, 3, generator=g)
+    r = 0.12
+    grid = knn_triton.TritonHashGrid(verts.to(DEVICE), r, cells_per_radius)
+    idx, dist = knn_triton.knn_radius_triton(pts.to(DEVICE), grid, 4, block=64 if DEVICE == "cuda" else 256,
+                                             early_out=True)
+    ref_i, ref_d = knn_radius_reference(pts, verts, 4, r)
+    assert (ref_i >= 0).all()
+    assert torch.equal(idx.cpu(), ref_i) and torch.allclose(dist.cpu(), ref_d, atol=1e-6)
+
+
 def test_knn_kernel_with_fewer_vertices_than_k_and_a_huge_box():
     verts = torch.tensor([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [1e3, 0.0, 0.0]])   # a sparse, wide box
     pts = torch.tensor([[0.01, 0.0, 0.0], [999.99, 0.0, 0.0], [500.0, 0.0, 0.0]])
@@ -168,6 +184,18 @@ def test_the_kernel_builds_for_a_gpu_ahead_of_time(tmp_path):
 
         with pytest.raises(RuntimeError, match="TRITON_INTERPRET"):
             ft.compile_for(nm.FieldConfig(), 90)
+
+
+def test_knn_early_out_renders_the_same_image(monkeypatch):
+    from neumesh_core.render import fused_triton as ft
+
+    field, K, c2w = _scene("early", True)
+    st = nm.RenderSettings(backend="triton")
+    full = nm.render_camera(field, K, c2w, 12, 12, settings=st)
+    monkeypatch.setitem(ft.KERNEL_OPTIONS, "knn_early_out", True)
+    out = nm.render_camera(field, K, c2w, 12, 12, settings=st)
+    assert full.opacity.max() > 0.9 and out.n_samples == full.n_samples
+    assert np.abs(out.rgb - full.rgb).max() < 1e-6 and np.abs(out.opacity - full.opacity).max() < 1e-6
 
 
 def test_refill_schedule_renders_what_the_static_one_does(monkeypatch):
