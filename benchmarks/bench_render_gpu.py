@@ -16,7 +16,8 @@ Each configuration renders ``--views`` views, each the best of ``--repeats`` fra
 ``render_camera`` (synchronised; the images copied to the host as the add-on receives them); the figure
 is the median over the views.  ``--sweep`` first times the kernel's launch options (rays per program,
 warps, the static or refill schedule and its programs per multiprocessor) on one early-interpolation
-800² view and keeps the fastest for the rest.  ``--budget-s`` stops starting new configurations after that many seconds (the
+800² view and keeps the fastest for the rest.  ``--breakdown`` last times the neighbour search and the
+decoders alone on one frame's samples.  ``--budget-s`` stops starting new configurations after that many seconds (the
 JSON then says which were skipped).  Writes benchmarks/results/render_gpu_<name>.json.
 """
 from __future__ import annotations
@@ -211,6 +212,61 @@ def sweep_grid(which: str) -> list:
             {**base, "knn_early_out": True, "schedule": "refill", "programs_per_sm": 4}]
 
 
+def breakdown(field, cam, device, size, repeats) -> dict:
+    """Where a fused frame's time may go, from its parts run alone on the same work: the neighbour search
+    (knn_radius_triton, the fused kernel's knn_keys in a kernel of its own, with and without its early
+    out) and both decoders as plain cuBLAS matmuls (fp32 and fp16), each on as many points as the frame
+    evaluates: each opaque pixel's surface point, repeated along its ray at the marching step, ordered
+    step-major so that neighbouring points are neighbouring rays (as the fused kernel's blocks are)."""
+    import neumesh_core as nm
+    from neumesh_core.data.cameras import pixel_rays
+    from neumesh_core.field.knn_triton import TritonHashGrid, knn_radius_triton
+    from neumesh_core.render.renderer import default_step
+
+    Ks = scaled(cam[0], size / 400)
+    st = nm.RenderSettings(backend="triton")
+    out = nm.render_camera(field, Ks, cam[1], size, size, settings=st)
+    origins, dirs = pixel_rays(Ks, cam[1], size, size, device=device)
+    depth = torch.as_tensor(out.depth.reshape(-1), device=device)
+    live = torch.as_tensor(out.opacity.reshape(-1) > 0.5, device=device) & torch.isfinite(depth)
+    surf = origins[live] + dirs[live] * depth[live, None]
+    n = int(out.n_samples)
+    row = {"size": size, "samples": n, "opaque_pixels": int(live.sum())}
+    if len(surf) == 0 or n == 0:
+        return row
+    reps = -(-n // len(surf))
+    offs = (torch.arange(reps, device=device, dtype=torch.float32) - reps // 2) * default_step(field, st)
+    pts = (surf[None] + dirs[live][None] * offs[:, None, None]).reshape(-1, 3)[:n].contiguous()
+    grid = TritonHashGrid(field.scaffold.vertices_.detach(), field.radius, 1)
+    k = int(field.config.k)
+
+    def best(fn):
+        fn()
+        sync(device)
+        times = []
+        for _ in range(max(1, repeats)):
+            t = time.perf_counter()
+            fn()
+            sync(device)
+            times.append(time.perf_counter() - t)
+        return min(times)
+
+    row["knn_s"] = best(lambda: knn_radius_triton(pts, grid, k, block=32))
+    row["knn_early_out_s"] = best(lambda: knn_radius_triton(pts, grid, k, block=32, early_out=True))
+    geo = field.geo_decoder
+    rad = field.rad_decoders[0]
+    xg = torch.randn(n, geo[0].in_features, device=device)
+    xr = torch.randn(n, rad[0].in_features, device=device)
+    row["decoders_fp32_s"] = best(lambda: (geo(xg), rad(xr)))
+    if torch.device(device).type == "cuda":
+        with torch.autocast("cuda", dtype=torch.float16):
+            row["decoders_fp16_s"] = best(lambda: (geo(xg), rad(xr)))
+    print(f"  breakdown {size}²: {n} samples; alone: knn {row['knn_s'] * 1e3:.2f} ms (early out "
+          f"{row['knn_early_out_s'] * 1e3:.2f}), decoders fp32 {row['decoders_fp32_s'] * 1e3:.2f} ms"
+          + (f", fp16 {row['decoders_fp16_s'] * 1e3:.2f} ms" if "decoders_fp16_s" in row else ""), flush=True)
+    return row
+
+
 def measure(field, cams, st, args, dev, key) -> dict:
     """One configuration: the first call (Triton compiles), frame times per size, the images at the
     largest size (``outs``, for the PSNR), one profiled frame."""
@@ -252,6 +308,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sweep-only", action="store_true", help="stop after the sweep (with --sweep)")
     ap.add_argument("--budget-s", type=float, default=1e9, help="start no new configuration after this")
     ap.add_argument("--no-profile", action="store_true")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="last, time the neighbour search and the decoders alone on a frame's samples")
     ap.add_argument("--device", default="cuda", help="cuda (default); cpu only to try the script out")
     ap.add_argument("--name", default=None)
     ap.add_argument("--results-dir", default=None)
@@ -344,6 +402,13 @@ def main(argv=None) -> int:
                         r["psnr_vs_torch_db"] = db
                 print(f"  {mode} {'deformed' if deformed else 'rest'}: triton vs torch {max(args.sizes)}² "
                       f"PSNR min {min(db):.1f} dB", flush=True)
+        if args.breakdown and not args.sweep_only and "triton" in args.backends:
+            field.config.interpolation = "early"
+            try:
+                result["breakdown"] = breakdown(field, cams[0], dev, max(args.sizes), args.repeats)
+            except Exception as e:   # record it, keep the rest of the results
+                result["breakdown"] = {"error": repr(e)[:500]}
+                print(f"  breakdown failed: {e!r}"[:300], flush=True)
         field.config.interpolation = trained_mode
     result["seconds"] = time.perf_counter() - t_start
     summary = {}
