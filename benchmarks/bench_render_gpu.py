@@ -186,14 +186,14 @@ def sweep_options(field, cam, device, repeats, grid, size=800) -> list:
 
 def sweep_grid(which: str) -> list:
     """The launch options ``--sweep`` times.  "schedule": the static default (the fastest of the first
-    H200 sweep, docs/benchmarks.md) against the refill schedule, smaller blocks, a register cap and the
-    neighbour search's early out.
+    H200 sweep, docs/benchmarks.md, now with rays in 8 x 4 tiles) against rays in rows, the refill
+    schedule, smaller blocks, a register cap and the neighbour search's early out.
     "precision": the fp32 default against fp16 and tf32 products (tensor cores; they spill far less,
     benchmarks/kernel_resources.py) -- on an H200 with triton 3.6.0 tf32 once ended in an illegal memory
     access that poisons the CUDA context, so gpu_check.sh runs this set last, in a process of its own
     (``--sweep-only``), tf32 at its end.  Only images >= 50 dB from the torch render count."""
     base = {"block": 32, "cells_per_radius": 1, "num_warps": 4, "precision": "ieee", "schedule": "static",
-            "programs_per_sm": 8, "maxnreg": None, "knn_early_out": False}
+            "programs_per_sm": 8, "maxnreg": None, "knn_early_out": False, "ray_order": "tiles"}
     if which == "precision":   # fp16 first (spills a quarter of fp32's), the tf32 that once crashed last
         f16 = {**base, "precision": "fp16"}
         return [base, f16, {**f16, "schedule": "refill", "programs_per_sm": 4}, {**f16, "block": 64},
@@ -202,6 +202,7 @@ def sweep_grid(which: str) -> list:
                 {**base, "precision": "tf32"}, {**base, "precision": "tf32", "schedule": "refill"},
                 {**base, "precision": "tf32x3"}]
     return [base,
+            {**base, "ray_order": "rows"},   # the first H200 sweep's order
             {**base, "schedule": "refill", "programs_per_sm": 4},
             {**base, "schedule": "refill", "programs_per_sm": 16},
             {**base, "block": 16, "num_warps": 2},

@@ -6,7 +6,8 @@ K-merges of ``field/knn_triton.knn_keys`` for the points a real frame evaluates,
     python benchmarks/knn_merges.py --field lego.neumesh  # a trained field
 
 The points: each pixel's ray at the depth the torch renderer gives it (pixels it finds opaque), in the
-kernel's blocks of ``--block`` consecutive pixels of a row-major image.  The count replays the kernel's
+kernel's blocks of ``--block`` consecutive rays of the list render_camera hands it (the pixels whose
+rays meet an occupied cell), ordered by rows or by 8 x (block / 8) tiles (``renderer.tile_order``).  The count replays the kernel's
 scan on the same tables (TritonHashGrid): per block, rounds = the largest vertex count of the cells the
 block's points read (the c-th vertex of each cell per round), and per round K merges (the default) or
 min(K, the largest number of a row's candidates nearer than its worst key) with ``knn_early_out``
@@ -106,6 +107,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     import neumesh_core as nm
     from neumesh_core.field.knn_triton import TritonHashGrid
+    from neumesh_core.render.renderer import tile_order
 
     from bench_render_gpu import orbit_cameras, procedural_field, scaled
     from neumesh_core.data.cameras import pixel_rays
@@ -124,23 +126,36 @@ def main(argv=None) -> int:
         out = nm.render_camera(field, scaled(K, args.size / 400), c2w, args.size, args.size,
                                settings=nm.RenderSettings(backend="torch"))
     render_s = time.perf_counter() - t
-    origins, dirs = pixel_rays(scaled(K, args.size / 400), c2w, args.size, args.size)
+    Ks = scaled(K, args.size / 400)
+    origins, dirs = pixel_rays(Ks, c2w, args.size, args.size)
     depth = out.depth.reshape(-1)
     live = (out.opacity.reshape(-1) > 0.5) & np.isfinite(depth)
     pts = origins.numpy().reshape(-1, 3) + dirs.numpy().reshape(-1, 3) * np.where(live, depth, 0)[:, None]
+    # the rays render_camera hands the kernel: pixels whose rays meet an occupied cell, in rows or tiles
+    r_near, r_far = field.grid.camera_ranges(Ks, c2w, args.size, args.size, nm.RenderSettings().empty_tile)
+    marched = (r_near <= r_far).nonzero().squeeze(1)
     result = {"field": args.field or f"procedural blob, subdiv {args.subdiv}", "vertices": int(field.rest_vertices.shape[0]),
               "radius": float(field.radius), "k": int(field.config.k), "size": args.size, "block": args.block,
-              "torch_render_s": render_s, "opaque_pixels": int(live.sum()), "cells": {}}
-    for c in args.cells:
-        grid = TritonHashGrid(field.scaffold.vertices_.detach(), field.radius, c)
-        t = time.perf_counter()
-        row = count_merges(pts.astype(np.float64), np.asarray(live), grid, int(field.config.k), args.block)
-        row["count_s"] = time.perf_counter() - t
-        result["cells"][str(c)] = row
-        print(f"cells per radius {c}: {row['blocks']} blocks, rounds per block {row['rounds_per_block_mean']:.1f} "
-              f"(max {row['rounds_per_block_max']}), merges per block {row['merges_per_block_default']:.1f} -> "
-              f"{row['merges_per_block_early_out']:.1f} with early out ({row['merge_ratio']:.2f}), "
-              f"{row['neighbours_within_radius_mean']:.2f} of K found", flush=True)
+              "torch_render_s": render_s, "opaque_pixels": int(live.sum()), "marched_pixels": len(marched),
+              "cells": {}, "orders": {}}
+    orders = {"rows": marched, "tiles": tile_order(marched, args.size, (8, args.block // 8))}
+    for order, seq in orders.items():
+        seq = seq.numpy()
+        for c in args.cells:
+            grid = TritonHashGrid(field.scaffold.vertices_.detach(), field.radius, c)
+            t = time.perf_counter()
+            row = count_merges(pts[seq].astype(np.float64), np.asarray(live)[seq], grid, int(field.config.k),
+                               args.block)
+            row["count_s"] = time.perf_counter() - t
+            row["lanes_hitting"] = row["points"] / max(1, row["blocks"] * args.block)
+            result["orders"].setdefault(order, {})[str(c)] = row
+            if order == "rows":
+                result["cells"][str(c)] = row
+            print(f"{order}, cells per radius {c}: {row['blocks']} blocks with a hit ({row['lanes_hitting']:.2f} "
+                  f"of their lanes), rounds per block {row['rounds_per_block_mean']:.1f} (max "
+                  f"{row['rounds_per_block_max']}), merges per block {row['merges_per_block_default']:.1f} -> "
+                  f"{row['merges_per_block_early_out']:.1f} with early out ({row['merge_ratio']:.2f}), "
+                  f"{row['neighbours_within_radius_mean']:.2f} of K found", flush=True)
     write_results(result, f"knn_merges_{name}.json", args.results_dir)
     return 0
 

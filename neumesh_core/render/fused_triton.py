@@ -560,7 +560,8 @@ def default_block(device) -> int:
 # launch options, chosen by benchmarks/bench_render_gpu.py (``--sweep``); render_rays_fused's defaults
 # (block / cells_per_radius None: by device, see default_block / default_cells; num_warps: per program)
 KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 4, "cells_per_radius": None, "scan": 8,
-                  "schedule": "static", "programs_per_sm": 8, "maxnreg": None, "knn_early_out": False}
+                  "schedule": "static", "programs_per_sm": 8, "maxnreg": None, "knn_early_out": False,
+                  "ray_order": "tiles"}
 
 
 def default_cells(device) -> int:
@@ -571,6 +572,7 @@ def default_cells(device) -> int:
 
 
 SCHEDULES = ("static", "refill")
+RAY_ORDERS = ("tiles", "rows")
 PRECISIONS = ("ieee", "tf32", "tf32x3", "fp16")
 
 
@@ -636,6 +638,8 @@ def _checked(opts: dict) -> dict:
         raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, not {opts['schedule']!r}")
     if opts["precision"] not in PRECISIONS:
         raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, not {opts['precision']!r}")
+    if opts["ray_order"] not in RAY_ORDERS:
+        raise ValueError(f"ray_order must be one of {', '.join(RAY_ORDERS)}, not {opts['ray_order']!r}")
     return opts
 
 
@@ -665,7 +669,9 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
     program's lane takes the next ray as soon as its own finishes, so no lane idles beside a long ray;
     programs_per_sm: how many such programs each multiprocessor runs); maxnreg: None or a cap on the
     registers per thread (``benchmarks/kernel_resources.py`` shows what each cap spills); knn_early_out:
-    the neighbour search skips the merges no candidate needs (``knn_triton.knn_keys``; the same image)."""
+    the neighbour search skips the merges no candidate needs (``knn_triton.knn_keys``; the same image).
+    ``ray_order`` ("tiles" or "rows") is read by ``render_camera``: the order of the pixels it hands
+    the kernel (``renderer.tile_order``: 8 x 4 screen patches per 32 rays)."""
     opts = _checked({**KERNEL_OPTIONS, **options})
     require_triton(origins.device)
     reason = supported(field)

@@ -350,6 +350,11 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
             if far_t is not None:
                 live &= far_t > 0
             pixels = live.nonzero().squeeze(1)
+            if _fused(settings, fl, device, False, None, False, semantics):
+                from .fused_triton import KERNEL_OPTIONS
+
+                if KERNEL_OPTIONS["ray_order"] == "tiles":   # a block of 32 rays: an 8 x 4 patch, not a line
+                    pixels = tile_order(pixels, width)
             ranges = [(r_near[pixels], r_far[pixels]) for r_near, r_far in ranges]
         # else: a camera inside some field's occupied cells marches every pixel (that field unbounded)
     m = n if pixels is None else len(pixels)
@@ -404,6 +409,17 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
                         n_samples, time.perf_counter() - t0,
                         None if sem is None else host[4].reshape(height, width, -1),
                         None if bg_op is None else host[-1].reshape(height, width))
+
+
+def tile_order(pixels: torch.Tensor, width: int, tile=(8, 4)) -> torch.Tensor:
+    """Flat pixel ids reordered tile by tile (``tile`` = (w, h) pixels; tiles row-major, pixels row-major
+    inside each): consecutive rays are then neighbours on screen in both directions, so a GPU block of
+    w*h consecutive rays meets a compact patch of surface (fewer distinct neighbour cells, rays of
+    similar length) instead of a 32-pixel line."""
+    tw, th = int(tile[0]), int(tile[1])
+    x, y = pixels % width, pixels // width
+    key = ((y // th) * -(-width // tw) + x // tw) * (tw * th) + (y % th) * tw + x % tw
+    return pixels[torch.argsort(key)]
 
 
 def to_host(tensors: Sequence[torch.Tensor]) -> list:

@@ -186,7 +186,7 @@ def test_the_kernel_builds_for_a_gpu_ahead_of_time(tmp_path):
             ft.compile_for(nm.FieldConfig(), 90)
 
 
-def test_knn_early_out_renders_the_same_image(monkeypatch):
+def test_knn_early_out_and_ray_order_render_the_same_image(monkeypatch):
     from neumesh_core.render import fused_triton as ft
 
     field, K, c2w = _scene("early", True)
@@ -196,6 +196,10 @@ def test_knn_early_out_renders_the_same_image(monkeypatch):
     out = nm.render_camera(field, K, c2w, 12, 12, settings=st)
     assert full.opacity.max() > 0.9 and out.n_samples == full.n_samples
     assert np.abs(out.rgb - full.rgb).max() < 1e-6 and np.abs(out.opacity - full.opacity).max() < 1e-6
+    # rays handed over in rows instead of 8 x 4 tiles: other blocks, the same pixels
+    monkeypatch.setitem(ft.KERNEL_OPTIONS, "ray_order", "rows")
+    rows = nm.render_camera(field, K, c2w, 12, 12, settings=st)
+    assert rows.n_samples == full.n_samples and np.abs(rows.rgb - full.rgb).max() < 1e-6
 
 
 def test_refill_schedule_renders_what_the_static_one_does(monkeypatch):

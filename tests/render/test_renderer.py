@@ -154,3 +154,17 @@ def test_to_host_returns_each_plane_contiguous_and_exact(device):
     for o, p in zip(out, planes):
         assert o.flags["C_CONTIGUOUS"] and o.dtype == np.float32
         assert np.array_equal(o, p.numpy())   # a copy, no arithmetic: exact
+
+
+def test_tile_order_groups_pixels_into_screen_patches():
+    from neumesh_core.render.renderer import tile_order
+
+    w, h = 20, 9
+    every = torch.arange(w * h)
+    seq = tile_order(every, w)
+    assert torch.equal(torch.sort(seq).values, every)             # a permutation
+    first = seq[:32]                                              # the first block: the 8 x 4 top-left patch
+    assert set((first % w).tolist()) == set(range(8)) and set((first // w).tolist()) == set(range(4))
+    assert seq[32].item() == 8                                    # then the next patch along the row
+    some = every[(every % 3) != 0]                                # a compacted list keeps its pixels
+    assert torch.equal(torch.sort(tile_order(some, w)).values, some)
