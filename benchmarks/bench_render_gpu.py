@@ -187,7 +187,7 @@ def sweep_options(field, cam, device, repeats, grid, size=800) -> list:
 def sweep_grid(which: str) -> list:
     """The launch options ``--sweep`` times.  "schedule": the static default (the fastest of the first
     H200 sweep, docs/benchmarks.md, now with rays in 8 x 4 tiles) against rays in rows, the refill
-    schedule, smaller blocks, a register cap and the neighbour search's early out.
+    schedule, smaller blocks, a register cap, the neighbour search's early out and half-radius cells.
     "precision": the fp32 default against fp16 and tf32 products (tensor cores; they spill far less,
     benchmarks/kernel_resources.py) -- on an H200 with triton 3.6.0 tf32 once ended in an illegal memory
     access that poisons the CUDA context, so gpu_check.sh runs this set last, in a process of its own
@@ -199,6 +199,7 @@ def sweep_grid(which: str) -> list:
         return [base, f16, {**f16, "schedule": "refill", "programs_per_sm": 4}, {**f16, "block": 64},
                 {**f16, "block": 16, "num_warps": 2, "schedule": "refill"}, {**f16, "maxnreg": 168},
                 {**f16, "knn_early_out": True}, {**f16, "knn_early_out": True, "schedule": "refill"},
+                {**f16, "knn_early_out": True, "cells_per_radius": 2},
                 {**base, "precision": "tf32"}, {**base, "precision": "tf32", "schedule": "refill"},
                 {**base, "precision": "tf32x3"}]
     return [base,
@@ -210,7 +211,9 @@ def sweep_grid(which: str) -> list:
             {**base, "maxnreg": 128},
             {**base, "maxnreg": 128, "schedule": "refill"},
             {**base, "knn_early_out": True},
-            {**base, "knn_early_out": True, "schedule": "refill", "programs_per_sm": 4}]
+            {**base, "knn_early_out": True, "schedule": "refill", "programs_per_sm": 4},
+            {**base, "cells_per_radius": 2},   # half-radius cells, now read nearest first and pruned
+            {**base, "cells_per_radius": 2, "knn_early_out": True}]
 
 
 def breakdown(field, cam, device, size, repeats) -> dict:

@@ -33,7 +33,8 @@ DEFAULT_VARIANTS = ("static,early,rest,32,4,1;refill,early,rest,32,4,1;static,ea
                     "static,early,rest,32,4,1,ieee,128;refill,early,rest,32,4,1,ieee,128;"
                     "static,early,rest,32,4,1,fp16;refill,early,rest,32,4,1,fp16;static,post,rest,32,4,1,fp16;"
                     "static,early,rest,32,4,1,ieee,-,eo;refill,early,rest,32,4,1,fp16,-,eo;"
-                    "static,post,deformed,32,4,1,ieee,-,eo")
+                    "static,post,deformed,32,4,1,ieee,-,eo;static,early,rest,32,4,2;"
+                    "static,early,rest,32,4,2,fp16,-,eo")
 
 
 def resource_usage(cubin: bytes) -> dict:

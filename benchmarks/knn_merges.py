@@ -11,8 +11,9 @@ rays meet an occupied cell), ordered by rows or by 8 x (block / 8) tiles (``rend
 scan on the same tables (TritonHashGrid): per block, rounds = the largest vertex count of the cells the
 block's points read (the c-th vertex of each cell per round), and per round K merges (the default) or
 min(K, the largest number of a row's candidates nearer than its worst key) with ``knn_early_out``
-(cells read 32 at a time: 27 cells one radius wide are one tile, 125 half a radius wide four, each with
-its own rounds).  Only the first surface point of each ray is counted.
+(cells read 32 at a time, nearest first: 27 cells one radius wide are one tile, 125 half a radius wide
+four, each with its own rounds, a tile's cells beyond a row's K-th nearest so far left out; "2_all":
+every cell, as the kernel did before).  Only the first surface point of each ray is counted.
 A merge is two row reductions of 64-bit keys and two selects over the (rays, 32) tile, the heaviest
 part of a round.  Writes benchmarks/results/knn_merges_<name>.json.
 """
@@ -32,7 +33,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _results import write_results  # noqa: E402
 
 
-def count_merges(points: np.ndarray, live: np.ndarray, grid, k: int, block: int, chunk: int = 1024) -> dict:
+def count_merges(points: np.ndarray, live: np.ndarray, grid, k: int, block: int, chunk: int = 1024,
+                 ncp: int = 32, nearest_first: bool = False) -> dict:
     """Replay knn_keys's scan for points (M,3) (``live``: which are looked up) in blocks of ``block``;
     blocks without a live point are left out (the kernel skips them: no sample to look up)."""
     m = len(points)
@@ -41,7 +43,8 @@ def count_merges(points: np.ndarray, live: np.ndarray, grid, k: int, block: int,
     liv = np.concatenate([live, np.zeros(pad, bool)]).reshape(-1, block)
     keep = liv.any(1)
     pts, liv = pts[keep], liv[keep]
-    parts = [_count_blocks(pts[i:i + chunk], liv[i:i + chunk], grid, k) for i in range(0, len(pts), chunk)]
+    parts = [_count_blocks(pts[i:i + chunk], liv[i:i + chunk], grid, k, ncp, nearest_first)
+             for i in range(0, len(pts), chunk)]
     n_max = np.concatenate([p[0] for p in parts])
     full = np.concatenate([p[1] for p in parts])
     eo = np.concatenate([p[2] for p in parts])
@@ -53,7 +56,9 @@ def count_merges(points: np.ndarray, live: np.ndarray, grid, k: int, block: int,
             "neighbours_within_radius_mean": float(found.mean())}
 
 
-def _count_blocks(pts: np.ndarray, liv: np.ndarray, grid, k: int):
+def _count_blocks(pts: np.ndarray, liv: np.ndarray, grid, k: int, ncp: int, nearest_first: bool):
+    """nearest_first: the cells in order of their offset's length, and a tile's cells farther from a
+    point than its K-th nearest vertex found so far left out (they cannot hold a nearer one)."""
     c = grid.c
     s = 2 * c + 1
     start = grid.cell_start.cpu().numpy().astype(np.int64)
@@ -65,11 +70,14 @@ def _count_blocks(pts: np.ndarray, liv: np.ndarray, grid, k: int):
     nb, block = liv.shape
     q = np.floor((pts - lo) / grid.cell).astype(np.int64)
     off = np.stack(np.meshgrid(*[np.arange(-c, c + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)   # (S^3,3)
+    if nearest_first:
+        off = off[np.argsort((off ** 2).sum(1), kind="stable")]
     cells = q[:, :, None, :] + off[None, None]                                            # (nb,B,S^3,3)
     inside = np.all((cells >= 0) & (cells < dims), -1)
     box_lo = lo + cells * grid.cell
     gap = np.maximum(box_lo - pts[:, :, None], 0) + np.maximum(pts[:, :, None] - (box_lo + grid.cell), 0)
-    near = liv[:, :, None] & inside & ((gap ** 2).sum(-1) <= r * r)
+    gap2 = (gap ** 2).sum(-1)
+    near = liv[:, :, None] & inside & (gap2 <= r * r)
     key = (cells[..., 0] * dims[1] + cells[..., 1]) * dims[2] + cells[..., 2]
     key = np.where(near, key, 0)
     cst = np.where(near, start[key], 0)
@@ -78,8 +86,11 @@ def _count_blocks(pts: np.ndarray, liv: np.ndarray, grid, k: int):
     rounds = np.zeros(nb)
     merges_full = np.zeros(nb)
     merges_eo = np.zeros(nb)
-    for c0 in range(0, s ** 3, grid.ncp):                              # the kernel's tiles of NCP cells
-        cst_t, cnt_t = cst[:, :, c0:c0 + grid.ncp], cnt[:, :, c0:c0 + grid.ncp]
+    for c0 in range(0, s ** 3, ncp):                                   # the kernel's tiles of NCP cells
+        cst_t, cnt_t = cst[:, :, c0:c0 + ncp], cnt[:, :, c0:c0 + ncp]
+        if nearest_first:   # cells beyond each row's K-th nearest so far cannot help
+            far_k = np.where(np.isfinite(worst[..., -1]), worst[..., -1], r)
+            cnt_t = np.where(gap2[:, :, c0:c0 + ncp] <= (far_k ** 2)[:, :, None], cnt_t, 0)
         n_max = cnt_t.reshape(nb, -1).max(1)                           # this tile's rounds per block
         rounds += n_max
         for rnd in range(int(n_max.max(initial=0))):
@@ -141,17 +152,20 @@ def main(argv=None) -> int:
     orders = {"rows": marched, "tiles": tile_order(marched, args.size, (8, args.block // 8))}
     for order, seq in orders.items():
         seq = seq.numpy()
-        for c in args.cells:
+        # the kernel reads the cells nearest first and leaves out those beyond the K-th nearest so far;
+        # "<C>_all" counts the kernel before that (every cell within the radius, row-major)
+        for c, pruned in [(c, p) for c in args.cells for p in ((True, False) if c > 1 else (True,))]:
             grid = TritonHashGrid(field.scaffold.vertices_.detach(), field.radius, c)
             t = time.perf_counter()
             row = count_merges(pts[seq].astype(np.float64), np.asarray(live)[seq], grid, int(field.config.k),
-                               args.block)
+                               args.block, nearest_first=pruned)
             row["count_s"] = time.perf_counter() - t
             row["lanes_hitting"] = row["points"] / max(1, row["blocks"] * args.block)
-            result["orders"].setdefault(order, {})[str(c)] = row
-            if order == "rows":
+            result["orders"].setdefault(order, {})[str(c) if pruned else f"{c}_all"] = row
+            if order == "rows" and pruned:
                 result["cells"][str(c)] = row
-            print(f"{order}, cells per radius {c}: {row['blocks']} blocks with a hit ({row['lanes_hitting']:.2f} "
+            print(f"{order}, cells per radius {c}{'' if pruned else ', every cell'}: {row['blocks']} blocks "
+                  f"with a hit ({row['lanes_hitting']:.2f} "
                   f"of their lanes), rounds per block {row['rounds_per_block_mean']:.1f} (max "
                   f"{row['rounds_per_block_max']}), merges per block {row['merges_per_block_default']:.1f} -> "
                   f"{row['merges_per_block_early_out']:.1f} with early out ({row['merge_ratio']:.2f}), "

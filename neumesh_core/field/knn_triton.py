@@ -33,9 +33,10 @@ except Exception as e:  # pragma: no cover - depends on the environment
     tl = None
     _TRITON_ERROR = e
 
-# largest dense cell table (cells): the grid's cells are widened (a power of two times the radius) until
-# the table fits, which keeps every neighbour within the 27 cells around a point's cell
-MAX_TABLE_CELLS = 1 << 22
+# largest dense cell table (cells; 8M: 64 MB of int32 starts and counts): the grid's cells are widened
+# (a power of two times the radius) until the table fits, which keeps every neighbour within the 27
+# cells around a point's cell
+MAX_TABLE_CELLS = 1 << 23
 
 
 def triton_available() -> bool:
@@ -65,6 +66,16 @@ def require_triton(device) -> None:
         raise NeuMeshError(f"the Triton kernels run on CUDA tensors, not on {torch.device(device)}; move the "
                            "field to a GPU, render with RenderSettings(backend='torch'), or set "
                            "TRITON_INTERPRET=1 before importing triton to run them (slowly) on the CPU")
+
+
+def cell_order(cells_per_radius: int) -> torch.Tensor:
+    """The (2C+1)^3 cells around a point's own, nearest first: their row-major indices (int32) sorted by
+    the length of their offset.  :func:`knn_keys` reads them in this order, so the cells read last can
+    be left out once a point's K nearest so far are nearer than those cells."""
+    c = int(cells_per_radius)
+    r = torch.arange(-c, c + 1)
+    off = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    return torch.sort((off * off).sum(1), stable=True).indices.to(torch.int32).contiguous()
 
 
 class TritonHashGrid:
@@ -119,11 +130,12 @@ class TritonHashGrid:
         vs[:, :3] = v.index_select(0, order)
         self.v_sorted = vs.contiguous()
         self.ids_sorted = order.to(torch.int32).contiguous()
+        self.cell_order = cell_order(self.c).to(dev)
 
     def args(self):
         """The kernel arguments of the grid, in :func:`knn_keys`'s order."""
         return (self.lo[0], self.lo[1], self.lo[2], self.cell, self.dims[0], self.dims[1], self.dims[2],
-                self.cell_start, self.cell_count, self.v_sorted, self.ids_sorted, self.radius)
+                self.cell_start, self.cell_count, self.v_sorted, self.ids_sorted, self.cell_order, self.radius)
 
 
 if triton is not None:
@@ -144,11 +156,12 @@ if triton is not None:
     @triton.jit
     def knn_keys(px, py, pz, live,
                  lo_x, lo_y, lo_z, cell, dim_x, dim_y, dim_z,
-                 cell_start, cell_count, v_sorted, ids_sorted, radius,
+                 cell_start, cell_count, v_sorted, ids_sorted, cell_order, radius,
                  BLOCK: tl.constexpr, KP: tl.constexpr, K: tl.constexpr, C: tl.constexpr,
                  NCP: tl.constexpr, EARLY_OUT: tl.constexpr):
         """The K nearest vertices within ``radius`` of points (px, py, pz) (BLOCK,) where ``live``:
-        (BLOCK, KP) int64 keys, unsorted (C: grid cells per radius; NCP: cells per round); a key's high
+        (BLOCK, KP) int64 keys, unsorted (C: grid cells per radius; NCP: cells per tile, read nearest
+        first, a tile's cells beyond a row's K-th nearest vertex so far left out); a key's high
         word is the float bits of the distance (+inf for a slot that found nothing), the low word the
         vertex id.  Slots K..KP-1 are padding (-1).  EARLY_OUT: each round merges only as many of its
         candidates as the block's row with the most candidates nearer than its worst key has (at most
@@ -161,15 +174,17 @@ if triton is not None:
         qy = tl.minimum(tl.maximum(tl.floor((py - lo_y) / cell), -2.0), big).to(tl.int32)
         qz = tl.minimum(tl.maximum(tl.floor((pz - lo_z) / cell), -2.0), big).to(tl.int32)
         r2 = radius * radius
-        # the (2C+1)^3 cells around each point's cell, NCP at a time side by side: (BLOCK, NCP) tiles
+        # the (2C+1)^3 cells around each point's cell, nearest first (cell_order), NCP at a time side by
+        # side: (BLOCK, NCP) tiles
         S: tl.constexpr = 2 * C + 1
         none = tl.full([BLOCK, NCP], _NONE_KEY, tl.int64)
         for c0 in range(0, S * S * S, NCP):
-            o = c0 + tl.arange(0, NCP)
+            rank = c0 + tl.arange(0, NCP)
+            o = tl.load(cell_order + rank, mask=rank < S * S * S, other=0)
             cx = qx[:, None] + (o // (S * S) - C)[None, :]
             cy = qy[:, None] + ((o // S) % S - C)[None, :]
             cz = qz[:, None] + (o % S - C)[None, :]
-            inside = (o[None, :] < S * S * S) & (cx >= 0) & (cx < dim_x) & (cy >= 0) & (cy < dim_y) & \
+            inside = (rank[None, :] < S * S * S) & (cx >= 0) & (cx < dim_x) & (cy >= 0) & (cy < dim_y) & \
                 (cz >= 0) & (cz < dim_z)
             bx = lo_x + cx.to(tl.float32) * cell
             by = lo_y + cy.to(tl.float32) * cell
@@ -177,7 +192,11 @@ if triton is not None:
             gx = tl.maximum(bx - px[:, None], 0.0) + tl.maximum(px[:, None] - (bx + cell), 0.0)
             gy = tl.maximum(by - py[:, None], 0.0) + tl.maximum(py[:, None] - (by + cell), 0.0)
             gz = tl.maximum(bz - pz[:, None], 0.0) + tl.maximum(pz[:, None] - (bz + cell), 0.0)
-            near = live[:, None] & inside & (gx * gx + gy * gy + gz * gz <= r2)
+            # a cell farther than a row's K-th nearest vertex so far cannot hold a nearer one (with a
+            # margin for the rounding of the cell's bounds); until K are found, the radius bounds it
+            far_k = (tl.max(keys, 1) >> 32).to(tl.int32).to(tl.float32, bitcast=True)
+            lim2 = tl.minimum(far_k * far_k * 1.0001, r2)
+            near = live[:, None] & inside & (gx * gx + gy * gy + gz * gz <= lim2[:, None])
             ckey = (cx * dim_y + cy) * dim_z + cz
             start = tl.load(cell_start + ckey, mask=near, other=0)
             cnt = tl.load(cell_count + ckey, mask=near, other=0)
@@ -211,7 +230,7 @@ if triton is not None:
     @triton.jit
     def _knn_kernel(points, n_points, out_keys,
                     lo_x, lo_y, lo_z, cell, dim_x, dim_y, dim_z,
-                    cell_start, cell_count, v_sorted, ids_sorted, radius,
+                    cell_start, cell_count, v_sorted, ids_sorted, cell_order, radius,
                     BLOCK: tl.constexpr, KP: tl.constexpr, K: tl.constexpr, C: tl.constexpr,
                     NCP: tl.constexpr, EARLY_OUT: tl.constexpr):
         rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
@@ -220,8 +239,8 @@ if triton is not None:
         py = tl.load(points + rows * 3 + 1, mask=live, other=0.0)
         pz = tl.load(points + rows * 3 + 2, mask=live, other=0.0)
         keys = knn_keys(px, py, pz, live, lo_x, lo_y, lo_z, cell, dim_x, dim_y, dim_z,
-                        cell_start, cell_count, v_sorted, ids_sorted, radius, BLOCK, KP, K, C, NCP,
-                        EARLY_OUT)
+                        cell_start, cell_count, v_sorted, ids_sorted, cell_order, radius, BLOCK, KP, K, C,
+                        NCP, EARLY_OUT)
         slot = tl.arange(0, KP)
         tl.store(out_keys + rows[:, None] * KP + slot[None, :], keys, mask=live[:, None])
 

@@ -247,7 +247,7 @@ if triton is not None:
             orig, dirs, gorig, gdirs, tnear, tfar, tstart, n_rays,
             occ, res_x, res_y, res_z,
             h_lo_x, h_lo_y, h_lo_z, h_cell, h_dx, h_dy, h_dz, cell_start, cell_count, v_sorted, ids_sorted,
-            radius,
+            cell_order, radius,
             vtab, geo, tex, modc, rest_n, rot,
             gw1, gb1, gw2, gb2, gw3, gb3, rw1, rb1, rw2, rb2, rw3, rb3,
             out, step, log_eps, weight_thr, ray_counter,
@@ -377,8 +377,8 @@ if triton is not None:
                 py = oy + dy * t
                 pz = oz + dz * t
                 keys = knn_keys(px, py, pz, found, h_lo_x, h_lo_y, h_lo_z, h_cell, h_dx, h_dy, h_dz,
-                                cell_start, cell_count, v_sorted, ids_sorted, radius, BLOCK, KP, K, C, NCP,
-                                KNN_EO)
+                                cell_start, cell_count, v_sorted, ids_sorted, cell_order, radius, BLOCK, KP, K,
+                                C, NCP, KNN_EO)
                 dist = (keys >> 32).to(tl.int32).to(tl.float32, bitcast=True)
                 valid = (slot[None, :] < K) & (dist < 3.0e38) & found[:, None]
                 idx = tl.where(valid, (keys & 0xFFFFFFFF).to(tl.int32), 0)
@@ -592,10 +592,10 @@ def kernel_constants(cfg, *, early: bool, deformed: bool, block: int, cells: int
 # the kernel's pointer arguments that are not float32, its other pointers, and its integer scalars (the
 # rest are float32 scalars): the signature of an ahead-of-time build
 _PTR_TYPES = {"occ": "*u8", "cell_start": "*i32", "cell_count": "*i32", "ids_sorted": "*i32",
-              "ray_counter": "*i32"}
+              "cell_order": "*i32", "ray_counter": "*i32"}
 _POINTERS = {"orig", "dirs", "gorig", "gdirs", "tnear", "tfar", "tstart", "occ", "cell_start", "cell_count",
-             "v_sorted", "ids_sorted", "vtab", "geo", "tex", "modc", "rest_n", "rot", "gw1", "gb1", "gw2",
-             "gb2", "gw3", "gb3", "rw1", "rb1", "rw2", "rb2", "rw3", "rb3", "out", "ray_counter"}
+             "v_sorted", "ids_sorted", "cell_order", "vtab", "geo", "tex", "modc", "rest_n", "rot", "gw1", "gb1",
+             "gw2", "gb2", "gw3", "gb3", "rw1", "rb1", "rw2", "rb2", "rw3", "rb3", "out", "ray_counter"}
 _INTS = {"n_rays", "res_x", "res_y", "res_z", "h_dx", "h_dy", "h_dz"}
 
 
@@ -709,7 +709,7 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
                 origins, dirs, g_o.contiguous(), g_d.contiguous(), t_near.contiguous(), t_far.contiguous(),
                 t_start.contiguous(), n,
                 occ, res[0], res[1], res[2],
-                *tb.hash.args()[:11], float(field.radius),
+                *tb.hash.args()[:12], float(field.radius),
                 tb.vtab, tb.geo, tb.tex, tb.mod, tb.rest_n, rot,
                 *tb.mlp,
                 out, float(step), float(math.log(settings.early_stop_eps)), float(settings.weight_threshold), counter,

@@ -70,6 +70,16 @@ def test_knn_early_out_finds_the_same_neighbours(cells_per_radius):
     assert torch.equal(idx.cpu(), ref_i) and torch.allclose(dist.cpu(), ref_d, atol=1e-6)
 
 
+def test_cells_are_read_nearest_first():
+    for c, centre in ((1, 13), (2, 62)):
+        order = knn_triton.cell_order(c)
+        s = 2 * c + 1
+        assert sorted(order.tolist()) == list(range(s ** 3)) and order[0].item() == centre
+        o = order.long()
+        length = (o // (s * s) - c) ** 2 + ((o // s) % s - c) ** 2 + (o % s - c) ** 2
+        assert bool((length[1:] >= length[:-1]).all())
+
+
 def test_knn_kernel_with_fewer_vertices_than_k_and_a_huge_box():
     verts = torch.tensor([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [1e3, 0.0, 0.0]])   # a sparse, wide box
     pts = torch.tensor([[0.01, 0.0, 0.0], [999.99, 0.0, 0.0], [500.0, 0.0, 0.0]])
