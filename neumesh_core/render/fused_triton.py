@@ -566,8 +566,9 @@ KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 4, "cells_per
 
 def default_cells(device) -> int:
     """Neighbour-grid cells per radius: 1 on a GPU and in the interpreter (27 cells a radius wide; on an
-    H200 37.7 ms for lego 800² against 41.8 ms with 125 half-radius cells, which measure fewer vertices
-    but walk more cells)."""
+    H200 37.7 ms for lego 800² against 41.8 ms with 125 half-radius cells, which measured fewer vertices
+    but walked more cells -- before knn_keys read them nearest first and pruned them, which cuts their
+    rounds about threefold (benchmarks/knn_merges.py); the GPU sweep times both again)."""
     return 1
 
 
