@@ -192,8 +192,9 @@ def sweep_grid(which: str) -> list:
     benchmarks/kernel_resources.py) -- on an H200 with triton 3.6.0 tf32 once ended in an illegal memory
     access that poisons the CUDA context, so gpu_check.sh runs this set last, in a process of its own
     (``--sweep-only``), tf32 at its end.  Only images >= 50 dB from the torch render count."""
-    base = {"block": 32, "cells_per_radius": 1, "num_warps": 4, "precision": "ieee", "schedule": "static",
-            "programs_per_sm": 8, "maxnreg": None, "knn_early_out": False, "ray_order": "tiles"}
+    from neumesh_core.render import fused_triton as ft
+
+    base = {**ft.KERNEL_OPTIONS, "block": ft.default_block("cuda"), "cells_per_radius": ft.default_cells("cuda")}
     if which == "precision":   # fp16 first (spills a quarter of fp32's), the tf32 that once crashed last
         f16 = {**base, "precision": "fp16"}
         return [base, f16, {**f16, "schedule": "refill", "programs_per_sm": 4}, {**f16, "block": 64},

@@ -117,10 +117,7 @@ class FieldTables:
         cfg = field.config
         sc = field.scaffold
         dev = sc.vertices_.device
-        self.geo_d, self.tex_d = int(cfg.geo_dim), int(cfg.tex_dim)
         self.gi, self.ri, self.h = decoder_widths(cfg)
-        self.k = int(cfg.k)
-        self.kp = next_pow2(self.k)
         grid_key = _version_key(sc.vertices_) + (cells_per_radius, float(cfg.radius))
         cache = sc.__dict__.get("_triton_hash_cache")
         if cache is None or cache[0] != grid_key:
@@ -616,7 +613,8 @@ def compile_for(cfg, arch: int = 90, *, interpolation: str = "early", deformed: 
                            "runs kernels, it does not build them): run it in a process without that variable")
     opts = _checked({**KERNEL_OPTIONS, **options})
     consts = kernel_constants(cfg, early=interpolation == "early", deformed=deformed,
-                              block=opts["block"] or 32, cells=opts["cells_per_radius"] or 1,
+                              block=opts["block"] or default_block("cuda"),
+                              cells=opts["cells_per_radius"] or default_cells("cuda"),
                               precision=opts["precision"], scan=opts["scan"], refill=opts["schedule"] == "refill",
                               knn_early_out=opts["knn_early_out"])
     sig = {}
