@@ -106,6 +106,18 @@ def sync(device) -> None:
         torch.cuda.synchronize(device)
 
 
+def best_time(fn, repeats: int, device) -> float:
+    """The fastest of ``repeats`` (at least one) synchronised calls of ``fn``, seconds."""
+    best = 1e9
+    for _ in range(max(1, repeats)):
+        sync(device)
+        t = time.perf_counter()
+        fn()
+        sync(device)
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
 def frame_times(field, cams, size, settings, repeats, device):
     """render_camera seconds per view, each the best of ``repeats``."""
     import neumesh_core as nm
@@ -113,14 +125,8 @@ def frame_times(field, cams, size, settings, repeats, device):
     out = []
     for K, c2w in cams:
         Ks = scaled(K, size / 400)
-        best = 1e9
-        for _ in range(repeats):
-            sync(device)
-            t = time.perf_counter()
-            nm.render_camera(field, Ks, c2w, size, size, settings=settings)
-            sync(device)
-            best = min(best, time.perf_counter() - t)
-        out.append(best)
+        out.append(best_time(lambda: nm.render_camera(field, Ks, c2w, size, size, settings=settings), repeats,
+                             device))
     return out
 
 
@@ -245,16 +251,9 @@ def breakdown(field, cam, device, size, repeats) -> dict:
     grid = TritonHashGrid(field.scaffold.vertices_.detach(), field.radius, 1)
     k = int(field.config.k)
 
-    def best(fn):
+    def best(fn):   # one call first: the kernel compiles, cuBLAS picks its algorithm
         fn()
-        sync(device)
-        times = []
-        for _ in range(max(1, repeats)):
-            t = time.perf_counter()
-            fn()
-            sync(device)
-            times.append(time.perf_counter() - t)
-        return min(times)
+        return best_time(fn, repeats, device)
 
     row["knn_s"] = best(lambda: knn_radius_triton(pts, grid, k, block=32))
     row["knn_early_out_s"] = best(lambda: knn_radius_triton(pts, grid, k, block=32, early_out=True))

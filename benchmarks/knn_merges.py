@@ -20,7 +20,6 @@ part of a round.  Writes benchmarks/results/knn_merges_<name>.json.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import time
@@ -31,6 +30,8 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _results import write_results  # noqa: E402
+
+from neumesh_core.field.knn_triton import TritonHashGrid, cell_order  # noqa: E402
 
 
 def count_merges(points: np.ndarray, live: np.ndarray, grid, k: int, block: int, chunk: int = 1024,
@@ -70,8 +71,8 @@ def _count_blocks(pts: np.ndarray, liv: np.ndarray, grid, k: int, ncp: int, near
     nb, block = liv.shape
     q = np.floor((pts - lo) / grid.cell).astype(np.int64)
     off = np.stack(np.meshgrid(*[np.arange(-c, c + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)   # (S^3,3)
-    if nearest_first:
-        off = off[np.argsort((off ** 2).sum(1), kind="stable")]
+    if nearest_first:   # the kernel's order
+        off = off[cell_order(c).numpy()]
     cells = q[:, :, None, :] + off[None, None]                                            # (nb,B,S^3,3)
     inside = np.all((cells >= 0) & (cells < dims), -1)
     box_lo = lo + cells * grid.cell
@@ -117,7 +118,6 @@ def main(argv=None) -> int:
     ap.add_argument("--results-dir", default=None)
     args = ap.parse_args(argv)
     import neumesh_core as nm
-    from neumesh_core.field.knn_triton import TritonHashGrid
     from neumesh_core.render.renderer import tile_order
 
     from bench_render_gpu import orbit_cameras, procedural_field, scaled
