@@ -17,7 +17,8 @@ Each configuration renders ``--views`` views, each the best of ``--repeats`` fra
 is the median over the views.  ``--sweep`` first times the kernel's launch options (rays per program,
 warps, the static or refill schedule and its programs per multiprocessor) on one early-interpolation
 800² view and keeps the fastest for the rest.  ``--breakdown`` last times the neighbour search and the
-decoders alone on one frame's samples.  ``--budget-s`` stops starting new configurations after that many seconds (the
+decoders alone on one frame's samples.  ``--train-steps N`` first times N training steps (forward and
+backward of ``--train-rays`` random pixels) with the torch marcher and with the kernel's march.  ``--budget-s`` stops starting new configurations after that many seconds (the
 JSON then says which were skipped).  Writes benchmarks/results/render_gpu_<name>.json.
 """
 from __future__ import annotations
@@ -271,6 +272,74 @@ def breakdown(field, cam, device, size, repeats) -> dict:
     return row
 
 
+def train_steps(field, cams, device, steps: int, rays: int, repeats_warm: int = 3) -> dict:
+    """The heavy part of a training step (render_rays(train=True) of ``rays`` random pixels of the views,
+    jittered, and the backward pass of an L2 loss) with the torch marcher and with the kernel's march
+    (render/fused_triton.march_rays_fused; the torch decoders either way): seconds per step, rays per
+    second, samples per step, and the two paths' loss and code gradients on the same batch compared."""
+    import neumesh_core as nm
+    from neumesh_core.data.cameras import pixel_rays
+    from neumesh_core.render.renderer import render_rays
+
+    g = torch.Generator().manual_seed(0)
+    o_all, d_all = zip(*(pixel_rays(K, c2w, 400, 400, device=device) for K, c2w in cams))
+    o_all, d_all = torch.cat(o_all), torch.cat(d_all)
+    batches = []
+    for _ in range(steps + repeats_warm):
+        pick = torch.randint(0, len(o_all), (rays,), generator=g).to(device)
+        batches.append((o_all[pick], d_all[pick], torch.rand(rays, generator=g).to(device),
+                        torch.rand(rays, 3, generator=g).to(device)))
+    field.train()
+    field.sparse_grads = True
+    bg = torch.ones(3, device=device)
+    out = {"rays_per_step": rays, "steps": steps}
+    grads = {}
+    try:
+        for backend in ("torch", "triton"):
+            st = nm.RenderSettings(backend=backend)
+
+            def step(b, keep=False):
+                field.zero_grad(set_to_none=True)
+                o, d, jit, target = b
+                r = render_rays(field, o, d, background=bg, settings=st, train=True, jitter=jit)
+                loss = (r["rgb"] - target).square().mean()
+                loss.backward()
+                if keep:
+                    grads[backend] = (float(loss.detach()), r["n_samples"],
+                                      {n: p.grad.detach().to_dense().clone() for n, p in field.named_parameters()
+                                       if p.grad is not None})
+                return r["n_samples"]
+
+            t = time.perf_counter()
+            step(batches[0], keep=True)
+            sync(device)
+            first = time.perf_counter() - t
+            for b in batches[1:repeats_warm]:
+                step(b)
+            sync(device)
+            t = time.perf_counter()
+            samples = [step(b) for b in batches[repeats_warm:]]
+            sync(device)
+            sec = (time.perf_counter() - t) / max(1, steps)
+            out[backend] = {"first_step_s": first, "step_s": sec, "rays_per_s": rays / sec,
+                            "samples_per_step": float(np.mean(samples))}
+            print(f"  training step, {backend} march: {sec * 1e3:.1f} ms ({rays / sec / 1e3:.0f}k rays/s, "
+                  f"{np.mean(samples):.0f} samples)", flush=True)
+    finally:
+        field.sparse_grads = False
+        field.eval()
+        field.zero_grad(set_to_none=True)
+    if len(grads) == 2:
+        (la, na, ga), (lb, nb, gb) = grads["torch"], grads["triton"]
+        out["same_batch"] = {"loss_torch": la, "loss_triton": lb, "samples_torch": na, "samples_triton": nb,
+                             "grad_max_rel_diff": {k: float((gb[k] - ga[k]).abs().max() / ga[k].abs().max().clamp_min(1e-12))
+                                                   for k in ga if k in gb}}
+        out["speedup"] = out["torch"]["step_s"] / out["triton"]["step_s"]
+        print(f"  training step: fused march {out['speedup']:.2f}x the torch marcher; same batch loss "
+              f"{la:.6f} / {lb:.6f}, samples {na} / {nb}", flush=True)
+    return out
+
+
 def measure(field, cams, st, args, dev, key) -> dict:
     """One configuration: the first call (Triton compiles), frame times per size, the images at the
     largest size (``outs``, for the PSNR), one profiled frame."""
@@ -314,6 +383,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-profile", action="store_true")
     ap.add_argument("--breakdown", action="store_true",
                     help="last, time the neighbour search and the decoders alone on a frame's samples")
+    ap.add_argument("--train-steps", type=int, default=0,
+                    help="also time N training steps (forward + backward) with each marcher, before the sweep")
+    ap.add_argument("--train-rays", type=int, default=16384, help="rays per training step (--train-steps)")
     ap.add_argument("--device", default="cuda", help="cuda (default); cpu only to try the script out")
     ap.add_argument("--name", default=None)
     ap.add_argument("--results-dir", default=None)
@@ -352,6 +424,14 @@ def main(argv=None) -> int:
           f"{field.num_vertices} vertices, {len(cams)} views", flush=True)
     deformed_v = torch.as_tensor(bend(rest, args.bend), dtype=torch.float32)
     trained_mode = field.config.interpolation
+    if args.train_steps > 0:
+        try:
+            result["train"] = train_steps(field, cams, dev, args.train_steps, args.train_rays)
+        except Exception as e:   # record it, go on with the renders
+            import traceback
+
+            traceback.print_exc()
+            result["train"] = {"error": repr(e)[:500]}
     with torch.no_grad():
         if args.sweep and "triton" in args.backends:
             field.config.interpolation = "early"

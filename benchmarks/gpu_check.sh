@@ -58,7 +58,7 @@ TEST_RC=${PIPESTATUS[0]}
 echo "tests exit code: $TEST_RC (124: timed out)" | tee -a "$OUT/tests.log"
 
 echo "== benchmark"
-ARGS=(--sweep --breakdown --budget-s "${BENCH_BUDGET_S:-200}" --results-dir "$OUT")
+ARGS=(--train-steps "${TRAIN_STEPS:-20}" --sweep --breakdown --budget-s "${BENCH_BUDGET_S:-200}" --results-dir "$OUT")
 [ -n "${FIELD:-}" ] && ARGS+=(--field "$FIELD")
 [ -n "${DATA:-}" ] && ARGS+=(--data "$DATA")
 timeout "${BENCH_TIMEOUT_S:-290}" $PY benchmarks/bench_render_gpu.py "${ARGS[@]}" 2>&1 | tee "$OUT/bench.log"

@@ -34,7 +34,8 @@ DEFAULT_VARIANTS = ("static,early,rest,32,4,1;refill,early,rest,32,4,1;static,ea
                     "static,early,rest,32,4,1,fp16;refill,early,rest,32,4,1,fp16;static,post,rest,32,4,1,fp16;"
                     "static,early,rest,32,4,1,ieee,-,eo;refill,early,rest,32,4,1,fp16,-,eo;"
                     "static,post,deformed,32,4,1,ieee,-,eo;static,early,rest,32,4,2;"
-                    "static,early,rest,32,4,2,fp16,-,eo")
+                    "static,early,rest,32,4,2,fp16,-,eo;static,early,rest,32,4,1,ieee,-,-,march;"
+                    "static,post,rest,32,4,1,ieee,-,-,march")
 
 
 def resource_usage(cubin: bytes) -> dict:
@@ -57,8 +58,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--arch", type=int, default=90, help="CUDA compute capability x10 (90: H100/H200)")
     ap.add_argument("--variants", default=DEFAULT_VARIANTS,
-                    help="';'-separated schedule,early|post,rest|deformed,block,warps,cells[,precision[,maxnreg|-[,eo]]] "
-                         "(eo: knn_early_out)")
+                    help="';'-separated schedule,early|post,rest|deformed,block,warps,cells[,precision[,maxnreg|-[,eo|-"
+                         "[,march]]]] (eo: knn_early_out; march: the training's march, samples out and jitter)")
     ap.add_argument("--name", default=None)
     ap.add_argument("--results-dir", default=None)
     args = ap.parse_args(argv)
@@ -78,15 +79,16 @@ def main(argv=None) -> int:
         prec = parts[6] if len(parts) > 6 else "ieee"
         maxnreg = int(parts[7]) if len(parts) > 7 and parts[7] != "-" else None
         early_out = len(parts) > 8 and parts[8] == "eo"
+        march = len(parts) > 9 and parts[9] == "march"
         key = {"schedule": sched, "interpolation": mode, "deformed": pose == "deformed", "block": int(block),
                "num_warps": int(warps), "cells_per_radius": int(cells), "precision": prec,
-               "maxnreg": maxnreg, "knn_early_out": early_out}
+               "maxnreg": maxnreg, "knn_early_out": early_out, "march": march}
         t = time.perf_counter()
         try:
             kern = ft.compile_for(cfg, args.arch, interpolation=mode, deformed=pose == "deformed",
                                   schedule=sched, block=int(block), num_warps=int(warps),
                                   cells_per_radius=int(cells), precision=prec, maxnreg=maxnreg,
-                                  knn_early_out=early_out)
+                                  knn_early_out=early_out, march=march, jitter=march)
             use = resource_usage(kern.asm["cubin"])
         except Exception as e:   # a variant the compiler rejects: record it, go on
             rows.append({**key, "error": repr(e)[:300]})
@@ -96,7 +98,7 @@ def main(argv=None) -> int:
         use["programs_per_sm_by_registers"] = 65536 // (max(use["reg"], 1) * threads)
         use["compile_s"] = round(time.perf_counter() - t, 1)
         rows.append({**key, **use})
-        print(f"{sched:6s} {mode:5s} {pose:8s} {block:>3s} rays x {warps} warps, cells {cells}, {prec}, maxnreg {maxnreg}{', knn early out' if early_out else ''}: "
+        print(f"{sched:6s} {mode:5s} {pose:8s} {block:>3s} rays x {warps} warps, cells {cells}, {prec}, maxnreg {maxnreg}{', knn early out' if early_out else ''}{', march' if march else ''}: "
               f"{use['reg']} registers, stack {use['stack']} B per thread, "
               f"{use['programs_per_sm_by_registers']} programs per SM", flush=True)
     import triton

@@ -17,6 +17,24 @@ import bpy
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
+def _record_faults():
+    """On a crash (SIGSEGV, SIGABRT ...) write every thread's Python stack to $NEUMESH_FAULT_LOG (the
+    tests set it), the crashing thread marked "Current thread", before Blender's own crash handler
+    writes its report. Blender's report shows the stack of the thread that holds the GIL, which need
+    not be the one that crashed."""
+    path = os.environ.get("NEUMESH_FAULT_LOG")
+    if not path:
+        return None
+    import faulthandler
+
+    fh = open(path, "a")
+    faulthandler.enable(fh, all_threads=True)
+    return fh
+
+
+_FAULT_FILE = _record_faults()   # kept open for the life of the process
+
+
 def script_args():
     return sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
 

@@ -31,16 +31,31 @@ def _env(tmp):
         "BLENDER_USER_CONFIG": str(tmp / "config"), "BLENDER_USER_SCRIPTS": str(tmp / "scripts"),
         "BLENDER_USER_DATAFILES": str(tmp / "datafiles"), "BLENDER_USER_RESOURCES": str(tmp / "resources"),
         "HOME": str(tmp / "home"), "TMPDIR": str(tmp), "NEUMESH_PYTHONPATH": TORCH_DIR,
-        "PYTHONNOUSERSITE": "1",
+        "PYTHONNOUSERSITE": "1", "NEUMESH_FAULT_LOG": str(tmp / "python_faults.txt"),
     })
     os.makedirs(env["HOME"], exist_ok=True)
     return env
 
 
+def crash_report(tmp) -> str:
+    """What a crashed `blender` left in ``tmp`` (empty when nothing): every thread's Python stack at the
+    fault (real_blender_common's fault handler, the crashing thread first as "Current thread") and
+    Blender's own *.crash.txt reports."""
+    import glob
+
+    parts = []
+    fault = os.path.join(str(tmp), "python_faults.txt")
+    if os.path.exists(fault) and os.path.getsize(fault):
+        parts.append("python_faults.txt:\n" + open(fault, errors="replace").read()[-6000:])
+    for f in sorted(glob.glob(os.path.join(str(tmp), "**", "*.crash.txt"), recursive=True)):
+        parts.append(f"{f}:\n" + open(f, errors="replace").read()[-3000:])
+    return "\n".join(parts)
+
+
 def _run(cmd, env, timeout=240):
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
     log = r.stdout + r.stderr
-    assert r.returncode == 0, log[-4000:]
+    assert r.returncode == 0, log[-4000:] + crash_report(env["TMPDIR"])
     return log
 
 

@@ -16,7 +16,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from test_real_blender import BLENDER, HERE, TORCH_DIR, _env
+from test_real_blender import BLENDER, HERE, TORCH_DIR, _env, crash_report
 
 XVFB = shutil.which("xvfb-run")
 pytestmark = [
@@ -26,9 +26,9 @@ pytestmark = [
 WINDOW = (1280, 900)
 
 
-def _facts(log):
+def _facts(log, tmp=None):
     lines = [l for l in log.splitlines() if l.startswith("NEUMESH_FACTS ")]
-    assert lines, log[-4000:]
+    assert lines, log[-4000:] + ("\n" + crash_report(tmp) if tmp is not None else "")
     return json.loads(lines[-1][14:])
 
 
@@ -51,7 +51,7 @@ def run_in_window(script: str, mode: str, addon_zip, trained_field, tiny_dataset
     r = subprocess.run([XVFB, "-a", "-s", "-screen 0 %dx%dx24" % WINDOW, BLENDER, str(out / "ui.blend")] + sim
                        + ["--python", os.path.join(HERE, script), "--", mode, str(out)],
                        env=env, capture_output=True, text=True, timeout=timeout)
-    return r, r.stdout + r.stderr, _facts(r.stdout)
+    return r, r.stdout + r.stderr, _facts(r.stdout, tmp_path)
 
 
 def test_sidebar_in_a_real_window(addon_zip, trained_field, tiny_dataset, tmp_path):

@@ -19,8 +19,12 @@ densities of the samples kept before it, exactly as the reference composites the
 colour is decoded only when it is kept (weight above ``weight_threshold`` while the transmittance is
 above ``early_stop_eps``), and a ray stops when its transmittance falls below ``early_stop_eps``.
 
-Covered: one field, one radiance decoder, no texture frames, no semantics, rendering only (no
-autograd, no jitter).  Everything else falls back to the torch path (:func:`supported` says why).
+Covered: one field, one radiance decoder, no texture frames, no semantics (:func:`supported` says why
+a field is not).  What the whole kernel does not render (training with autograd, jitter, vertex ids,
+semantics, several fields composited together) takes render_rays' torch path, which still marches each
+covered field with the kernel: its MARCH variant decodes no colour and hands the kept samples (t,
+density, neighbour keys; one slot per kept sample of a ray) to :func:`march_rays_fused`, whose reference
+is the torch marcher, and the torch decoders decode them with autograd (training on a GPU).
 """
 from __future__ import annotations
 
@@ -30,7 +34,7 @@ from typing import Optional
 
 import torch
 
-from ..field.knn_triton import (TritonHashGrid, knn_keys, next_pow2, require_triton, triton,
+from ..field.knn_triton import (TritonHashGrid, decode_keys, knn_keys, next_pow2, require_triton, triton,
                                 triton_available, triton_runs_on, tl)
 
 BACKENDS = ("auto", "torch", "triton")
@@ -56,29 +60,50 @@ def supported(field) -> Optional[str]:
 
 def use_triton(settings, fields, device, *, train: bool = False, jitter=None, vertex_ids: bool = False,
                semantics: bool = False) -> bool:
-    """Whether :func:`render_rays` takes the fused kernel for this call (``settings.backend``)."""
+    """Whether :func:`render_rays` renders this call with the fused kernel alone (``settings.backend``).
+    Training, jitter, vertex ids, semantics and several fields composited together take render_rays'
+    torch path (autograd, the extra outputs, the joint sort), whose marching the kernel still does where
+    it covers the fields (:func:`use_fused_march`)."""
+    backend = _backend(settings)
+    if backend == "torch":
+        return False
+    whole = not (train or jitter is not None or vertex_ids or semantics) and len(fields) == 1
+    if backend == "auto":
+        return whole and supported(fields[0]) is None and torch.device(device).type == "cuda" and triton_available()
+    # "triton" asked for explicitly: every field must be covered
+    for f in fields:
+        _require_supported(f, device)
+    return whole
+
+
+def use_fused_march(settings, field, device) -> bool:
+    """Whether render_rays' torch path marches ``field`` with the kernel (:func:`march_rays_fused`, the
+    torch decoders then decode its samples): "auto" on CUDA when triton imports and the kernel covers the
+    field, "triton" always (an error when it cannot), "torch" never."""
+    backend = _backend(settings)
+    if backend == "torch":
+        return False
+    if backend == "auto":
+        return supported(field) is None and torch.device(device).type == "cuda" and triton_available()
+    _require_supported(field, device)
+    return True
+
+
+def _backend(settings) -> str:
     backend = getattr(settings, "backend", "auto")
     if backend not in BACKENDS:
         raise ValueError(f"RenderSettings.backend must be one of {', '.join(BACKENDS)}, not {backend!r}")
-    if backend == "torch":
-        return False
-    reason = None
-    if train or jitter is not None or vertex_ids or semantics:
-        reason = "training, jittered, vertex-id or semantic renders take the torch path"
-    elif len(fields) != 1:
-        reason = "several fields composited together take the torch path"
-    else:
-        reason = supported(fields[0])
-    if backend == "auto":
-        return reason is None and torch.device(device).type == "cuda" and triton_available()
-    # "triton" asked for explicitly
+    return backend
+
+
+def _require_supported(field, device) -> None:
     require_triton(device)
+    reason = supported(field)
     if reason is not None:
         from ..errors import NeuMeshError
 
         raise NeuMeshError(f"the Triton renderer cannot render this: {reason}; use "
                            "RenderSettings(backend='auto') to fall back to the torch renderer")
-    return True
 
 
 # ---------------------------------------------------------------------------------------------- tables
@@ -247,13 +272,16 @@ if triton is not None:
             cell_order, radius,
             vtab, geo, tex, modc, rest_n, rot,
             gw1, gb1, gw2, gb2, gw3, gb3, rw1, rb1, rw2, rb2, rw3, rb3,
-            out, step, log_eps, weight_thr, ray_counter,
+            out, step, log_eps, weight_thr, ray_counter, jit, s_t, s_sig, s_keys, s_max,
             BLOCK: tl.constexpr, KP: tl.constexpr, K: tl.constexpr, WINDOW: tl.constexpr,
             MAX_EVAL: tl.constexpr, EARLY: tl.constexpr, DEFORMED: tl.constexpr,
             GEO_D: tl.constexpr, TEX_D: tl.constexpr, PE_F: tl.constexpr, SH_DEG: tl.constexpr,
             GI: tl.constexpr, RI: tl.constexpr, H: tl.constexpr, PREC: tl.constexpr,
             C: tl.constexpr, NCP: tl.constexpr, SCAN: tl.constexpr, REFILL: tl.constexpr,
-            KNN_EO: tl.constexpr):
+            KNN_EO: tl.constexpr, MARCH: tl.constexpr, JITTER: tl.constexpr):
+        # MARCH: no colour; each kept sample's t, density and neighbour keys go to slot n_kept of its ray
+        # in s_t / s_sig / s_keys (s_max slots a ray; n_kept counts them all). JITTER: each ray's steps
+        # are offset by (jit[ray] - 0.5) steps, as the torch marcher's ``jitter`` does.
         # static schedule: this program's lanes hold rays pid*BLOCK.. to the end; refill: the lanes start
         # empty and a lane whose ray has finished stores it and takes the next ray of ray_counter
         if REFILL:
@@ -272,6 +300,10 @@ if triton is not None:
         tn = tl.load(tnear + rows, mask=inb, other=0.0)
         tf = tl.load(tfar + rows, mask=inb, other=-1.0)
         t0 = tl.load(tstart + rows, mask=inb, other=0.0)
+        if JITTER:
+            jv = tl.load(jit + rows, mask=inb, other=0.5)
+        else:
+            jv = zero + 0.5
         PE: tl.constexpr = 1 + 2 * PE_F
         SH: tl.constexpr = SH_DEG * SH_DEG
         half = 0.5 * step
@@ -315,6 +347,8 @@ if triton is not None:
                     tn = tl.where(take, tl.load(tnear + rows, mask=take, other=0.0), tn)
                     tf = tl.where(take, tl.load(tfar + rows, mask=take, other=-1.0), tf)
                     t0 = tl.where(take, tl.load(tstart + rows, mask=take, other=0.0), t0)
+                    if JITTER:
+                        jv = tl.where(take, tl.load(jit + rows, mask=take, other=0.5), jv)
                     j = tl.where(take, 0, j)
                     nev = tl.where(take, 0, nev)
                     walked = tl.where(take, 0, walked)
@@ -339,6 +373,8 @@ if triton is not None:
                 jj = j[:, None] + sc[None, :]
                 inwin = jj < WINDOW
                 t2 = t0[:, None] + (jj.to(tl.float32) + 0.5) * step
+                if JITTER:
+                    t2 = t2 + ((jv - 0.5) * step)[:, None]
                 in_range = (t2 < tf[:, None]) & (t2 >= tn[:, None]) & inwin
                 ix = tl.minimum(tl.maximum(tl.floor(gox[:, None] + gdx[:, None] * t2).to(tl.int32), 0), res_x - 1)
                 iy = tl.minimum(tl.maximum(tl.floor(goy[:, None] + gdy[:, None] * t2).to(tl.int32), 0), res_y - 1)
@@ -370,6 +406,8 @@ if triton is not None:
             if tl.max(found.to(tl.int32), 0) > 0:
                 # ---- the samples: neighbours, indicators, density
                 t = t0 + (j.to(tl.float32) + 0.5) * step
+                if JITTER:
+                    t = t + (jv - 0.5) * step
                 px = ox + dx * t
                 py = oy + dy * t
                 pz = oz + dz * t
@@ -420,126 +458,135 @@ if triton is not None:
                 j = tl.where(wrap, 0, j)
                 nev = tl.where(wrap, 0, nev)
                 active = active & (log_t > log_eps)
-                if tl.max(keep.to(tl.int32), 0) > 0:
-                    # ---- colour of the kept samples
-                    ts = t - half
-                    te = t + half
-                    tau_c = sigma * (te - ts)
-                    wc = tl.where(keep, tl.exp(log_tc) * (1.0 - tl.exp(-tau_c)), 0.0)
-                    log_tc = tl.where(keep, log_tc - tau_c, log_tc)
-                    if EARLY:
-                        tin = tl.zeros([BLOCK, RI], tl.float32)
-                        nx = tl.zeros([BLOCK], tl.float32)
-                        ny = tl.zeros([BLOCK], tl.float32)
-                        nz = tl.zeros([BLOCK], tl.float32)
-                        mr = tl.zeros([BLOCK], tl.float32)
-                        mg = tl.zeros([BLOCK], tl.float32)
-                        mb = tl.zeros([BLOCK], tl.float32)
-                        r0 = tl.zeros([BLOCK], tl.float32)
-                        r1 = tl.zeros([BLOCK], tl.float32)
-                        r2 = tl.zeros([BLOCK], tl.float32)
-                        r3 = tl.zeros([BLOCK], tl.float32)
-                        r4 = tl.zeros([BLOCK], tl.float32)
-                        r5 = tl.zeros([BLOCK], tl.float32)
-                        r6 = tl.zeros([BLOCK], tl.float32)
-                        r7 = tl.zeros([BLOCK], tl.float32)
-                        r8 = tl.zeros([BLOCK], tl.float32)
-                        for k in range(K):
-                            wk = tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)
-                            ik = tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1).to(tl.int64)
-                            tin += wk[:, None] * _rows(tex, ik, keep, TEX_D, RI, 0)
-                            nx += wk * tl.load(rest_n + ik * 3, mask=keep, other=0.0)
-                            ny += wk * tl.load(rest_n + ik * 3 + 1, mask=keep, other=0.0)
-                            nz += wk * tl.load(rest_n + ik * 3 + 2, mask=keep, other=0.0)
-                            mr += wk * tl.load(modc + ik * 3, mask=keep, other=0.0)
-                            mg += wk * tl.load(modc + ik * 3 + 1, mask=keep, other=0.0)
-                            mb += wk * tl.load(modc + ik * 3 + 2, mask=keep, other=0.0)
+                if MARCH:
+                    # ---- the kept samples themselves (the torch decoders take them from here)
+                    spos = rows.to(tl.int64) * s_max + n_kept
+                    sm = keep & (n_kept < s_max)
+                    tl.store(s_t + spos, t, mask=sm)
+                    tl.store(s_sig + spos, sigma, mask=sm)
+                    tl.store(s_keys + spos[:, None] * KP + slot[None, :], keys, mask=sm[:, None])
+                    n_kept += keep.to(tl.int32)
+                else:
+                    if tl.max(keep.to(tl.int32), 0) > 0:
+                        # ---- colour of the kept samples
+                        ts = t - half
+                        te = t + half
+                        tau_c = sigma * (te - ts)
+                        wc = tl.where(keep, tl.exp(log_tc) * (1.0 - tl.exp(-tau_c)), 0.0)
+                        log_tc = tl.where(keep, log_tc - tau_c, log_tc)
+                        if EARLY:
+                            tin = tl.zeros([BLOCK, RI], tl.float32)
+                            nx = tl.zeros([BLOCK], tl.float32)
+                            ny = tl.zeros([BLOCK], tl.float32)
+                            nz = tl.zeros([BLOCK], tl.float32)
+                            mr = tl.zeros([BLOCK], tl.float32)
+                            mg = tl.zeros([BLOCK], tl.float32)
+                            mb = tl.zeros([BLOCK], tl.float32)
+                            r0 = tl.zeros([BLOCK], tl.float32)
+                            r1 = tl.zeros([BLOCK], tl.float32)
+                            r2 = tl.zeros([BLOCK], tl.float32)
+                            r3 = tl.zeros([BLOCK], tl.float32)
+                            r4 = tl.zeros([BLOCK], tl.float32)
+                            r5 = tl.zeros([BLOCK], tl.float32)
+                            r6 = tl.zeros([BLOCK], tl.float32)
+                            r7 = tl.zeros([BLOCK], tl.float32)
+                            r8 = tl.zeros([BLOCK], tl.float32)
+                            for k in range(K):
+                                wk = tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)
+                                ik = tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1).to(tl.int64)
+                                tin += wk[:, None] * _rows(tex, ik, keep, TEX_D, RI, 0)
+                                nx += wk * tl.load(rest_n + ik * 3, mask=keep, other=0.0)
+                                ny += wk * tl.load(rest_n + ik * 3 + 1, mask=keep, other=0.0)
+                                nz += wk * tl.load(rest_n + ik * 3 + 2, mask=keep, other=0.0)
+                                mr += wk * tl.load(modc + ik * 3, mask=keep, other=0.0)
+                                mg += wk * tl.load(modc + ik * 3 + 1, mask=keep, other=0.0)
+                                mb += wk * tl.load(modc + ik * 3 + 2, mask=keep, other=0.0)
+                                if DEFORMED:
+                                    r0 += wk * tl.load(rot + ik * 9, mask=keep, other=0.0)
+                                    r1 += wk * tl.load(rot + ik * 9 + 1, mask=keep, other=0.0)
+                                    r2 += wk * tl.load(rot + ik * 9 + 2, mask=keep, other=0.0)
+                                    r3 += wk * tl.load(rot + ik * 9 + 3, mask=keep, other=0.0)
+                                    r4 += wk * tl.load(rot + ik * 9 + 4, mask=keep, other=0.0)
+                                    r5 += wk * tl.load(rot + ik * 9 + 5, mask=keep, other=0.0)
+                                    r6 += wk * tl.load(rot + ik * 9 + 6, mask=keep, other=0.0)
+                                    r7 += wk * tl.load(rot + ik * 9 + 7, mask=keep, other=0.0)
+                                    r8 += wk * tl.load(rot + ik * 9 + 8, mask=keep, other=0.0)
                             if DEFORMED:
-                                r0 += wk * tl.load(rot + ik * 9, mask=keep, other=0.0)
-                                r1 += wk * tl.load(rot + ik * 9 + 1, mask=keep, other=0.0)
-                                r2 += wk * tl.load(rot + ik * 9 + 2, mask=keep, other=0.0)
-                                r3 += wk * tl.load(rot + ik * 9 + 3, mask=keep, other=0.0)
-                                r4 += wk * tl.load(rot + ik * 9 + 4, mask=keep, other=0.0)
-                                r5 += wk * tl.load(rot + ik * 9 + 5, mask=keep, other=0.0)
-                                r6 += wk * tl.load(rot + ik * 9 + 6, mask=keep, other=0.0)
-                                r7 += wk * tl.load(rot + ik * 9 + 7, mask=keep, other=0.0)
-                                r8 += wk * tl.load(rot + ik * 9 + 8, mask=keep, other=0.0)
-                        if DEFORMED:
-                            ex = r0 * dx + r1 * dy + r2 * dz
-                            ey = r3 * dx + r4 * dy + r5 * dz
-                            ez = r6 * dx + r7 * dy + r8 * dz
-                            en = tl.maximum(tl.sqrt(ex * ex + ey * ey + ez * ez), 1e-8)
-                            ex = ex / en
-                            ey = ey / en
-                            ez = ez / en
-                        else:
-                            ex = dx
-                            ey = dy
-                            ez = dz
-                        nn = tl.maximum(tl.sqrt(nx * nx + ny * ny + nz * nz), 1e-8)
-                        nx = nx / nn
-                        ny = ny / nn
-                        nz = nz / nn
-                        p = tl.sum(pk * w, 1)
-                        wi = tl.sum(w * w, 1)
-                        tin += _pe_cols(p / radius, RI, TEX_D, PE_F) + tl.where((tl.arange(0, RI) == TEX_D + PE)[None, :], (wi)[:, None], 0.0)
-                        tin += _sh_cols(ex, ey, ez, RI, TEX_D + PE + 1, SH_DEG)
-                        NO: tl.constexpr = TEX_D + PE + 1 + SH
-                        tin += tl.where((tl.arange(0, RI) == NO)[None, :], (nx)[:, None], 0.0) + tl.where((tl.arange(0, RI) == NO + 1)[None, :], (ny)[:, None], 0.0) + tl.where((tl.arange(0, RI) == NO + 2)[None, :], (nz)[:, None], 0.0)
-                        y = _mlp3(tin, rw1, rb1, rw2, rb2, rw3, rb3, RI, H, 16, PREC)
-                        cr = (1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 0)[None, :], y, 0.0), 1)))) + mr
-                        cg = (1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 1)[None, :], y, 0.0), 1)))) + mg
-                        cb = (1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 2)[None, :], y, 0.0), 1)))) + mb
-                    else:
-                        cr = tl.zeros([BLOCK], tl.float32)
-                        cg = tl.zeros([BLOCK], tl.float32)
-                        cb = tl.zeros([BLOCK], tl.float32)
-                        mr = tl.zeros([BLOCK], tl.float32)
-                        mg = tl.zeros([BLOCK], tl.float32)
-                        mb = tl.zeros([BLOCK], tl.float32)
-                        NO2: tl.constexpr = TEX_D + PE + 1 + SH
-                        for k in range(K):
-                            wk = tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)
-                            ik = tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1).to(tl.int64)
-                            if DEFORMED:
-                                ex = tl.load(rot + ik * 9, mask=keep, other=0.0) * dx + \
-                                    tl.load(rot + ik * 9 + 1, mask=keep, other=0.0) * dy + \
-                                    tl.load(rot + ik * 9 + 2, mask=keep, other=0.0) * dz
-                                ey = tl.load(rot + ik * 9 + 3, mask=keep, other=0.0) * dx + \
-                                    tl.load(rot + ik * 9 + 4, mask=keep, other=0.0) * dy + \
-                                    tl.load(rot + ik * 9 + 5, mask=keep, other=0.0) * dz
-                                ez = tl.load(rot + ik * 9 + 6, mask=keep, other=0.0) * dx + \
-                                    tl.load(rot + ik * 9 + 7, mask=keep, other=0.0) * dy + \
-                                    tl.load(rot + ik * 9 + 8, mask=keep, other=0.0) * dz
+                                ex = r0 * dx + r1 * dy + r2 * dz
+                                ey = r3 * dx + r4 * dy + r5 * dz
+                                ez = r6 * dx + r7 * dy + r8 * dz
+                                en = tl.maximum(tl.sqrt(ex * ex + ey * ey + ez * ez), 1e-8)
+                                ex = ex / en
+                                ey = ey / en
+                                ez = ez / en
                             else:
                                 ex = dx
                                 ey = dy
                                 ez = dz
-                            tin = _rows(tex, ik, keep, TEX_D, RI, 0)
-                            tin += _pe_cols(tl.sum(tl.where(slot[None, :] == k, pk, tl.zeros_like(pk)), 1) / radius, RI, TEX_D, PE_F) + tl.where((tl.arange(0, RI) == TEX_D + PE)[None, :], (wk)[:, None], 0.0)
+                            nn = tl.maximum(tl.sqrt(nx * nx + ny * ny + nz * nz), 1e-8)
+                            nx = nx / nn
+                            ny = ny / nn
+                            nz = nz / nn
+                            p = tl.sum(pk * w, 1)
+                            wi = tl.sum(w * w, 1)
+                            tin += _pe_cols(p / radius, RI, TEX_D, PE_F) + tl.where((tl.arange(0, RI) == TEX_D + PE)[None, :], (wi)[:, None], 0.0)
                             tin += _sh_cols(ex, ey, ez, RI, TEX_D + PE + 1, SH_DEG)
-                            tin += tl.where((tl.arange(0, RI) == NO2)[None, :], (tl.load(rest_n + ik * 3, mask=keep, other=0.0))[:, None], 0.0)
-                            tin += tl.where((tl.arange(0, RI) == NO2 + 1)[None, :], (tl.load(rest_n + ik * 3 + 1, mask=keep, other=0.0))[:, None], 0.0)
-                            tin += tl.where((tl.arange(0, RI) == NO2 + 2)[None, :], (tl.load(rest_n + ik * 3 + 2, mask=keep, other=0.0))[:, None], 0.0)
+                            NO: tl.constexpr = TEX_D + PE + 1 + SH
+                            tin += tl.where((tl.arange(0, RI) == NO)[None, :], (nx)[:, None], 0.0) + tl.where((tl.arange(0, RI) == NO + 1)[None, :], (ny)[:, None], 0.0) + tl.where((tl.arange(0, RI) == NO + 2)[None, :], (nz)[:, None], 0.0)
                             y = _mlp3(tin, rw1, rb1, rw2, rb2, rw3, rb3, RI, H, 16, PREC)
-                            m0 = tl.load(modc + ik * 3, mask=keep, other=0.0)
-                            m1 = tl.load(modc + ik * 3 + 1, mask=keep, other=0.0)
-                            m2 = tl.load(modc + ik * 3 + 2, mask=keep, other=0.0)
-                            cr += wk * ((1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 0)[None, :], y, 0.0), 1)))) + m0)
-                            cg += wk * ((1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 1)[None, :], y, 0.0), 1)))) + m1)
-                            cb += wk * ((1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 2)[None, :], y, 0.0), 1)))) + m2)
-                            mr += wk * m0
-                            mg += wk * m1
-                            mb += wk * m2
-                    acc_r += wc * cr
-                    acc_g += wc * cg
-                    acc_b += wc * cb
-                    acc_mr += wc * mr
-                    acc_mg += wc * mg
-                    acc_mb += wc * mb
-                    acc_o += wc
-                    acc_d += wc * (0.5 * (ts + te))
-                    n_kept += keep.to(tl.int32)
+                            cr = (1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 0)[None, :], y, 0.0), 1)))) + mr
+                            cg = (1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 1)[None, :], y, 0.0), 1)))) + mg
+                            cb = (1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 2)[None, :], y, 0.0), 1)))) + mb
+                        else:
+                            cr = tl.zeros([BLOCK], tl.float32)
+                            cg = tl.zeros([BLOCK], tl.float32)
+                            cb = tl.zeros([BLOCK], tl.float32)
+                            mr = tl.zeros([BLOCK], tl.float32)
+                            mg = tl.zeros([BLOCK], tl.float32)
+                            mb = tl.zeros([BLOCK], tl.float32)
+                            NO2: tl.constexpr = TEX_D + PE + 1 + SH
+                            for k in range(K):
+                                wk = tl.sum(tl.where(slot[None, :] == k, w, tl.zeros_like(w)), 1)
+                                ik = tl.sum(tl.where(slot[None, :] == k, idx, tl.zeros_like(idx)), 1).to(tl.int64)
+                                if DEFORMED:
+                                    ex = tl.load(rot + ik * 9, mask=keep, other=0.0) * dx + \
+                                        tl.load(rot + ik * 9 + 1, mask=keep, other=0.0) * dy + \
+                                        tl.load(rot + ik * 9 + 2, mask=keep, other=0.0) * dz
+                                    ey = tl.load(rot + ik * 9 + 3, mask=keep, other=0.0) * dx + \
+                                        tl.load(rot + ik * 9 + 4, mask=keep, other=0.0) * dy + \
+                                        tl.load(rot + ik * 9 + 5, mask=keep, other=0.0) * dz
+                                    ez = tl.load(rot + ik * 9 + 6, mask=keep, other=0.0) * dx + \
+                                        tl.load(rot + ik * 9 + 7, mask=keep, other=0.0) * dy + \
+                                        tl.load(rot + ik * 9 + 8, mask=keep, other=0.0) * dz
+                                else:
+                                    ex = dx
+                                    ey = dy
+                                    ez = dz
+                                tin = _rows(tex, ik, keep, TEX_D, RI, 0)
+                                tin += _pe_cols(tl.sum(tl.where(slot[None, :] == k, pk, tl.zeros_like(pk)), 1) / radius, RI, TEX_D, PE_F) + tl.where((tl.arange(0, RI) == TEX_D + PE)[None, :], (wk)[:, None], 0.0)
+                                tin += _sh_cols(ex, ey, ez, RI, TEX_D + PE + 1, SH_DEG)
+                                tin += tl.where((tl.arange(0, RI) == NO2)[None, :], (tl.load(rest_n + ik * 3, mask=keep, other=0.0))[:, None], 0.0)
+                                tin += tl.where((tl.arange(0, RI) == NO2 + 1)[None, :], (tl.load(rest_n + ik * 3 + 1, mask=keep, other=0.0))[:, None], 0.0)
+                                tin += tl.where((tl.arange(0, RI) == NO2 + 2)[None, :], (tl.load(rest_n + ik * 3 + 2, mask=keep, other=0.0))[:, None], 0.0)
+                                y = _mlp3(tin, rw1, rb1, rw2, rb2, rw3, rb3, RI, H, 16, PREC)
+                                m0 = tl.load(modc + ik * 3, mask=keep, other=0.0)
+                                m1 = tl.load(modc + ik * 3 + 1, mask=keep, other=0.0)
+                                m2 = tl.load(modc + ik * 3 + 2, mask=keep, other=0.0)
+                                cr += wk * ((1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 0)[None, :], y, 0.0), 1)))) + m0)
+                                cg += wk * ((1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 1)[None, :], y, 0.0), 1)))) + m1)
+                                cb += wk * ((1.0 / (1.0 + tl.exp(-tl.sum(tl.where((tl.arange(0, 16) == 2)[None, :], y, 0.0), 1)))) + m2)
+                                mr += wk * m0
+                                mg += wk * m1
+                                mb += wk * m2
+                        acc_r += wc * cr
+                        acc_g += wc * cg
+                        acc_b += wc * cb
+                        acc_mr += wc * mr
+                        acc_mg += wc * mg
+                        acc_mb += wc * mb
+                        acc_o += wc
+                        acc_d += wc * (0.5 * (ts + te))
+                        n_kept += keep.to(tl.int32)
 
         # static: every ray of the block; refill: the rays finished since the last refill
         _store_out(out, rows, inb, acc_r, acc_g, acc_b, acc_o, acc_d, acc_mr, acc_mg, acc_mb, n_kept)
@@ -576,7 +623,7 @@ PRECISIONS = ("ieee", "tf32", "tf32x3", "fp16")
 
 def kernel_constants(cfg, *, early: bool, deformed: bool, block: int, cells: int, precision: str = "ieee",
                      scan: int = 8, refill: bool = False, window: int = 64,
-                     knn_early_out: bool = False) -> dict:
+                     knn_early_out: bool = False, march: bool = False, jitter: bool = False) -> dict:
     """The kernel's compile-time (constexpr) arguments for a field of config ``cfg``: each set of them is
     one compiled variant."""
     gi, ri, h = decoder_widths(cfg)
@@ -584,25 +631,28 @@ def kernel_constants(cfg, *, early: bool, deformed: bool, block: int, cells: int
                 EARLY=bool(early), DEFORMED=bool(deformed), GEO_D=int(cfg.geo_dim), TEX_D=int(cfg.tex_dim),
                 PE_F=int(cfg.pos_freqs), SH_DEG=int(cfg.sh_degree), GI=gi, RI=ri, H=h, PREC=precision,
                 C=int(cells), NCP=TritonHashGrid.ncp, SCAN=int(scan), REFILL=bool(refill),
-                KNN_EO=bool(knn_early_out))
+                KNN_EO=bool(knn_early_out), MARCH=bool(march), JITTER=bool(jitter))
 
 
 # the kernel's pointer arguments that are not float32, its other pointers, and its integer scalars (the
 # rest are float32 scalars): the signature of an ahead-of-time build
 _PTR_TYPES = {"occ": "*u8", "cell_start": "*i32", "cell_count": "*i32", "ids_sorted": "*i32",
-              "cell_order": "*i32", "ray_counter": "*i32"}
+              "cell_order": "*i32", "ray_counter": "*i32", "s_keys": "*i64"}
 _POINTERS = {"orig", "dirs", "gorig", "gdirs", "tnear", "tfar", "tstart", "occ", "cell_start", "cell_count",
              "v_sorted", "ids_sorted", "cell_order", "vtab", "geo", "tex", "modc", "rest_n", "rot", "gw1", "gb1",
-             "gw2", "gb2", "gw3", "gb3", "rw1", "rb1", "rw2", "rb2", "rw3", "rb3", "out", "ray_counter"}
-_INTS = {"n_rays", "res_x", "res_y", "res_z", "h_dx", "h_dy", "h_dz"}
+             "gw2", "gb2", "gw3", "gb3", "rw1", "rb1", "rw2", "rb2", "rw3", "rb3", "out", "ray_counter", "jit",
+             "s_t", "s_sig", "s_keys"}
+_INTS = {"n_rays", "res_x", "res_y", "res_z", "h_dx", "h_dy", "h_dz", "s_max"}
 
 
-def compile_for(cfg, arch: int = 90, *, interpolation: str = "early", deformed: bool = False, **options):
+def compile_for(cfg, arch: int = 90, *, interpolation: str = "early", deformed: bool = False,
+                march: bool = False, jitter: bool = False, **options):
     """Build the kernel ahead of time for a CUDA target (compute capability x10; 90: H100/H200) without a
     GPU: Triton's compiler and the ptxas it ships.  ``options`` as :func:`render_rays_fused`'s (block and
     cells_per_radius default to a GPU's).  Returns Triton's compiled kernel (``.asm["cubin"]``, ...).
-    Used to check that each variant compiles with the installed Triton, and by
-    ``benchmarks/kernel_resources.py`` to read its registers and spills."""
+    ``march`` / ``jitter``: the variant :func:`march_rays_fused` runs (training).  Used to check that
+    each variant compiles with the installed Triton, and by ``benchmarks/kernel_resources.py`` to read
+    its registers and spills."""
     import inspect
 
     from triton.backends.compiler import GPUTarget
@@ -616,7 +666,7 @@ def compile_for(cfg, arch: int = 90, *, interpolation: str = "early", deformed: 
                               block=opts["block"] or default_block("cuda"),
                               cells=opts["cells_per_radius"] or default_cells("cuda"),
                               precision=opts["precision"], scan=opts["scan"], refill=opts["schedule"] == "refill",
-                              knn_early_out=opts["knn_early_out"])
+                              knn_early_out=opts["knn_early_out"], march=march, jitter=jitter)
     sig = {}
     for p in inspect.signature(_render_kernel.fn).parameters:
         if p in consts:
@@ -672,6 +722,80 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
     ``ray_order`` ("tiles" or "rows") is read by ``render_camera``: the order of the pixels it hands
     the kernel (``renderer.tile_order``: 8 x 4 screen patches per 32 rays)."""
     opts = _checked({**KERNEL_OPTIONS, **options})
+    out = torch.zeros(origins.shape[0], 10, device=origins.device)
+    _launch(field, origins, dirs, settings.window, settings.early_stop_eps, settings.weight_threshold, step,
+            near, far, opts, out)
+    opacity = out[:, 3]
+    depth = torch.where(opacity > 1e-6, out[:, 4] / opacity.clamp_min(1e-6), torch.full_like(opacity, float("inf")))
+    return {"rgb": out[:, :3], "opacity": opacity, "depth": depth, "mod_rgb": out[:, 5:8],
+            "n_samples": out[:, 8]}
+
+
+# kept samples a ray has room for in the first launch of march_rays_fused (a chunk whose rays keep more
+# is marched again with room for its longest ray), and the sample buffers' bytes per launch
+MARCH_SLOTS = 64
+MARCH_BUFFER_BYTES = 256 << 20
+
+
+@torch.no_grad()
+def march_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, step: float, near=0.0,
+                     far=float("inf"), window: int = 64, early_stop_eps: float = 1e-4,
+                     weight_threshold: float = 1e-4, jitter: Optional[torch.Tensor] = None, **options):
+    """The samples :func:`~neumesh_core.sampling.marcher.march_rays` keeps for ``field.sigma_fn`` (its
+    reference), found by the fused kernel without decoding colours (its MARCH variant): the same steps
+    (``jitter`` included), densities and neighbours, one launch per chunk of rays and one host
+    synchronisation (the number of samples) instead of the torch marcher's launches and synchronisations
+    every window.  Returns :class:`~neumesh_core.sampling.marcher.RaySamples` sorted by (ray, t) whose
+    ``aux`` is the samples' :class:`~neumesh_core.field.scaffold.Neighbourhood`, ready for the field's
+    ``decode`` with autograd (training) or without.  ``options``: launch options as
+    :func:`render_rays_fused`'s."""
+    from ..sampling.marcher import RaySamples
+
+    opts = _checked({**KERNEL_OPTIONS, **options})
+    dev = origins.device
+    n = origins.shape[0]
+    kp = next_pow2(int(field.config.k))
+    slots = MARCH_SLOTS
+    chunk = max(1, MARCH_BUFFER_BYTES // (slots * (8 + 8 * kp)))
+    rays, ts, sigmas, keys = [], [], [], []
+    for s0 in range(0, n, chunk):
+        part = slice(s0, min(n, s0 + chunk))
+        o, d = origins[part], dirs[part]
+        nr, fr = (x[part] if torch.is_tensor(x) else x for x in (near, far))
+        jt = None if jitter is None else jitter[part]
+        m = o.shape[0]
+        while True:
+            s_t = torch.empty(m * slots, device=dev)
+            s_sig = torch.empty(m * slots, device=dev)
+            s_keys = torch.empty(m * slots, kp, dtype=torch.int64, device=dev)
+            out = torch.zeros(m, 10, device=dev)
+            _launch(field, o, d, window, early_stop_eps, weight_threshold, step, nr, fr, opts, out,
+                    march=(s_t, s_sig, s_keys, slots), jitter=jt)
+            count = out[:, 8].to(torch.int64)
+            most = int(count.max())   # the one synchronisation
+            if most <= slots:
+                break
+            slots = next_pow2(most)
+        flat = (torch.arange(slots, device=dev)[None, :] < count[:, None]).reshape(-1).nonzero().squeeze(1)
+        rays.append(torch.div(flat, slots, rounding_mode="floor") + s0)
+        ts.append(s_t[flat])
+        sigmas.append(s_sig[flat])
+        keys.append(s_keys[flat])
+    half = 0.5 * step
+    if not rays or sum(len(r) for r in rays) == 0:
+        z = torch.zeros(0, device=dev)
+        return RaySamples(torch.zeros(0, dtype=torch.long, device=dev), z, z.clone(), z.clone(), None, n)
+    ray, t, sig = torch.cat(rays), torch.cat(ts), torch.cat(sigmas)
+    idx, dist = decode_keys(torch.cat(keys), int(field.config.k))
+    x = origins.index_select(0, ray) + dirs.index_select(0, ray) * t[:, None]
+    nb = field.scaffold.neighbourhood_from(x, idx, dist)
+    return RaySamples(ray, t - half, t + half, sig, nb, n)
+
+
+def _launch(field, origins, dirs, window, early_stop_eps, weight_threshold, step, near, far, opts, out,
+            march=None, jitter=None) -> None:
+    """One launch of the kernel for rays (R,3): per-ray outputs into ``out`` (R,10); with ``march`` =
+    (s_t, s_sig, s_keys, s_max) the kept samples instead of colours (MARCH), ``jitter`` (R,) or None."""
     require_triton(origins.device)
     reason = supported(field)
     if reason is not None:
@@ -680,6 +804,8 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
         raise NeuMeshError(f"the Triton renderer cannot render this field: {reason}")
     dev = origins.device
     n = origins.shape[0]
+    if not n:
+        return
     grid = field.grid
     origins = origins.float().contiguous()
     dirs = dirs.float().contiguous()
@@ -688,36 +814,37 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
     t_far = torch.minimum(t_far, far) if torch.is_tensor(far) else t_far.clamp_max(far)
     t_start = torch.floor(t_near / step) * step
     g_o, g_d = grid.cell_coordinates(origins, dirs)
-    out = torch.zeros(n, 10, device=dev)
-    if n:
-        tb = FieldTables(field, int(opts["cells_per_radius"] or default_cells(dev)))
-        occ = grid.occ.contiguous().view(torch.uint8)
-        res = list(grid.occ.shape)   # host metadata: no device sync
-        blk = int(opts["block"] or default_block(dev))
-        rot = tb.rot if tb.rot is not None else tb.rest_n
-        refill = opts["schedule"] == "refill"
-        n_prog = triton.cdiv(n, blk)
-        if refill:
-            n_prog = refill_programs(dev, n_prog, opts["programs_per_sm"])
-        counter = torch.zeros(1, dtype=torch.int32, device=dev)
-        # a register cap per thread (ptx .maxnreg): more programs resident per multiprocessor, more spills
-        extra = {} if not opts["maxnreg"] else {"maxnreg": int(opts["maxnreg"])}
-        launch = _render_kernel[(n_prog,)]
-        with torch.cuda.device(dev) if dev.type == "cuda" else _nullcontext():
-            launch(
-                origins, dirs, g_o.contiguous(), g_d.contiguous(), t_near.contiguous(), t_far.contiguous(),
-                t_start.contiguous(), n,
-                occ, res[0], res[1], res[2],
-                *tb.hash.args()[:12], float(field.radius),
-                tb.vtab, tb.geo, tb.tex, tb.mod, tb.rest_n, rot,
-                *tb.mlp,
-                out, float(step), float(math.log(settings.early_stop_eps)), float(settings.weight_threshold), counter,
-                **kernel_constants(field.config, early=field.config.interpolation == "early",
-                                   deformed=tb.rot is not None, block=blk, cells=tb.hash.c,
-                                   precision=opts["precision"], scan=int(opts["scan"]), refill=refill,
-                                   window=int(settings.window), knn_early_out=bool(opts["knn_early_out"])),
-                num_warps=int(opts["num_warps"]), **extra)
-    opacity = out[:, 3]
-    depth = torch.where(opacity > 1e-6, out[:, 4] / opacity.clamp_min(1e-6), torch.full_like(opacity, float("inf")))
-    return {"rgb": out[:, :3], "opacity": opacity, "depth": depth, "mod_rgb": out[:, 5:8],
-            "n_samples": out[:, 8]}
+    tb = FieldTables(field, int(opts["cells_per_radius"] or default_cells(dev)))
+    occ = grid.occ.contiguous().view(torch.uint8)
+    res = list(grid.occ.shape)   # host metadata: no device sync
+    blk = int(opts["block"] or default_block(dev))
+    rot = tb.rot if tb.rot is not None else tb.rest_n
+    refill = opts["schedule"] == "refill"
+    n_prog = triton.cdiv(n, blk)
+    if refill:
+        n_prog = refill_programs(dev, n_prog, opts["programs_per_sm"])
+    counter = torch.zeros(1, dtype=torch.int32, device=dev)
+    if march is None:   # pointers the plain render never reads
+        s_t, s_sig, s_keys, s_max = out, out, counter, 0
+    else:
+        s_t, s_sig, s_keys, s_max = march
+    jit = out if jitter is None else jitter.to(dev, torch.float32).contiguous()
+    # a register cap per thread (ptx .maxnreg): more programs resident per multiprocessor, more spills
+    extra = {} if not opts["maxnreg"] else {"maxnreg": int(opts["maxnreg"])}
+    launch = _render_kernel[(n_prog,)]
+    with torch.cuda.device(dev) if dev.type == "cuda" else _nullcontext():
+        launch(
+            origins, dirs, g_o.contiguous(), g_d.contiguous(), t_near.contiguous(), t_far.contiguous(),
+            t_start.contiguous(), n,
+            occ, res[0], res[1], res[2],
+            *tb.hash.args()[:12], float(field.radius),
+            tb.vtab, tb.geo, tb.tex, tb.mod, tb.rest_n, rot,
+            *tb.mlp,
+            out, float(step), float(math.log(early_stop_eps)), float(weight_threshold), counter,
+            jit, s_t, s_sig, s_keys, int(s_max),
+            **kernel_constants(field.config, early=field.config.interpolation == "early",
+                               deformed=tb.rot is not None and march is None, block=blk, cells=tb.hash.c,
+                               precision=opts["precision"], scan=int(opts["scan"]), refill=refill,
+                               window=int(window), knn_early_out=bool(opts["knn_early_out"]),
+                               march=march is not None, jitter=jitter is not None),
+            num_warps=int(opts["num_warps"]), **extra)

@@ -107,9 +107,7 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
             r_near, r_far = (x.to(origins.device) for x in ranges[fi])
             near_f = r_near.clamp_min(settings.near)
             far_f = torch.minimum(r_far, far_f) if torch.is_tensor(far_f) else r_far.clamp_max(far_f)
-        s = march_rays(origins, dirs, f.grid, f.sigma_fn, default_step(f, settings), near=near_f,
-                       far=far_f, window=settings.window, early_stop_eps=settings.early_stop_eps,
-                       weight_threshold=settings.weight_threshold, jitter=jitter)
+        s = _march(f, origins, dirs, settings, near_f, far_f, jitter)
         if vertex_ids:
             touched.append(torch.unique(s.aux.idx[s.aux.valid]) if len(s) else
                            torch.zeros(0, dtype=torch.long, device=origins.device))
@@ -189,6 +187,21 @@ def _fused(settings, fl, device, train, jitter, vertex_ids, semantics) -> bool:
                       semantics=semantics)
 
 
+def _march(f, origins, dirs, settings, near, far, jitter):
+    """A field's samples for the torch path (sorted by ray and t, ``aux`` their neighbourhoods): the fused
+    kernel's march (render/fused_triton.march_rays_fused: one launch, one synchronisation) where it
+    covers the field on this device (``settings.backend``), the torch marcher otherwise."""
+    step = default_step(f, settings)
+    kw = dict(near=near, far=far, window=settings.window, early_stop_eps=settings.early_stop_eps,
+              weight_threshold=settings.weight_threshold, jitter=jitter)
+    if settings.backend != "torch" and (settings.backend != "auto" or torch.device(origins.device).type == "cuda"):
+        from .fused_triton import march_rays_fused, use_fused_march
+
+        if use_fused_march(settings, f, origins.device):
+            return march_rays_fused(f, origins, dirs, step, **kw)
+    return march_rays(origins, dirs, f.grid, f.sigma_fn, step, **kw)
+
+
 def _render_fused(field, origins, dirs, settings, far, ranges) -> dict:
     """The fields' own part of :func:`render_rays` through the fused Triton kernel
     (render/fused_triton.py): the same near/far limits as the torch path, the same outputs."""
@@ -224,9 +237,7 @@ def mod_colour_weights(fields, origins: torch.Tensor, dirs: torch.Tensor,
     n = origins.shape[0]
     parts = []
     for fi, f in enumerate(fl):
-        s = march_rays(origins, dirs, f.grid, f.sigma_fn, default_step(f, settings), near=settings.near,
-                       window=settings.window, early_stop_eps=settings.early_stop_eps,
-                       weight_threshold=settings.weight_threshold)
+        s = _march(f, origins, dirs, settings, settings.near, float("inf"), None)
         if len(s):
             parts.append((fi, s))
     out = [sp.csr_matrix((n, f.num_vertices), dtype=np.float64) for f in fl]

@@ -175,12 +175,13 @@ def test_half_precision_products_stay_close_to_the_reference(monkeypatch):
 
 def test_the_kernel_builds_for_a_gpu_ahead_of_time(tmp_path):
     """Every schedule must compile for a real GPU, not only run in the interpreter: an sm_90 build (no
-    GPU needed; Triton's own ptxas) of the default (static, early, fp32) and of refill + post + bent +
-    fp16.  Once a restructured loop ran in the interpreter and failed in Triton 3.6's layout passes."""
+    GPU needed; Triton's own ptxas) of the default (static, early, fp32), of refill + post + bent +
+    fp16 and of the training's march (samples out, jitter).  Once a restructured loop ran in the interpreter and failed in Triton 3.6's layout passes."""
     pytest.importorskip("triton.backends.nvidia")
     code = ("import sys, neumesh_core as nm\n"
             "from neumesh_core.render import fused_triton as ft\n"
-            "for kw in ({}, dict(schedule='refill', interpolation='post', deformed=True, precision='fp16')):\n"
+            "for kw in ({}, dict(schedule='refill', interpolation='post', deformed=True, precision='fp16'),\n"
+            "           dict(march=True, jitter=True)):\n"
             "    k = ft.compile_for(nm.FieldConfig(), 90, **kw)\n"
             "    assert len(k.asm['cubin']) > 10000, kw\n"
             "print('built')\n")
@@ -235,3 +236,76 @@ def test_refill_schedule_renders_what_the_static_one_does(monkeypatch):
     monkeypatch.setitem(ft.KERNEL_OPTIONS, "schedule", "wavefront")
     with pytest.raises(ValueError, match="schedule"):
         nm.render_camera(field, K, c2w, 12, 12, settings=nm.RenderSettings(backend="triton"))
+
+
+@pytest.mark.parametrize("interpolation,deformed,jitter", [("early", False, True), ("post", True, False)],
+                         ids=["early-rest-jitter", "post-bent"])
+def test_fused_march_keeps_the_torch_marchers_samples(interpolation, deformed, jitter):
+    """march_rays_fused (the kernel without colours) against its reference, the torch marcher with the
+    field's sigma_fn: the same kept samples (rays, positions, with the training's per-ray jitter), the
+    same densities and the same neighbours, with either schedule; a ray that keeps more samples than
+    MARCH_SLOTS makes the chunk run again with room for it."""
+    from neumesh_core.data.cameras import pixel_rays
+    from neumesh_core.render import fused_triton as ft
+    from neumesh_core.render.renderer import default_step
+    from neumesh_core.sampling.marcher import march_rays
+
+    field, K, c2w = _scene(interpolation, deformed)
+    o, d = pixel_rays(K, c2w, 12, 12, device=DEVICE)
+    jit = torch.rand(len(o), generator=torch.Generator().manual_seed(3)).to(DEVICE) if jitter else None
+    step = default_step(field, nm.RenderSettings())
+    ref = march_rays(o, d, field.grid, field.sigma_fn, step, jitter=jit)
+    out = ft.march_rays_fused(field, o, d, step, jitter=jit)
+    assert len(ref) > 80 and out.n_rays == ref.n_rays
+    assert torch.equal(out.ray_indices, ref.ray_indices)
+    assert torch.allclose(out.t_starts, ref.t_starts, atol=1e-6) and torch.allclose(out.t_ends, ref.t_ends, atol=1e-6)
+    assert torch.allclose(out.sigmas, ref.sigmas, rtol=1e-4, atol=1e-5)
+    assert torch.equal(out.aux.idx, ref.aux.idx) and torch.equal(out.aux.valid, ref.aux.valid)
+    assert torch.allclose(out.aux.w, ref.aux.w, atol=1e-5) and torch.allclose(out.aux.p, ref.aux.p, atol=1e-5)
+    # room for 2 samples a ray: the launch is repeated with room for the longest ray, the same samples
+    longest = int(torch.bincount(ref.ray_indices).max())
+    assert longest > 2
+    # the refill schedule (lanes take new rays as theirs end) stores each ray's samples in its own slots
+    refill = ft.march_rays_fused(field, o, d, step, jitter=jit, schedule="refill", block=16, programs_per_sm=1)
+    assert torch.equal(refill.ray_indices, out.ray_indices) and torch.equal(refill.t_starts, out.t_starts)
+    assert torch.equal(refill.aux.idx, out.aux.idx)
+    old = ft.MARCH_SLOTS
+    try:
+        ft.MARCH_SLOTS = 2
+        again = ft.march_rays_fused(field, o, d, step, jitter=jit)
+    finally:
+        ft.MARCH_SLOTS = old
+    assert torch.equal(again.ray_indices, out.ray_indices) and torch.equal(again.t_starts, out.t_starts)
+
+
+def test_a_training_step_marches_with_the_kernel_and_decodes_with_torch():
+    """render_rays(train=True) with backend "triton": the kernel marches (jittered), the torch decoders
+    decode the kept samples with autograd; the loss and every gradient are the torch path's."""
+    from neumesh_core.data.cameras import pixel_rays
+    from neumesh_core.render import fused_triton as ft
+    from neumesh_core.render.renderer import render_rays
+
+    field, K, c2w = _scene("early", False)
+    o, d = pixel_rays(K, c2w, 12, 12, device=DEVICE)
+    jit = torch.rand(len(o), generator=torch.Generator().manual_seed(4)).to(DEVICE)
+    target = torch.rand(len(o), 3, generator=torch.Generator().manual_seed(5)).to(DEVICE)
+    grads = []
+    for backend in ("torch", "triton"):
+        field.zero_grad(set_to_none=True)
+        out = render_rays(field, o, d, background=torch.ones(3, device=DEVICE), train=True, jitter=jit,
+                          settings=nm.RenderSettings(backend=backend), vertex_ids=True)
+        loss = (out["rgb"] - target).square().mean()
+        loss.backward()
+        grads.append((float(loss.detach()), out["n_samples"], out["vertex_ids"][0],
+                      {n: p.grad.detach().to_dense().clone() for n, p in field.named_parameters() if p.grad is not None}))
+    (l_ref, n_ref, v_ref, g_ref), (l_out, n_out, v_out, g_out) = grads
+    assert n_out == n_ref > 80 and torch.equal(v_out, v_ref)
+    assert abs(l_out - l_ref) < 1e-6 * max(1.0, abs(l_ref))
+    assert g_ref.keys() == g_out.keys() and {"geo_codes", "tex_codes"} <= set(g_ref)
+    for name in g_ref:
+        assert torch.allclose(g_out[name], g_ref[name], rtol=1e-3, atol=1e-6), name
+    # the plain render still takes the whole kernel; "auto" on the CPU keeps the torch marcher
+    assert ft.use_triton(nm.RenderSettings(backend="triton"), [field], DEVICE)
+    assert not ft.use_triton(nm.RenderSettings(backend="triton"), [field], DEVICE, train=True)
+    assert ft.use_fused_march(nm.RenderSettings(backend="triton"), field, DEVICE)
+    assert not ft.use_fused_march(nm.RenderSettings(), field, "cpu")
