@@ -17,7 +17,8 @@ Each configuration renders ``--views`` views, each the best of ``--repeats`` fra
 is the median over the views.  ``--sweep`` first times the kernel's launch options (rays per program,
 warps, the static or refill schedule and its programs per multiprocessor) on one early-interpolation
 800² view and keeps the fastest for the rest.  ``--breakdown`` last times the neighbour search and the
-decoders alone on one frame's samples.  ``--train-steps N`` first times N training steps (forward and
+decoders alone on one frame's samples.  Then the seconds from a new pose (``set_vertices`` of host positions) to its first 800² frame on the
+host.  ``--train-steps N`` first times N training steps (forward and
 backward of ``--train-rays`` random pixels) with the torch marcher and with the kernel's march.  ``--budget-s`` stops starting new configurations after that many seconds (the
 JSON then says which were skipped).  Writes benchmarks/results/render_gpu_<name>.json.
 """
@@ -222,6 +223,38 @@ def sweep_grid(which: str) -> list:
             {**base, "knn_early_out": True, "schedule": "refill", "programs_per_sm": 4},
             {**base, "cells_per_radius": 2},   # half-radius cells, now read nearest first and pruned
             {**base, "cells_per_radius": 2, "knn_early_out": True}]
+
+
+def deform_latency(field, cam, device, size, rest: np.ndarray, angles=(4.0, 8.0, 12.0, 16.0, 20.0)) -> dict:
+    """What an artist waits for after a deformation (the issue's "first preview within one frame of
+    60 Hz"): new positions as the add-on hands them over (a host array) -> ``set_vertices`` (normals,
+    rotations, neighbour index, occupancy grid) -> the frame on the host, for bends of ``angles``
+    degrees in turn (each a new pose). Medians of the seconds: posing, rendering, both."""
+    import neumesh_core as nm
+    from neumesh_core.data.deformations import bend
+
+    K, c2w = cam
+    Ks = scaled(K, size / 400)
+    pose, frame = [], []
+    for a in angles:
+        v = np.ascontiguousarray(bend(rest, a), np.float32)
+        sync(device)
+        t0 = time.perf_counter()
+        field.set_vertices(v)
+        sync(device)
+        t1 = time.perf_counter()
+        nm.render_camera(field, Ks, c2w, size, size)
+        sync(device)
+        pose.append(t1 - t0)
+        frame.append(time.perf_counter() - t1)
+    field.reset_vertices()
+    total = [a + b for a, b in zip(pose, frame)]
+    out = {"size": size, "angles": list(angles), "pose_s": float(statistics.median(pose)),
+           "frame_s": float(statistics.median(frame)), "total_s": float(statistics.median(total)),
+           "within_60hz_frames": sum(t <= 1 / 60 for t in total)}
+    print(f"  deformation -> frame at {size}²: pose {out['pose_s'] * 1e3:.1f} ms + frame "
+          f"{out['frame_s'] * 1e3:.1f} ms = {out['total_s'] * 1e3:.1f} ms (median of {len(angles)} poses)", flush=True)
+    return out
 
 
 def breakdown(field, cam, device, size, repeats) -> dict:
@@ -486,6 +519,13 @@ def main(argv=None) -> int:
                         r["psnr_vs_torch_db"] = db
                 print(f"  {mode} {'deformed' if deformed else 'rest'}: triton vs torch {max(args.sizes)}² "
                       f"PSNR min {min(db):.1f} dB", flush=True)
+        if not args.sweep_only and time.perf_counter() - t_start <= args.budget_s:
+            field.config.interpolation = "early"
+            try:   # the first frame after each of a few new poses (the backend "auto" takes)
+                result["deform_latency"] = deform_latency(field, cams[0], dev, max(args.sizes), rest)
+            except Exception as e:   # record it, keep the rest of the results
+                result["deform_latency"] = {"error": repr(e)[:500]}
+                print(f"  deformation latency failed: {e!r}"[:300], flush=True)
         if args.breakdown and not args.sweep_only and "triton" in args.backends:
             field.config.interpolation = "early"
             try:

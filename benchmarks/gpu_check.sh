@@ -9,7 +9,8 @@
 # 2. benchmarks/bench_render_gpu.py: a short sweep of the kernel's launch options (static and refill
 #    schedules, block sizes, a register cap, the neighbour search's early out), then both backends,
 #    both interpolation modes, at rest and deformed, 400² and 800², launches/syncs per frame, PSNR,
-#    and a breakdown (the neighbour search and the decoders timed alone on a frame's samples);
+#    the first frame after a new pose, training steps with each marcher, and a breakdown (the neighbour
+#    search and the decoders timed alone on a frame's samples);
 # 3. the precision sweep (--sweep-set precision: fp32, fp16 and tf32 products) in a process of its own,
 #    last: tf32 once poisoned the CUDA context on an H200 (triton 3.6.0), so nothing else may share it;
 # 4. a summary.  Logs and JSON go to $OUT (the device tool's folder that comes back), else to
@@ -75,6 +76,6 @@ echo "== summary ($(( $(date +%s) - T0 )) s)" | tee "$OUT/summary.txt"
     head -2 "$OUT/env.txt"
     echo "tests: exit $TEST_RC; $(grep -E '[0-9]+ (passed|failed)' "$OUT/tests.log" | tail -1)"
     echo "benchmark: exit $BENCH_RC; precision sweep: exit $PREC_RC"
-    grep -E "sweep|kernel options|fps|PSNR|skipped|breakdown" "$OUT/bench.log" | head -44
+    grep -E "sweep|kernel options|fps|PSNR|skipped|breakdown|deformation|training step" "$OUT/bench.log" | head -50
     grep -E "sweep|kernel options|error" "$OUT/bench_precision.log" | head -14
 } 2>&1 | tee -a "$OUT/summary.txt"
