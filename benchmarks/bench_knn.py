@@ -77,7 +77,12 @@ def main(argv=None) -> int:
               "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
               "torch": torch.__version__, "backends": {}}
     ref = None
+    from neumesh_core.field.knn_triton import triton_runs_on
+
     for b in KNN_BACKENDS:
+        if b == "triton" and not triton_runs_on(device):
+            print(f"{b:9s} skipped: needs a CUDA GPU with triton (or TRITON_INTERPRET=1, slow)")
+            continue
         r, idx = time_backend(b, v, pts, args.k, radius, args.repeats, device)
         if ref is None:
             ref = idx.cpu()

@@ -19,6 +19,7 @@ Triton is optional (``pip install neumesh[gpu]``, or the wheel that comes with C
 """
 from __future__ import annotations
 
+import contextlib
 import os
 
 import numpy as np
@@ -277,8 +278,9 @@ def knn_radius_triton(points: torch.Tensor, grid: TritonHashGrid, k: int, block:
     if grid.n == 0:
         return (torch.full((m, k), -1, dtype=torch.long, device=p.device),
                 torch.full((m, k), float("inf"), device=p.device))
-    _knn_kernel[(triton.cdiv(m, block),)](p, m, keys, *grid.args(), BLOCK=block, KP=kp, K=k, C=grid.c,
-                                           NCP=grid.ncp, EARLY_OUT=bool(early_out))
+    with torch.cuda.device(p.device) if p.device.type == "cuda" else contextlib.nullcontext():
+        _knn_kernel[(triton.cdiv(m, block),)](p, m, keys, *grid.args(), BLOCK=block, KP=kp, K=k, C=grid.c,
+                                               NCP=grid.ncp, EARLY_OUT=bool(early_out))
     return decode_keys(keys, k)
 
 

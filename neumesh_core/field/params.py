@@ -40,7 +40,8 @@ class FieldConfig:
     grid_resolution: int = 128  # occupancy grid cells along the longest axis
     step_scale: float = 0.5     # marching step = radius x step_scale (training and rendering)
     code_init_std: float = 1e-2
-    knn: str = "kdtree"         # neighbour search: "kdtree" (pykdtree, CPU) or "hashgrid" (torch, any device)
+    knn: str = "kdtree"         # neighbour search: "kdtree" (pykdtree, CPU; on a GPU the Triton kernel, or the
+    #                             hash grid without triton), "hashgrid" (torch, any device) or "triton" (GPU)
 
     def __post_init__(self) -> None:
         if self.knn not in KNN_BACKENDS:

@@ -132,7 +132,7 @@ class Scaffold(nn.Module):
         self.register_buffer("rest_normals", torch.zeros_like(verts), persistent=False)
         self.register_buffer("rest_frames", torch.zeros(n, 3, 3), persistent=False)
         self.to_rest: Optional[torch.Tensor] = None  # (N,3,3) current->rest rotation; None at rest
-        self.index = None  # VertexIndex or HashGridIndex (knn backend)
+        self.index = None  # VertexIndex, HashGridIndex or TritonKNNIndex (knn backend, make_index)
         self.update_rest_geometry()
         from ..sampling.occupancy import OccupancyGrid
 

@@ -309,3 +309,31 @@ def test_a_training_step_marches_with_the_kernel_and_decodes_with_torch():
     assert not ft.use_triton(nm.RenderSettings(backend="triton"), [field], DEVICE, train=True)
     assert ft.use_fused_march(nm.RenderSettings(backend="triton"), field, DEVICE)
     assert not ft.use_fused_march(nm.RenderSettings(), field, "cpu")
+
+
+def test_triton_neighbour_index_serves_the_torch_path():
+    """FieldConfig(knn="triton"): the field's own neighbour queries (the torch marcher, edits, the
+    occupancy refresh) answered by the Triton kernel; on a GPU "kdtree" gives it too.  The same render as
+    the KD-tree's, and make_index names it."""
+    from neumesh_core.data.synthetic import default_mesh
+    from neumesh_core.field.knn import make_index
+
+    verts = torch.rand(800, 3, generator=torch.Generator().manual_seed(6))
+    index = make_index(verts.to(DEVICE), 4, 0.15, "triton")
+    assert isinstance(index, knn_triton.TritonKNNIndex)
+    pts = torch.rand(100, 3, generator=torch.Generator().manual_seed(7))
+    idx, dist = index.query(pts.to(DEVICE))
+    ref_i, ref_d = knn_radius_reference(pts, verts, 4, 0.15)
+    assert torch.equal(idx.cpu(), ref_i) and torch.allclose(dist.cpu(), ref_d, atol=1e-6, equal_nan=True)
+    if DEVICE == "cuda":
+        assert isinstance(make_index(verts.cuda(), 4, 0.15, "kdtree"), knn_triton.TritonKNNIndex)
+    mesh = default_mesh(subdiv=2)
+    kd = textured_field(mesh, "early", grid_resolution=32).to(DEVICE)
+    tr = textured_field(mesh, "early", grid_resolution=32, knn="triton").to(DEVICE)
+    assert isinstance(tr.scaffold.index, knn_triton.TritonKNNIndex)
+    _, K, c2w = _scene("early", False)
+    st = nm.RenderSettings(backend="torch")
+    a = nm.render_camera(kd, K, c2w, 12, 12, settings=st)
+    b = nm.render_camera(tr, K, c2w, 12, 12, settings=st)
+    assert a.opacity.max() > 0.9 and a.n_samples == b.n_samples
+    assert np.abs(a.rgb - b.rgb).max() < 1e-5
