@@ -16,7 +16,7 @@ import traceback
 import bpy
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, install_addon, script_args  # noqa: E402
+from real_blender_common import addon_module, facts, install_addon, overridden, script_args  # noqa: E402
 
 ZIP, PHOTOS, CAPTURE = script_args()[:3]
 
@@ -58,7 +58,7 @@ class Driver:
 
     def invoke(self, op, **kw):
         win, area, region = self.ctx()
-        with bpy.context.temp_override(window=win, area=area, region=region):
+        with overridden(window=win, area=area, region=region):
             return sorted(op("INVOKE_DEFAULT", **kw))
 
     def wrap_panels(self):

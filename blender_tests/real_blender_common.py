@@ -74,3 +74,22 @@ def preview_done():
             return False
         return getattr(e, "_texture_serial", None) == pv.latest[:2]
     return False
+
+
+def overridden(**kw):
+    """``bpy.context.temp_override(**kw)`` with the add-on's Python threads held at a checkpoint
+    (``runtime.quiet.held``): Blender 3.4 corrupts Python's heap when an operator runs under an override
+    while another Python thread runs (the viewport's preview thread, a job)."""
+    import contextlib
+
+    stack = contextlib.ExitStack()
+    try:
+        stack.enter_context(addon_module().runtime.quiet.held())
+    except (KeyError, AttributeError):   # the add-on is not loaded (yet)
+        pass
+    try:
+        stack.enter_context(bpy.context.temp_override(**kw))
+    except BaseException:
+        stack.close()
+        raise
+    return stack

@@ -18,7 +18,7 @@ import traceback
 import bpy
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, script_args  # noqa: E402
+from real_blender_common import addon_module, facts, overridden, script_args  # noqa: E402
 
 ARGS = script_args()
 
@@ -63,7 +63,7 @@ class PaintDriver:
             self.facts.update(windows_before=len(bpy.context.window_manager.windows), areas_before=types)
             area = max((a for a in win.screen.areas if a.type == "VIEW_3D"), key=lambda a: a.width * a.height)
             region = next(r for r in area.regions if r.type == "WINDOW")
-            with bpy.context.temp_override(window=win, area=area, region=region):
+            with overridden(window=win, area=area, region=region):
                 self.facts["paint_view"] = sorted(bpy.ops.neumesh.paint_view())
             self.state = "tab"
             return 1.0
@@ -80,11 +80,11 @@ class PaintDriver:
                                   ui_mode=getattr(ed.spaces.active, "ui_mode", ""),
                                   sidebar_width=side.width, panel_drawn=self.drawn, turns=self.turns)
                 path = os.path.join(self.out_dir, "paint.png")
-                with bpy.context.temp_override(window=win, area=ed):
+                with overridden(window=win, area=ed):
                     bpy.ops.screen.screenshot(filepath=path)
                 self.facts["screenshot"] = path
                 self.facts["editor"] = [ed.x, ed.y, ed.width, ed.height]
-                with bpy.context.temp_override(window=win, area=ed):
+                with overridden(window=win, area=ed):
                     self.facts["cancel"] = sorted(bpy.ops.neumesh.cancel_paint())
                 self.state = "cancelled"
                 return 1.0

@@ -16,7 +16,7 @@ import traceback
 import bpy
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, preview_done, script_args, viewport_engines  # noqa: E402
+from real_blender_common import addon_module, facts, overridden, preview_done, script_args, viewport_engines  # noqa: E402
 
 ARGS = script_args()
 MODE = ARGS[2] if len(ARGS) > 2 else "SCULPT"   # OBJECT: the same steps in Object Mode, for comparison
@@ -80,7 +80,7 @@ class SculptDriver:
             space.shading.type = "RENDERED"
             obj = bpy.data.objects["blob"]
             bpy.context.view_layer.objects.active = obj
-            with bpy.context.temp_override(window=win, area=area, region=region):
+            with overridden(window=win, area=area, region=region):
                 bpy.ops.object.mode_set(mode=MODE)
                 try:
                     bpy.ops.wm.tool_set_by_id(name="builtin_brush.Grab")

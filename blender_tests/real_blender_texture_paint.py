@@ -18,7 +18,7 @@ import bpy
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, preview_done, viewport_engines  # noqa: E402
+from real_blender_common import addon_module, facts, overridden, preview_done, viewport_engines  # noqa: E402
 
 
 class TexturePaintDriver:
@@ -83,7 +83,7 @@ class TexturePaintDriver:
             obj = bpy.data.objects["blob"]
             bpy.context.view_layer.objects.active = obj
             obj.select_set(True)
-            with bpy.context.temp_override(window=win, area=area, region=region):
+            with overridden(window=win, area=area, region=region):
                 self.facts["texture_paint"] = sorted(bpy.ops.neumesh.texture_paint(resolution=1024))
                 # the undo step a click on the button pushes (operators called from Python push none)
                 bpy.ops.ed.undo_push(message="Texture Paint")
@@ -144,7 +144,7 @@ class TexturePaintDriver:
             self.facts["stroke_to_final_level_s"] = round(time.time() - self.stroke_t, 3)
             self.facts["viewport_changed"] = self._changed(self.latest()[2], self.base)
             self.pushes1 = tp.STATS["pushes"]
-            with bpy.context.temp_override(window=win, area=area, region=region):
+            with overridden(window=win, area=area, region=region):
                 win.event_simulate(type="MOUSEMOVE", value="NOTHING", x=region.x + 20, y=region.y + 20)
                 win.event_simulate(type="Z", value="PRESS", ctrl=True)
                 win.event_simulate(type="Z", value="RELEASE", ctrl=True)

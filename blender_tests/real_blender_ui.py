@@ -27,7 +27,7 @@ import traceback
 import bpy
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, install_addon, preview_done, script_args, viewport_engines  # noqa: E402
+from real_blender_common import addon_module, facts, install_addon, overridden, preview_done, script_args, viewport_engines  # noqa: E402
 
 ARGS = script_args()
 EDIT_PANELS = ("NEUMESH_PT_edit", "NEUMESH_PT_swap", "NEUMESH_PT_fill", "NEUMESH_PT_paint", "NEUMESH_PT_semantics")
@@ -171,14 +171,14 @@ class Driver:
             if not self.preview_done() and time.time() - self.state_t < 90:
                 return 0.5
             self.facts["preview_done"] = self.preview_done()
-            with bpy.context.temp_override(window=win):
+            with overridden(window=win):
                 res = bpy.ops.neumesh.check_dependencies()
             self.facts["check_dependencies"] = sorted(res)
             self.goto("shot")
             return 1.0
         if self.state == "shot":
             path = os.path.join(self.out_dir, "window.png")
-            with bpy.context.temp_override(window=win, area=area):
+            with overridden(window=win, area=area):
                 bpy.ops.screen.screenshot(filepath=path)
             self.facts.update(screenshot=path, sidebar=[sidebar.x, sidebar.y, sidebar.width, sidebar.height],
                               viewport=[main.x, main.y, main.width, main.height],
@@ -222,7 +222,7 @@ class Driver:
 
     def docs_shot(self, name, win, area):
         path = os.path.join(self.out_dir, name)
-        with bpy.context.temp_override(window=win, area=area):
+        with overridden(window=win, area=area):
             bpy.ops.screen.screenshot(filepath=path)
         self.facts.setdefault("docs_shots", []).append(name)
 
@@ -238,7 +238,7 @@ class Driver:
             if not addon_module().render.engine.VIEWPORT_MESSAGE["lines"] and time.time() - self.state_t < 60:
                 return 0.5
             path = os.path.join(self.out_dir, "error.png")
-            with bpy.context.temp_override(window=win, area=area):
+            with overridden(window=win, area=area):
                 bpy.ops.screen.screenshot(filepath=path)
             self.facts["viewport_message"] = dict(addon_module().render.engine.VIEWPORT_MESSAGE)
             self.facts["error_errors"] = self.viewport_errors()
@@ -250,7 +250,7 @@ class Driver:
             return None
         if self.state == "prefs":
             path = os.path.join(self.out_dir, "prefs.png")
-            with bpy.context.temp_override(window=win, area=area):
+            with overridden(window=win, area=area):
                 bpy.ops.screen.screenshot(filepath=path)
             self.facts.setdefault("docs_shots", []).append("prefs.png")
             self.finish()

@@ -38,7 +38,7 @@ import bpy
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, preview_done, script_args, viewport_engines  # noqa: E402
+from real_blender_common import addon_module, facts, overridden, preview_done, script_args, viewport_engines  # noqa: E402
 
 ARGS = script_args()
 TOP_PANELS = ("NEUMESH_PT_data", "NEUMESH_PT_scaffold", "NEUMESH_PT_train", "NEUMESH_PT_field")
@@ -154,7 +154,7 @@ class Driver:
     def shot(self, name):
         win, area, _ = self.view3d()
         path = os.path.join(self.out, name)
-        with bpy.context.temp_override(window=win, area=area):
+        with overridden(window=win, area=area):
             bpy.ops.screen.screenshot(filepath=path)
         return path
 
@@ -582,7 +582,7 @@ class SwapDriver(Driver):
             return 0.5
         self.f["before_path"] = obj.neumesh.field_path
         self.f["files_before"] = self.files()
-        with bpy.context.temp_override(window=win, area=area, region=regions["WINDOW"]):
+        with overridden(window=win, area=area, region=regions["WINDOW"]):
             self.f["preview"] = sorted(bpy.ops.neumesh.swap_preview(target_group="cap-", source_object="",
                                                                     source_group="cap+", use_pairs=True,
                                                                     nonrigid=False))
@@ -631,7 +631,7 @@ class SculptDriver(Driver):
         self.f["object_done"] = self.preview_done()
         self.f["object_levels"] = [[d, round(t, 3)] for d, t in pv.timings]
         self.f["viewport"] = [regions["WINDOW"].width, regions["WINDOW"].height]
-        with bpy.context.temp_override(window=win, area=area, region=regions["WINDOW"]):
+        with overridden(window=win, area=area, region=regions["WINDOW"]):
             bpy.ops.object.mode_set(mode="SCULPT")
             bpy.ops.wm.tool_set_by_id(name="builtin_brush.Grab")
         self.goto("sculpt_idle")

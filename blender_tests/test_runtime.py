@@ -44,6 +44,80 @@ def test_job_states_result_error_and_cancel(addon):
     assert job.join(timeout=30) and job.cancelled and job.result is None
 
 
+
+# ------------------------------------------------------------------------------------------ quiet
+def test_held_waits_for_a_running_job_to_park_and_lets_it_go_on(addon):
+    """runtime/quiet.py: an operator under a context override runs only while the add-on's Python
+    threads wait at a checkpoint (their progress callback), and they go on afterwards."""
+    quiet, Job = addon.runtime.quiet, addon.runtime.jobs.Job
+    ticks = []
+
+    def work(progress):
+        t_end = time.time() + 30
+        while time.time() < t_end and len(ticks) < 400:
+            ticks.append(time.time())
+            if not progress(0.5):
+                break
+            time.sleep(0.002)
+        return len(ticks)
+
+    job = Job("q", work).start()
+    while len(ticks) < 5:
+        time.sleep(0.005)
+    assert quiet.state()["workers"] == 1
+    with quiet.held(timeout=10) as all_parked:
+        n = len(ticks)
+        time.sleep(0.2)
+        assert all_parked and quiet.state()["parked"] == 1 and len(ticks) == n   # nothing ran meanwhile
+    assert job.join(timeout=30) and job.state == "DONE" and job.result == 400
+    assert quiet.state() == {"closed": 0, "workers": 0, "parked": 0}
+    # a worker that never reaches a checkpoint: held goes ahead after its timeout
+    with quiet.worker():   # this thread as a worker would deadlock itself: held only counts others
+        pass
+    t = time.time()
+    with quiet.held(timeout=0.05) as all_parked:
+        assert all_parked   # no worker now
+    assert time.time() - t < 1.0
+
+
+def test_the_blender_crash_quiet_prevents(tmp_path):
+    """Why runtime/quiet.py exists: bpy.ops under temp_override while another Python thread runs
+    crashes Blender 3.4 (Python heap corruption); the same thread parked at a checkpoint does not."""
+    import subprocess
+    import sys
+
+    from test_real_blender import BLENDER, _env
+    if not os.path.exists(BLENDER):
+        pytest.skip("no blender binary")
+    code = (
+        "import sys, threading, time, bpy\n"
+        "sys.path.insert(0, %r)\n"
+        "import quiet\n"
+        "stop = [False]; n = [0]\n"
+        "def spin():\n"
+        "    with quiet.worker():\n"
+        "        while not stop[0]:\n"
+        "            d = {'a': [1, 2, 3], 'b': str(n[0])}; n[0] += 1\n"
+        "            if n[0] %% 2000 == 0: quiet.checkpoint()\n"
+        "t = threading.Thread(target=spin, daemon=True); t.start()\n"
+        "time.sleep(0.1); t0 = time.time(); calls = 0\n"
+        "while time.time() - t0 < 4:\n"
+        "    with quiet.held(timeout=5), bpy.context.temp_override():\n"
+        "        bpy.ops.object.location_clear()\n"
+        "    calls += 1\n"
+        "stop[0] = True; t.join()\n"
+        "print('QUIET_OK', calls, n[0], flush=True)\n"
+        "import os; os._exit(0)\n"
+    ) % os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "addon", "runtime")
+    script = tmp_path / "quiet_probe.py"
+    script.write_text(code)
+    r = subprocess.run([BLENDER, "-b", "--factory-startup", "--python", str(script)], env=_env(tmp_path),
+                       capture_output=True, text=True, timeout=120)
+    out = r.stdout + r.stderr
+    assert r.returncode == 0 and "QUIET_OK" in out, out[-3000:]
+    calls, spins = (int(x) for x in out.split("QUIET_OK")[1].split()[:2])
+    assert calls > 100 and spins > 10000   # both threads ran, in turn
+
 def test_every_background_job_is_the_one_job_class(addon):
     Job = addon.runtime.jobs.Job
     assert issubclass(addon.train.worker.TrainJob, Job)

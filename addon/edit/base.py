@@ -21,7 +21,7 @@ import os
 
 import bpy
 
-from ..runtime import core, jobs
+from ..runtime import core, jobs, quiet
 from ..runtime.errors import UserError
 from ..runtime.jobs import Job, JobModal, redraw
 from ..runtime.text import text_width, wrapped_label
@@ -212,13 +212,12 @@ def push_undo_step(context, message: str) -> bool:
     if bpy.app.background or context.window is None:
         return False
     try:
-        with context.temp_override(window=context.window):
+        if bpy.context.window is not None:   # no override where none is needed (runtime/quiet.py)
+            return "FINISHED" in bpy.ops.ed.undo_push(message=message)
+        with quiet.held(), context.temp_override(window=context.window):
             return "FINISHED" in bpy.ops.ed.undo_push(message=message)
     except (RuntimeError, AttributeError, TypeError):   # poll failed / no temp_override before 3.2
-        try:
-            return "FINISHED" in bpy.ops.ed.undo_push(message=message)
-        except RuntimeError:
-            return False
+        return False
 
 
 def _point_back(op, context, which: str):

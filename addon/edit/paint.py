@@ -19,7 +19,7 @@ import bpy
 from bpy.props import StringProperty
 
 from ..runtime._np import np
-from ..runtime import core
+from ..runtime import core, quiet
 from ..runtime.text import text_width, ui_scale, wrapped_label
 from ..scene import camera, props
 from ..render import fields, frame
@@ -299,7 +299,7 @@ class NEUMESH_OT_cancel_paint(bpy.types.Operator):
                 if area.type != "IMAGE_EDITOR" or area.spaces.active.image != img:
                     continue
                 if opened and len(window.screen.areas) > 1:
-                    with context.temp_override(window=window, screen=window.screen, area=area):
+                    with quiet.held(), context.temp_override(window=window, screen=window.screen, area=area):
                         bpy.ops.screen.area_close()
                     closed += 1
                 else:

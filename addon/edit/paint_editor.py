@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import bpy
 
+from ..runtime import quiet
+
 OPENED_KEY = "neumesh_opened_area"   # on the paint image: the add-on split a 3D View for it
 
 
@@ -17,7 +19,7 @@ def _split_view(context):
     area = max(views, key=lambda a: a.width * a.height)
     before = set(screen.areas[:])
     region = next((r for r in area.regions if r.type == "WINDOW"), None)
-    with context.temp_override(window=window, screen=screen, area=area, region=region):
+    with quiet.held(), context.temp_override(window=window, screen=screen, area=area, region=region):
         bpy.ops.screen.area_split(direction="VERTICAL", factor=0.5)
     new = [a for a in screen.areas if a not in before]
     return new[0] if new else None

@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 
+from ..runtime import quiet
 from . import fields, frame
 
 
@@ -103,26 +104,32 @@ class PreviewRenderer:
             self.busy = True
             self.timings = []
             try:
-                for div in self.levels(W, H):
-                    w, h = max(1, W // div), max(1, H // div)
-                    Ks = frame.scale_K(K, W, H, w, h)
-                    t_level = time.perf_counter()
-
-                    def prog(_f, serial=serial):
-                        return self._serial == serial and not self._stop
-
-                    rgba = frame.render_items(items, Ks, c2w, w, h, transparent, progress=prog,
-                                              background_model=background_model)
-                    if self._serial != serial:
-                        break
-                    self.seconds_per_pixel = (time.perf_counter() - t_level) / (w * h)
-                    self.latest = (serial, div, frame.to_scene_linear(rgba, transparent))
-                    self.timings.append((div, time.perf_counter() - t0))
-                    self.error = ""
-                    if self.on_image is not None:
-                        self.on_image()
+                with quiet.worker():   # an operator under a context override waits for a checkpoint
+                    self._render(serial, items, K, c2w, W, H, transparent, background_model, t0)
             except Exception as exc:  # noqa: BLE001 - shown in the viewport
                 if type(exc).__name__ != "Cancelled":
                     self.error = fields.user_message(exc)
             finally:
                 self.busy = False
+
+    def _render(self, serial, items, K, c2w, W, H, transparent, background_model, t0):
+        """The levels of one request, coarsest first (in the thread; stops when superseded)."""
+        for div in self.levels(W, H):
+            w, h = max(1, W // div), max(1, H // div)
+            Ks = frame.scale_K(K, W, H, w, h)
+            t_level = time.perf_counter()
+
+            def prog(_f, serial=serial):
+                quiet.checkpoint()
+                return self._serial == serial and not self._stop
+
+            rgba = frame.render_items(items, Ks, c2w, w, h, transparent, progress=prog,
+                                      background_model=background_model)
+            if self._serial != serial:
+                break
+            self.seconds_per_pixel = (time.perf_counter() - t_level) / (w * h)
+            self.latest = (serial, div, frame.to_scene_linear(rgba, transparent))
+            self.timings.append((div, time.perf_counter() - t0))
+            self.error = ""
+            if self.on_image is not None:
+                self.on_image()

@@ -15,7 +15,7 @@ import threading
 import time
 import traceback
 
-from . import core
+from . import core, quiet
 from .errors import UserError
 
 FINAL_STATES = ("DONE", "CANCELLED", "ERROR")
@@ -74,6 +74,7 @@ class Job:
     def progress(self, fraction) -> bool:
         """The progress callback handed to the core: records ``fraction``; False once cancelled."""
         self.fraction = min(1.0, max(0.0, float(fraction)))
+        quiet.checkpoint()   # an operator under a context override may be waiting (runtime/quiet.py)
         return not self._cancel.is_set()
 
     def run(self):
@@ -81,6 +82,10 @@ class Job:
         return self._fn(self.progress)
 
     def _main(self):
+        with quiet.worker():
+            self._work()
+
+    def _work(self):
         try:
             if self.uses_torch:
                 with core.torch_work(self.threads):
