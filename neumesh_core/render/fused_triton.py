@@ -389,8 +389,8 @@ def _launch(field, origins, dirs, window, early_stop_eps, weight_threshold, step
     if refill:
         n_prog = refill_programs(dev, n_prog, opts["programs_per_sm"])
     counter = torch.zeros(1, dtype=torch.int32, device=dev)
-    if march is None:   # pointers the plain render never reads
-        s_t, s_sig, s_keys, s_max = out, out, counter, 0
+    if march is None:   # pointers the plain render never reads (of the types compile_for builds with)
+        s_t, s_sig, s_keys, s_max = out, out, torch.zeros(1, dtype=torch.int64, device=dev), 0
     else:
         s_t, s_sig, s_keys, s_max = march
     jit = out if jitter is None else jitter.to(dev, torch.float32).contiguous()
