@@ -78,18 +78,10 @@ def preview_done():
 
 def overridden(**kw):
     """``bpy.context.temp_override(**kw)`` with the add-on's Python threads held at a checkpoint
-    (``runtime.quiet.held``): Blender 3.4 corrupts Python's heap when an operator runs under an override
-    while another Python thread runs (the viewport's preview thread, a job)."""
-    import contextlib
-
-    stack = contextlib.ExitStack()
+    (``runtime.quiet.override``): Blender 3.4 corrupts Python's heap when an operator runs under an
+    override while another Python thread runs (the viewport's preview thread, a job)."""
     try:
-        stack.enter_context(addon_module().runtime.quiet.held())
+        quiet = addon_module().runtime.quiet
     except (KeyError, AttributeError):   # the add-on is not loaded (yet)
-        pass
-    try:
-        stack.enter_context(bpy.context.temp_override(**kw))
-    except BaseException:
-        stack.close()
-        raise
-    return stack
+        return bpy.context.temp_override(**kw)
+    return quiet.override(bpy.context, **kw)

@@ -214,7 +214,7 @@ def push_undo_step(context, message: str) -> bool:
     try:
         if bpy.context.window is not None:   # no override where none is needed (runtime/quiet.py)
             return "FINISHED" in bpy.ops.ed.undo_push(message=message)
-        with quiet.held(), context.temp_override(window=context.window):
+        with quiet.override(context, window=context.window):
             return "FINISHED" in bpy.ops.ed.undo_push(message=message)
     except (RuntimeError, AttributeError, TypeError):   # poll failed / no temp_override before 3.2
         return False

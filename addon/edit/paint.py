@@ -299,7 +299,7 @@ class NEUMESH_OT_cancel_paint(bpy.types.Operator):
                 if area.type != "IMAGE_EDITOR" or area.spaces.active.image != img:
                     continue
                 if opened and len(window.screen.areas) > 1:
-                    with quiet.held(), context.temp_override(window=window, screen=window.screen, area=area):
+                    with quiet.override(context, window=window, screen=window.screen, area=area):
                         bpy.ops.screen.area_close()
                     closed += 1
                 else:

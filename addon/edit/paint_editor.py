@@ -19,7 +19,7 @@ def _split_view(context):
     area = max(views, key=lambda a: a.width * a.height)
     before = set(screen.areas[:])
     region = next((r for r in area.regions if r.type == "WINDOW"), None)
-    with quiet.held(), context.temp_override(window=window, screen=screen, area=area, region=region):
+    with quiet.override(context, window=window, screen=screen, area=area, region=region):
         bpy.ops.screen.area_split(direction="VERTICAL", factor=0.5)
     new = [a for a in screen.areas if a not in before]
     return new[0] if new else None

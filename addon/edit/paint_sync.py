@@ -231,7 +231,7 @@ def _start_watch():
     if win is None or bpy.app.background:
         return
     try:
-        with quiet.held(), bpy.context.temp_override(window=win):
+        with quiet.override(bpy.context, window=win):
             bpy.ops.neumesh.texture_paint_watch("INVOKE_DEFAULT")
     except Exception as exc:  # noqa: BLE001 - the timer's poll still follows the image
         print(f"NeuMesh: cannot follow Texture Paint strokes: {exc}")

@@ -10,7 +10,7 @@ an empty ``temp_override()`` around ``bpy.ops.object.location_clear()`` beside a
 segfaults within seconds (2 of 2 runs, and 2 of 2 with keyword overrides); the same loop without the
 override ran 30 s without a crash. The viewport's preview thread and the jobs (training, edits) run
 Python between their torch operations, so the add-on's own overridden operator calls (splitting an area
-for the paint editor, closing it, starting the Texture Paint watcher) go through :func:`held`.
+for the paint editor, closing it, starting the Texture Paint watcher) go through :func:`override`.
 
 Worker threads enclose their work in :func:`worker` and call :func:`checkpoint` at safe points (each
 progress callback: between chunks of rays or steps). :func:`held` closes the gate (a lock), waits until
@@ -99,6 +99,14 @@ def held(timeout: float = 2.0):
         _state["closed"] = 0
         _owner["thread"], _owner["depth"] = None, 0
         _gate.release()
+
+
+@contextlib.contextmanager
+def override(context, **members):
+    """``context.temp_override(**members)`` with the workers held (:func:`held`): how the add-on (and
+    the real-window test scripts) run an operator under a context override."""
+    with held(), context.temp_override(**members):
+        yield
 
 
 def state() -> dict:
