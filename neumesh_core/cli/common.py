@@ -148,6 +148,20 @@ def _render_settings(args):
                              background_model=getattr(args, "background_model", "on") == "on")
 
 
+def _held_out_split(scene, name=None) -> str:
+    """The name of ``scene``'s split ``name``, or without a name of its held-out views: 'test' where the
+    dataset has one, else 'val' (a phone capture holds out every 8th photo as 'val'). A split the scene
+    lacks is a NeuMeshError that names the ones it has."""
+    from ..errors import NeuMeshError
+
+    if name is None:
+        name = "test" if "test" in scene.splits else "val"
+    if name not in scene.splits:
+        raise NeuMeshError(f"the dataset has no '{name}' split; use --split with one of "
+                           f"{', '.join(sorted(scene.splits))}")
+    return name
+
+
 def _scene_background(scene):
     return scene.background if scene.background is not None else (0.0, 0.0, 0.0)
 

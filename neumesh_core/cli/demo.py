@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from .common import ProgressBar, _print_eval, _render_cameras, turntable_cameras
+from .common import ProgressBar, _held_out_split, _print_eval, _render_cameras, turntable_cameras
 
 
 def _comparison_figure(images, renders_dir, result, path, n=4):
@@ -42,7 +42,7 @@ def cmd_demo(args) -> int:
         print(f"interrupted; the field so far is in {path}", file=sys.stderr)
         return 130
     print("3/4 evaluating on the held-out test views...", file=sys.stderr)
-    split = "test" if "test" in scene.splits else "val"
+    split = _held_out_split(scene)
     renders = os.path.join(args.out, "test_renders")
     r = nm.evaluate(field, scene.split(split), background=scene.background, out_dir=renders)
     _print_eval(r)

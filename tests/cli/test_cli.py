@@ -51,6 +51,25 @@ def test_train_render_eval_on_the_small_scene(small_scene_dir, tmp_path, capsys)
     assert sorted(os.listdir(tmp_path / "tt")) == ["frame_0000.png", "frame_0001.png"]
 
 
+
+def test_render_takes_the_held_out_split_a_dataset_has(tmp_path, capsys):
+    """`neumesh render --data` on a dataset without a 'test' split (a phone capture holds out 'val')
+    renders 'val' by default, and a split the dataset lacks is an error that names the ones it has
+    (it was a KeyError traceback)."""
+    from neumesh_core.data.synthetic import make_default_scene
+
+    d = tmp_path / "s"
+    make_default_scene(str(d), resolution=16, n_train=4, n_val=2, n_test=0)
+    os.remove(d / "transforms_test.json")
+    field = str(tmp_path / "f.neumesh")
+    assert main(["train", "--data", str(d), "--out", field, "--steps", "2", "--rays", "64", "--no-eval"]) == 0
+    assert main(["render", "--field", field, "--data", str(d), "--out", str(tmp_path / "v")]) == 0
+    assert sorted(os.listdir(tmp_path / "v")) == ["frame_0000.png", "frame_0001.png"]
+    capsys.readouterr()
+    assert main(["render", "--field", field, "--data", str(d), "--split", "test", "--out", str(tmp_path / "t")]) == 2
+    err = capsys.readouterr().err
+    assert "no 'test' split" in err and "train, val" in err and "Traceback" not in err
+
 def test_train_without_mesh_says_what_to_do(tmp_path, capsys):
     from neumesh_core.data.synthetic import make_default_scene
 
