@@ -17,6 +17,8 @@ from ..render.renderer import RenderSettings, default_step, render_rays
 from ..field.io import load_optimizer_state, save_field
 from .optim import ParameterAverage, RowSparseAdam
 
+_clock = time.perf_counter   # the wall clock of elapsed_s, eta_s and max_seconds (tests replace it)
+
 
 @dataclass
 class TrainConfig:
@@ -103,6 +105,10 @@ class TrainProgress:
     eta_s: float
     samples_per_ray: float = 0.0
     occupied_fraction: float = 0.0
+    # the budget, whichever part ends the run first: the steps, or the wall-clock budget
+    # (TrainConfig.max_seconds, limit "time"; eta_s is then the time left of it)
+    fraction: float = 0.0             # of the budget used, 0..1
+    limit: str = "steps"              # "steps" | "time": what ends the run
 
 
 @dataclass
@@ -172,6 +178,17 @@ def _progress(step: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> float:
     return progress
 
 
+def _eta(step: int, start: int, cfg: TrainConfig, elapsed_s: float) -> tuple:
+    """(seconds left, "steps" | "time"): the steps left at this run's mean step time, or the time left
+    of ``max_seconds`` when that ends the run first."""
+    by_steps = elapsed_s / max(1, step - start) * max(0, cfg.steps - step)
+    if cfg.max_seconds is not None:
+        left = max(0.0, cfg.max_seconds - elapsed_s)
+        if left < by_steps:
+            return left, "time"
+    return by_steps, "steps"
+
+
 def _lr_factor(step: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> float:
     """Warm-up then exponential decay over the budget: steps, or max_seconds when that ends first."""
     warm = min(1.0, (step + 1) / max(1, cfg.warmup_steps))
@@ -233,14 +250,14 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
     field.sparse_grads = True
     if pyramid is not None:
         field.set_code_prior(pyramid)
-    t_begin = time.perf_counter()
+    t_begin = _clock()
     history = []
     loss_v = psnr_v = float("nan")
     cancelled = interrupted = False
     step = start
     rays_done = 0
     samples_done = 0
-    window_t = time.perf_counter()
+    window_t = _clock()
     window_rays = 0
 
     def save(step_now):
@@ -251,7 +268,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
 
     try:
         while step < cfg.steps:
-            elapsed = time.perf_counter() - t_begin
+            elapsed = _clock() - t_begin
             if (pyramid is not None and field.code_prior is pyramid and cfg.code_levels_until is not None
                     and _progress(step, cfg, elapsed) >= cfg.code_levels_until):
                 pyramid.bake(field)   # plain per-vertex codes from here (a running average stays valid:
@@ -307,18 +324,19 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
             if step > cfg.occ_warmup_steps and step % cfg.occ_refresh_every == 0:
                 field.grid.refresh(density, step_size, generator=gen)
             last = step >= cfg.steps
-            elapsed = time.perf_counter() - t_begin
+            elapsed = _clock() - t_begin
             if (averager is not None and step % cfg.average_every == 0
                     and _progress(step, cfg, elapsed) >= cfg.average_from):
                 averager.update()
             over_time = cfg.max_seconds is not None and elapsed >= cfg.max_seconds
             if step % cfg.log_every == 0 or last or step == start + 1 or over_time:
-                now = time.perf_counter()
+                now = _clock()
                 rps = window_rays / max(now - window_t, 1e-9)
                 window_t, window_rays = now, 0
-                per_step = elapsed / max(1, step - start)
-                p = TrainProgress(step, cfg.steps, loss_v, psnr_v, rps, elapsed, per_step * (cfg.steps - step),
-                                  samples_done / max(1, rays_done), field.grid.occupied_fraction)
+                eta, limit = _eta(step, start, cfg, elapsed)
+                p = TrainProgress(step, cfg.steps, loss_v, psnr_v, rps, elapsed, eta,
+                                  samples_done / max(1, rays_done), field.grid.occupied_fraction,
+                                  _progress(step, cfg, elapsed), limit)
                 history.append(p)
                 if callback is not None and callback(p) is False:
                     cancelled = True
@@ -348,5 +366,5 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
             field.grid.refresh(density, step_size, max_cells=None, generator=gen)
     save(step)
     codes = None if appearance is None else (appearance - appearance.mean(0)).detach().cpu().numpy()
-    return TrainResult(step, loss_v, psnr_v, time.perf_counter() - t_begin, cancelled, interrupted, history,
+    return TrainResult(step, loss_v, psnr_v, _clock() - t_begin, cancelled, interrupted, history,
                        averaged, codes)

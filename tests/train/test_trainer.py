@@ -208,3 +208,47 @@ def test_uint8_photos_train_as_their_float32_reference(small_scene_dir):
     np.testing.assert_allclose(runs["uint8"][0], runs["float32"][0], rtol=1e-4, atol=1e-6)
     assert torch.allclose(runs["uint8"][1], runs["float32"][1], atol=1e-5)
     assert np.ptp(runs["uint8"][0]) > 0  # it trained
+
+
+def _fake_clock(monkeypatch):
+    """The trainer's clock advanced one second per reading: elapsed times are whole seconds, exactly."""
+    from neumesh_core.train import trainer
+
+    t = [0.0]
+
+    def clock():
+        t[0] += 1.0
+        return t[0]
+
+    monkeypatch.setattr(trainer, "_clock", clock)
+
+
+def test_eta_is_the_time_left_of_the_budget_when_that_ends_the_run(small_scene_dir, monkeypatch):
+    """10**6 steps and a 40 s budget (a large --steps with --max-minutes): the ETA is what is left of the
+    budget, not 10**6 steps at the mean step time; the fraction is of the budget, and the run ends at it."""
+    _fake_clock(monkeypatch)
+    scene = nm.load_scene(small_scene_dir)
+    field = nm.create_field(nm.load_mesh(scene.mesh_path))
+    seen = []
+    res = nm.train(field, scene, nm.TrainConfig(steps=10 ** 6, rays_per_batch=64, log_every=1, max_seconds=40),
+                   callback=seen.append)
+    assert 3 <= res.steps_done < 40 and len(seen) == res.steps_done
+    for p in seen:
+        assert p.limit == "time" and p.total_steps == 10 ** 6
+        assert p.eta_s == max(0.0, 40 - p.elapsed_s) and p.fraction == min(1.0, p.elapsed_s / 40)
+    assert seen[0].eta_s > 20 and seen[-1].eta_s == 0.0 and seen[-1].fraction == 1.0
+    assert [p.eta_s for p in seen] == sorted((p.eta_s for p in seen), reverse=True)
+
+
+def test_eta_follows_the_steps_when_they_end_the_run_first(small_scene_dir, monkeypatch):
+    _fake_clock(monkeypatch)
+    scene = nm.load_scene(small_scene_dir)
+    field = nm.create_field(nm.load_mesh(scene.mesh_path))
+    seen = []
+    nm.train(field, scene, nm.TrainConfig(steps=6, rays_per_batch=64, log_every=1, max_seconds=10 ** 6),
+             callback=seen.append)
+    assert [p.step for p in seen] == [1, 2, 3, 4, 5, 6]
+    for p in seen:
+        assert p.limit == "steps" and p.fraction == p.step / 6
+        assert p.eta_s == pytest.approx(p.elapsed_s / p.step * (6 - p.step))
+    assert seen[-1].eta_s == 0.0
