@@ -9,9 +9,13 @@ Video clips: ``video.frames_from_video`` extracts frames to run this on.
 
 Progress: ``callback(p: PosesProgress) -> False`` cancels (raises ``nm.Cancelled``); it is called
 from the calling thread about four times a second while pycolmap works in a helper thread.
+
+pycolmap's own log (COLMAP's glog lines, written by C++ straight to the process's stderr) is hidden
+while it works unless ``PosesConfig.colmap_log``; errors still show (:func:`colmap_log`).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -39,7 +43,9 @@ class PosesConfig:
     (neighbours in name order) above), 'exhaustive' or 'sequential'. max_image_size: SIFT runs on photos reduced to
     this long side (px). camera_model: COLMAP model to estimate (OPENCV: k1,k2,p1,p2, what phones need;
     SIMPLE_RADIAL for few photos). single_camera: one camera shared by all photos (one phone, fixed zoom).
-    min_registered_fraction: below it the run fails with advice. num_threads -1: all cores."""
+    min_registered_fraction: below it the run fails with advice. num_threads -1: all cores.
+    colmap_log: show pycolmap's own log lines (COLMAP's progress and details, on stderr); off, only
+    its errors show."""
 
     matcher: str = "auto"
     max_image_size: int = 1600
@@ -51,15 +57,17 @@ class PosesConfig:
     num_threads: int = -1
     sequential_overlap: int = 10
     seed: int = 0
+    colmap_log: bool = False
 
 
 @dataclass
 class PosesProgress:
     stage: str           # 'extract' | 'match' | 'map'
     fraction: float      # of the whole run, 0..1 (estimated)
-    message: str
+    message: str         # what is done of the stage, in its units (photos, pairs, cameras)
     elapsed_s: float
     registered: int = 0  # images registered so far (mapping)
+    stage_fraction: float = 0.0   # of this stage, 0..1
 
 
 @dataclass
@@ -89,6 +97,25 @@ def _pycolmap():
     except ImportError as exc:  # pragma: no cover - a declared dependency
         raise PosesError("recovering poses needs pycolmap: pip install pycolmap") from exc
     return pycolmap
+
+
+@contextlib.contextmanager
+def colmap_log(show: bool = False):
+    """Inside the block pycolmap logs (glog, from C++ to fd 2) only errors, or everything with ``show``;
+    the level before is restored after. glog's level is one for the whole process. Without pycolmap
+    installed there is nothing to hide."""
+    try:
+        import pycolmap
+    except ImportError:
+        yield
+        return
+    logging = pycolmap.logging
+    before = logging.minloglevel
+    logging.minloglevel = min(before, int(logging.INFO)) if show else max(before, int(logging.ERROR))
+    try:
+        yield
+    finally:
+        logging.minloglevel = before
 
 
 def _is_cancelled(token) -> bool:
@@ -149,8 +176,13 @@ def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = N
     frame with its neighbours, not all pairs). Raises :class:`PosesError` with what to do when too few
     photos register, and ``nm.Cancelled`` when the callback returns False.
     """
-    pycolmap = _pycolmap()
     cfg = config or PosesConfig()
+    with colmap_log(cfg.colmap_log):
+        return _estimate_poses(images_dir, out_dir, cfg, callback, sequential)
+
+
+def _estimate_poses(images_dir: str, out_dir: str, cfg: PosesConfig, callback, sequential: bool) -> PosesReport:
+    pycolmap = _pycolmap()
     if cfg.matcher not in ("auto", "exhaustive", "sequential"):
         raise ValueError(f"matcher must be 'auto', 'exhaustive' or 'sequential', got {cfg.matcher!r}")
     images_dir = os.path.abspath(os.fspath(images_dir))
@@ -188,14 +220,15 @@ def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = N
                 return
             if k == 0 and cfg.single_camera:
                 reader.existing_camera_id = _first_camera_id(pycolmap, db)
-            run.done = min(n, k + chunk) / n
+            run.done = min(n, k + chunk)
 
-    run.stage("extract", extract)
+    run.stage("extract", extract, n)
     # 2. matching: the pairs (all, or each photo with its next neighbours) matched in chunks, for progress
     mopt = pycolmap.FeatureMatchingOptions()
     mopt.num_threads = int(cfg.num_threads)
     pairs = _exhaustive_pairs(n) if matcher == "exhaustive" else _sequential_pairs(n, cfg.sequential_overlap)
-    if any(" " in nm_ for nm_ in names):  # COLMAP's pair lists are space separated: its own pairing then
+    own_pairing = any(" " in nm_ for nm_ in names)   # COLMAP's pair lists are space separated
+    if own_pairing:   # its own pairing then, one call: no count of pairs done
         if matcher == "exhaustive":
             fn = lambda: pycolmap.match_exhaustive(db, matching_options=mopt,  # noqa: E731
                                                    device=pycolmap.Device.cpu, cancellation_token=run.token)
@@ -214,9 +247,9 @@ def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = N
                                            device=pycolmap.Device.cpu, cancellation_token=run.token)
                 if _is_cancelled(run.token):
                     return
-                run.done = min(len(pairs), k + step) / len(pairs)
+                run.done = min(len(pairs), k + step)
     try:
-        run.stage("match", fn)
+        run.stage("match", fn, 0 if own_pairing else len(pairs))
     finally:
         if os.path.exists(os.path.join(out_dir, ".pairs.txt")):
             os.remove(os.path.join(out_dir, ".pairs.txt"))
@@ -259,7 +292,8 @@ def _write_pairs(out_dir: str, names: list, pairs: list) -> str:
 
 
 class _Run:
-    """State of one pose recovery: cancellation token, stage, registered count, progress reports."""
+    """State of one pose recovery: cancellation token, stage, work done of it (photos, pairs),
+    registered count, progress reports."""
 
     _WEIGHTS = {"extract": (0.0, 0.3), "match": (0.3, 0.3), "map": (0.6, 0.4)}
 
@@ -267,7 +301,7 @@ class _Run:
         self.token = pycolmap.CancellationToken()
         self.n, self.matcher, self.callback = n, matcher, callback
         self.t_start = time.perf_counter()
-        self.current, self.registered, self.done = "extract", 0, 0.0
+        self.current, self.registered, self.done, self.total = "extract", 0, 0, 0
         self.seconds = {}
 
     def report(self):
@@ -275,18 +309,25 @@ class _Run:
             return None
         st = self.current
         lo, span = self._WEIGHTS[st]
-        # pycolmap calls back once per registration attempt, across every model it tries (a second start
-        # pair, re-registrations): the count can pass n before mapping ends, so it is shown capped and the
-        # stage's fraction stays below its end until the mapping returns
-        placed = min(self.registered, self.n)
-        frac = lo + span * (min(placed / self.n, 0.99) if st == "map" else self.done)
-        msg = {"extract": f"finding features in {self.n} photos ({100 * self.done:.0f}%)",
-               "match": f"matching photos ({self.matcher}, {100 * self.done:.0f}%)",
-               "map": f"placing cameras: {placed} of {self.n} registered"}[st]
-        return self.callback(PosesProgress(st, min(frac, 1.0), msg, time.perf_counter() - self.t_start, placed))
+        if st == "map":
+            # pycolmap calls back once per registration attempt, across every model it tries (a second
+            # start pair, re-registrations): the count can pass n before mapping ends, so it is shown
+            # capped and the stage's fraction stays below its end until the mapping returns
+            placed = min(self.registered, self.n)
+            part = min(placed / self.n, 0.99)
+            msg = f"{placed} of {self.n} cameras placed"
+        else:
+            placed = 0
+            part = self.done / self.total if self.total else 0.0
+            msg = (f"features in {self.done} of {self.n} photos" if st == "extract" else
+                   f"{self.done} of {self.total} photo pairs matched ({self.matcher})" if self.total else
+                   f"matching the photos ({self.matcher})")
+        return self.callback(PosesProgress(st, min(lo + span * part, 1.0), msg, time.perf_counter() - self.t_start,
+                                           placed, part))
 
-    def stage(self, name: str, fn):
-        self.current, self.done = name, 0.0
+    def stage(self, name: str, fn, total: int = 0):
+        """Run stage ``name``; ``total``: its units of work (fn counts them in ``done``), 0 unknown."""
+        self.current, self.done, self.total = name, 0, total
         t0 = time.perf_counter()
         out = _run_stage(fn, self.token, self.report)
         self.seconds[name] = time.perf_counter() - t0
@@ -299,16 +340,18 @@ def map_database(database: str, images_dir: str, out_dir: str, config: PosesConf
     (e.g. made by COLMAP's GUI), written like :func:`estimate_poses` writes it."""
     pycolmap = _pycolmap()
     cfg = config or PosesConfig()
-    db = pycolmap.Database.open(database)
-    try:
-        names = sorted(im.name for im in db.read_all_images())
-    finally:
-        db.close()
-    if not names:
-        raise PosesError(f"{database} holds no images; run feature extraction first (`neumesh poses --images DIR`)")
-    os.makedirs(out_dir, exist_ok=True)
-    return _map(database, os.path.abspath(images_dir), os.path.abspath(out_dir), names, cfg,
-                _Run(pycolmap, len(names), "existing", callback))
+    with colmap_log(cfg.colmap_log):
+        db = pycolmap.Database.open(database)
+        try:
+            names = sorted(im.name for im in db.read_all_images())
+        finally:
+            db.close()
+        if not names:
+            raise PosesError(f"{database} holds no images; run feature extraction first "
+                             "(`neumesh poses --images DIR`)")
+        os.makedirs(out_dir, exist_ok=True)
+        return _map(database, os.path.abspath(images_dir), os.path.abspath(out_dir), names, cfg,
+                    _Run(pycolmap, len(names), "existing", callback))
 
 
 def _map(db: str, images_dir: str, out_dir: str, names: list, cfg: PosesConfig, run: _Run) -> PosesReport:
@@ -353,8 +396,8 @@ def _map(db: str, images_dir: str, out_dir: str, names: list, cfg: PosesConfig, 
             "at two heights), avoid blur, reflections and plain backgrounds"
             + (", or try --matcher exhaustive" if run.matcher == "sequential" else ""))
     if run.callback is not None:
-        run.callback(PosesProgress("map", 1.0, f"done: {registered} of {n} photos registered",
-                                   time.perf_counter() - run.t_start, registered))
+        run.callback(PosesProgress("map", 1.0, f"{registered} of {n} cameras placed",
+                                   time.perf_counter() - run.t_start, registered, 1.0))
     return rep
 
 

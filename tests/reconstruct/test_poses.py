@@ -2,6 +2,7 @@
 (a textured cube), mapping of a pycolmap synthetic database, cancel, clear errors, video frames."""
 import json
 import os
+import re
 
 import numpy as np
 import pytest
@@ -18,6 +19,10 @@ from neumesh_core.reconstruct.video import frames_from_video  # noqa: E402
 @pytest.fixture(autouse=True)
 def _cache(tmp_path, monkeypatch):
     monkeypatch.setenv("NEUMESH_CACHE", str(tmp_path / "cache"))
+
+
+# a line of COLMAP's own log (glog): "I20261206 06:20:52.601087 140327946024640 feature_extraction.cc:498] ..."
+GLOG_LINE = re.compile(r"^[IWEF]\d{8} \d\d:\d\d:\d\d\.\d+ +\d+ \S+:\d+\]", re.M)
 
 
 def _look_at(eye):
@@ -99,13 +104,16 @@ def _relative_rotation_errors(est, ref):
     return np.array(errs)
 
 
-def test_estimate_poses_on_rendered_photos_and_load_the_result(tmp_path):
+def test_estimate_poses_on_rendered_photos_and_load_the_result(tmp_path, capfd):
     photos = str(tmp_path / "my photos")
     c2w, K = write_cube_photos(photos)
     out = str(tmp_path / "out")
     seen = []
     cfg = PosesConfig(camera_model="PINHOLE", num_threads=1, max_num_features=2000)
+    capfd.readouterr()
     rep = estimate_poses(photos, out, cfg, callback=lambda p: seen.append((p.stage, p.fraction)))
+    err = capfd.readouterr().err   # what pycolmap's C++ wrote to fd 2 as well
+    assert not GLOG_LINE.search(err), err[:500]
     assert rep.registered == rep.num_images == 16 and rep.mean_reprojection_error < 1.0
     assert {s for s, _ in seen} >= {"extract", "match", "map"} and seen[-1][1] == 1.0
     fractions = [f for _, f in seen]
@@ -122,7 +130,7 @@ def test_estimate_poses_on_rendered_photos_and_load_the_result(tmp_path):
     assert np.median(_relative_rotation_errors(est, c2w[order])) < 1.0
 
 
-def test_map_database_from_a_synthetic_database_and_cancel(tmp_path):
+def test_map_database_from_a_synthetic_database_and_cancel(tmp_path, capfd):
     db_path = str(tmp_path / "database.db")
     opt = pycolmap.SyntheticDatasetOptions()
     opt.num_rigs, opt.num_frames_per_rig, opt.num_points3D = 1, 12, 300
@@ -138,8 +146,14 @@ def test_map_database_from_a_synthetic_database_and_cancel(tmp_path):
         cv2.imwrite(str(images / im.name), np.full((96, 128, 3), 128, np.uint8))
     with pytest.raises(Cancelled):
         map_database(db_path, str(images), str(tmp_path / "cancelled"), callback=lambda p: False)
+    level = pycolmap.logging.minloglevel
+    capfd.readouterr()
     rep = map_database(db_path, str(images), str(tmp_path / "out"), PosesConfig(num_threads=1))
+    assert not GLOG_LINE.search(capfd.readouterr().err)   # COLMAP's own log hidden by default ...
     assert rep.registered == 12 and rep.unregistered == []
+    map_database(db_path, str(images), str(tmp_path / "shown"), PosesConfig(num_threads=1, colmap_log=True))
+    assert len(GLOG_LINE.findall(capfd.readouterr().err)) > 10   # ... shown when asked for
+    assert pycolmap.logging.minloglevel == level   # and the process's level is left as it was
     scene = load_scene(str(tmp_path / "out"), holdout_every=0, log=lambda m: None)
     by_name = {im.name: im for im in truth.images.values()}
     ref = []
