@@ -41,7 +41,7 @@ def main(argv=None) -> int:
     from neumesh_core.data.loader import load_scene
     from neumesh_core.mesh import save_mesh
     from neumesh_core.reconstruct import ScaffoldConfig, build_scaffold
-    from neumesh_core.cli.scaffold import StageProgress
+    from neumesh_core.cli.common import Progress
 
     name = args.name or os.path.basename(os.path.normpath(args.data))
     out_dir = args.out or os.path.join("/tmp", f"neumesh_scaffold_{name}")
@@ -53,9 +53,9 @@ def main(argv=None) -> int:
           f"(loaded in {t_load:.1f}s)", flush=True)
     cfg = ScaffoldConfig(method=args.method, target_vertices=args.vertices, hull_resolution=args.resolution,
                          density_iters=tuple(int(x) for x in args.iters.split(",")))
-    prog = StageProgress(sys.stdout)
-    mesh, rep = build_scaffold(scene, cfg, progress=prog, log=lambda s: print("  " + s, flush=True))
-    prog.finish()
+    prog = Progress(sys.stdout)
+    mesh, rep = build_scaffold(scene, cfg, progress=prog.scaffold, log=lambda s: prog.say("  " + s))
+    prog.end()
     os.makedirs(out_dir, exist_ok=True)
     mesh_path = os.path.join(out_dir, f"scaffold_{name}.ply")
     save_mesh(mesh, mesh_path)

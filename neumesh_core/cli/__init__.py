@@ -10,7 +10,7 @@ import sys
 
 from . import bake, demo, edit, fit, poses, render, scaffold, semantics, train
 from . import eval as eval_cmd
-from .common import ProgressBar, turntable_cameras  # noqa: F401  (public: benchmarks and scripts use them)
+from .common import Progress, turntable_cameras  # noqa: F401  (public: benchmarks and scripts use them)
 
 
 def build_parser() -> argparse.ArgumentParser:

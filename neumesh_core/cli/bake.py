@@ -6,7 +6,7 @@ import sys
 
 import numpy as np
 
-from .common import _add_device_option, _device
+from .common import Progress, _add_device_option, _device
 
 
 def cmd_bake(args) -> int:
@@ -16,10 +16,7 @@ def cmd_bake(args) -> int:
     field = nm.load_field(args.field, device=_device(args))
     name = args.name or os.path.splitext(os.path.basename(args.field))[0]
 
-    def progress(frac):
-        print(f"\rbaking {100 * frac:5.1f}%", end="", file=sys.stderr, flush=True)
-        return True
-
+    printer = Progress()
     mesh = None
     extract = None
     if args.target is None:      # the field's surface, unless a mesh to bake onto is given
@@ -43,10 +40,10 @@ def cmd_bake(args) -> int:
         mesh = nm.Mesh(*decimate(src.vertices, src.faces, args.decimate))
         print(f"decimated {len(src.faces)} -> {len(mesh.faces)} faces", file=sys.stderr)
     res = bake_texture(field, resolution=args.resolution, padding=args.padding, directions=args.directions,
-                       offset=args.offset, progress=progress, mesh=mesh, extract=extract,
+                       offset=args.offset, progress=printer.fraction("baking"), mesh=mesh, extract=extract,
                        fit=False if args.no_fit or extract is not None else SurfaceFitConfig(level=args.level),
                        colours=args.colours, project=ProjectConfig(views=args.views, size=args.view_size))
-    print(file=sys.stderr)
+    printer.end()
     if "surface_offset" in res.info and "median_radii" in res.info["surface_offset"]:
         so = res.info["surface_offset"]
         print(f"the baked mesh lies {so['median_radii']:.3f} field radii (median; 90%: {so['p90_radii']:.3f}) "

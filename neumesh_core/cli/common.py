@@ -1,39 +1,121 @@
-"""Shared pieces of the command line: option groups, configs from options, the progress bar, the
+"""Shared pieces of the command line: option groups, configs from options, the progress printer, the
 evaluation table, turntable cameras and frame rendering."""
 from __future__ import annotations
 
+import math
 import os
+import shutil
 import sys
+import time
 
 import numpy as np
 
 
 def _fmt_time(s: float) -> str:
-    s = int(max(0, s))
+    s = int(max(0, s)) if math.isfinite(s) else 0
     return f"{s // 3600:d}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
-class ProgressBar:
-    """Terminal consumer of the training callback (one line, refreshed in place)."""
+_POSES_STAGES = {"extract": "features", "match": "matching", "map": "cameras"}
 
-    def __init__(self, stream=None):
+
+class Progress:
+    """The command line's progress printer: the long steps of every command (poses, the scaffold's
+    stages, training, evaluation, rendering, baking, edits) report through one.
+
+    ``update(stage, fraction, detail)``: ``fraction`` is of that stage (0..1). On a terminal, one line
+    per stage with a bar, redrawn in place (at most every ``redraw_s``) and closed with the stage's time
+    when the next stage starts or :meth:`end` is called. Elsewhere (a log file, a pipe) plain lines: one
+    when a stage starts, then one each time the stage passes another ``step`` of its work or
+    ``every_s`` seconds after the last line, whichever comes first, and one when it ends.
+    :meth:`say` prints a message between them. The adapters (:meth:`poses`, :meth:`scaffold`,
+    :meth:`training`, :meth:`fraction`, :meth:`count`) are the core's callbacks."""
+
+    def __init__(self, stream=None, *, tty: bool | None = None, step: float = 0.1, every_s: float = 30.0,
+                 redraw_s: float = 0.2, clock=time.monotonic):
         self._stream = stream  # None: whatever sys.stderr is at write time (it can be swapped)
-        self.tty = self.stream.isatty()
+        isatty = getattr(self.stream, "isatty", None)
+        self.tty = bool(isatty and isatty()) if tty is None else bool(tty)
+        self.step, self.every_s, self.redraw_s, self.clock = step, every_s, redraw_s, clock
+        self.stage = None
+        self.t_stage = self.t_line = 0.0
+        self.mark = 0        # steps of the stage's work printed (fraction // step)
+        self.open = 0        # terminal: length of the line being redrawn (0: none)
 
     @property
     def stream(self):
         return self._stream if self._stream is not None else sys.stderr
 
-    def __call__(self, p) -> None:
-        frac = p.step / max(1, p.total_steps)
-        bar = "#" * int(30 * frac) + "-" * (30 - int(30 * frac))
-        line = (f"[{bar}] {p.step}/{p.total_steps} loss {p.loss:.4f} psnr {p.psnr:5.2f} "
-                f"{p.rays_per_sec / 1000:6.1f}k rays/s {p.samples_per_ray:4.1f} smp/ray "
-                f"elapsed {_fmt_time(p.elapsed_s)} eta {_fmt_time(p.eta_s)}")
-        self.stream.write(("\r" + line) if self.tty else (line + "\n"))
-        if self.tty and p.step >= p.total_steps:
-            self.stream.write("\n")
+    def update(self, stage: str, fraction: float, detail: str = "") -> bool:
+        """Report ``stage`` at ``fraction`` of its work; True (a progress callback that never cancels)."""
+        now = self.clock()
+        fraction = min(max(float(fraction), 0.0), 1.0) if math.isfinite(fraction) else 0.0
+        mark = int(fraction / self.step + 1e-9)
+        if stage != self.stage:
+            self.end()
+            self.stage, self.t_stage = stage, now
+        elif not (mark > self.mark or now - self.t_line >= (self.redraw_s if self.tty else self.every_s)):
+            return True
+        self.mark, self.t_line = mark, now
+        pct = f"{100 * fraction:3.0f}%"
+        tail = (f"  {detail}" if detail else "") + f"  ({_fmt_time(now - self.t_stage)})"
+        if self.tty:
+            n = int(20 * fraction)
+            line = f"[{stage}] {'#' * n}{'-' * (20 - n)} {pct}{tail}"
+            width = shutil.get_terminal_size((100, 24)).columns - 1
+            line = line[:width]
+            self._write("\r" + line.ljust(self.open))
+            self.open = len(line)
+        else:
+            self._write(f"[{stage}] {pct}{tail}\n")
+        return True
+
+    def end(self, detail: str = "") -> None:
+        """Close the current stage with its time (and ``detail``); nothing when none is open."""
+        if self.stage is None:
+            return
+        line = f"[{self.stage}] done in {_fmt_time(self.clock() - self.t_stage)}" + (f": {detail}" if detail else "")
+        self._write(("\r" + line.ljust(self.open) if self.tty else line) + "\n")
+        self.stage, self.open = None, 0
+
+    def say(self, message: str) -> None:
+        """A message line between progress lines (a terminal's redrawn line is kept above it)."""
+        if self.open:
+            self._write("\n")
+            self.open = 0
+        self._write(message + "\n")
+
+    def _write(self, text: str) -> None:
+        self.stream.write(text)
         self.stream.flush()
+
+    # the core's callbacks
+    def poses(self, p) -> None:
+        """``estimate_poses``' callback (a PosesProgress): one stage per pycolmap step."""
+        self.update("poses: " + _POSES_STAGES.get(p.stage, p.stage), p.stage_fraction, p.message)
+
+    def scaffold(self, stage: str, fraction: float) -> bool:
+        """``build_scaffold``'s progress(stage, fraction)."""
+        return self.update(f"scaffold: {stage}", fraction)
+
+    def training(self, p) -> None:
+        """The trainer's callback (a TrainProgress). The fraction, the total and the ETA are the
+        budget's: its steps, or the time budget (``--max-minutes``) when that ends the run first."""
+        if p.limit == "time":
+            of = f"step {p.step} ({_fmt_time(p.elapsed_s + p.eta_s)} budget)"
+        else:
+            of = f"step {p.step}/{p.total_steps}"
+        self.update("training", p.fraction,
+                    f"{of}  loss {p.loss:.4f}  psnr {p.psnr:5.2f}  {p.rays_per_sec / 1000:.1f}k rays/s  "
+                    f"{p.samples_per_ray:.1f} smp/ray  eta {_fmt_time(p.eta_s)}")
+
+    def fraction(self, stage: str):
+        """A progress(fraction) -> True callback for ``stage`` (baking, edits)."""
+        return lambda fraction: self.update(stage, fraction)
+
+    def count(self, stage: str, unit: str):
+        """A progress(done, total) -> True callback for ``stage`` (evaluation: views)."""
+        return lambda done, total: self.update(stage, done / max(1, total), f"{done} of {total} {unit}")
 
 
 def _add_field_options(ap):
@@ -75,6 +157,9 @@ def _add_train_options(ap):
     g.add_argument("--max-minutes", type=float, default=None,
                    help="stop after this many minutes of training (a checkpoint is written)")
     g.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
+    g.add_argument("--log-every", type=int, default=5,
+                   help="steps between progress reports (default 5; speed is averaged over them). A terminal "
+                        "redraws one line; a log file gets a line per 10%% of the budget or per 30 s")
     g.add_argument("--threads", type=int, default=None, help="CPU threads for torch (default: all)")
     g.add_argument("--seed", type=int, default=0, help="random seed")
 
@@ -104,6 +189,7 @@ def _train_config(args, checkpoint_path):
                               lr_final_factor=args.lr_final, average_from=args.average_from,
                               max_seconds=None if args.max_minutes is None else args.max_minutes * 60,
                               checkpoint_path=checkpoint_path, checkpoint_every=args.checkpoint_every,
+                              log_every=max(1, args.log_every),
                               threads=args.threads, seed=args.seed, **extra)
     except ValueError as exc:   # a config check: say it as an option error, not a traceback
         raise nm.NeuMeshError(f"training options: {exc}") from exc
@@ -192,16 +278,17 @@ def turntable_cameras(center, radius: float, n: int, width: int, height: int, fo
     return nm.Cameras(np.repeat(K[None], n, 0), np.stack(c2ws), width, height)
 
 
-def _render_cameras(field, cams, out_dir, background, settings=None, prefix="frame"):
+def _render_cameras(field, cams, out_dir, background, settings=None, prefix="frame", progress=None):
     import neumesh_core as nm
 
     os.makedirs(out_dir, exist_ok=True)
     times = []
+    progress = progress or Progress()
     for i in range(len(cams)):
         out = nm.render_camera(field, cams.K[i], cams.c2w[i], cams.width, cams.height, background=background,
                                settings=settings)
         nm.save_image(os.path.join(out_dir, f"{prefix}_{i:04d}.png"), out.rgba(background))
         times.append(out.seconds)
-        print(f"\rrendered {i + 1}/{len(cams)} ({out.seconds:.2f}s)", end="", file=sys.stderr, flush=True)
-    print(file=sys.stderr)
+        progress.update("rendering", (i + 1) / len(cams), f"{i + 1} of {len(cams)} frames ({out.seconds:.2f}s each)")
+    progress.end(out_dir)
     return times

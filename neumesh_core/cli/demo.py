@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from .common import ProgressBar, _held_out_split, _print_eval, _render_cameras, turntable_cameras
+from .common import Progress, _held_out_split, _print_eval, _render_cameras, turntable_cameras
 
 
 def _comparison_figure(images, renders_dir, result, path, n=4):
@@ -28,33 +28,37 @@ def cmd_demo(args) -> int:
 
     t0 = time.perf_counter()
     os.makedirs(args.out, exist_ok=True)
-    print("1/4 making the built-in scene (procedural blob, reference ray tracer)...", file=sys.stderr)
+    progress = Progress()
+    progress.say("1/4 making the built-in scene (procedural blob, reference ray tracer)...")
     data = nm.default_scene_dir(small=args.small)
     scene = nm.load_scene(data)
     mesh = nm.load_mesh(scene.mesh_path)
     field = nm.create_field(mesh, nm.FieldConfig(interpolation=args.interpolation))
-    print(f"2/4 training {args.steps} steps on {len(scene.split('train'))} views "
-          f"({mesh.num_vertices} scaffold vertices)...", file=sys.stderr)
+    progress.say(f"2/4 training {args.steps} steps on {len(scene.split('train'))} views "
+                 f"({mesh.num_vertices} scaffold vertices)...")
     path = os.path.join(args.out, "field.neumesh")
     cfg = nm.TrainConfig(steps=args.steps, rays_per_batch=args.rays, checkpoint_path=path)
-    res = nm.train(field, scene, cfg, callback=ProgressBar())
+    res = nm.train(field, scene, cfg, callback=progress.training)
+    progress.end()
     if res.interrupted:
         print(f"interrupted; the field so far is in {path}", file=sys.stderr)
         return 130
-    print("3/4 evaluating on the held-out test views...", file=sys.stderr)
+    progress.say("3/4 evaluating on the held-out test views...")
     split = _held_out_split(scene)
     renders = os.path.join(args.out, "test_renders")
-    r = nm.evaluate(field, scene.split(split), background=scene.background, out_dir=renders)
+    r = nm.evaluate(field, scene.split(split), background=scene.background, out_dir=renders,
+                    progress=progress.count("evaluation", "views"))
+    progress.end()
     _print_eval(r)
     fig = os.path.join(args.out, "comparison.png")
     _comparison_figure(scene.split(split), renders, r, fig)
     print(f"comparison figure (reference top, field bottom): {fig}", file=sys.stderr)
     write_json({"data": data, "split": split, "steps": res.steps_done, "train_s": res.seconds, **r},
                os.path.join(args.out, "eval.json"))
-    print("4/4 rendering a turntable...", file=sys.stderr)
+    progress.say("4/4 rendering a turntable...")
     cams = turntable_cameras((0, 0, 0), 4.0, args.frames, scene.split("train").cameras.width,
                              scene.split("train").cameras.height)
-    _render_cameras(field, cams, os.path.join(args.out, "turntable"), scene.background)
+    _render_cameras(field, cams, os.path.join(args.out, "turntable"), scene.background, progress=progress)
     print(f"demo done in {time.perf_counter() - t0:.0f}s: test PSNR {r['mean']['psnr']:.2f} dB, "
           f"SSIM {r['mean']['ssim']:.4f}; field {path}; turntable in {args.out}/turntable")
     return 0

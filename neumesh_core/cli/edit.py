@@ -3,14 +3,8 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 
-
-def _progress(label):
-    def cb(fraction):
-        print(f"\r{label}: {100 * fraction:5.1f}%", end="", file=sys.stderr, flush=True)
-        return True
-    return cb
+from .common import Progress
 
 
 def _load(path, device):
@@ -19,10 +13,10 @@ def _load(path, device):
     return nm.load_field(path, device=device)
 
 
-def _report(record, out: str) -> None:
+def _report(record, out: str, progress: Progress) -> None:
     from ..edit.files import _jsonable
 
-    print(file=sys.stderr)
+    progress.end()
     print(json.dumps({"op": record.op, "vertices_changed": record.num_changed, "out": out,
                       **_jsonable(record.info)}, indent=1))
 
@@ -55,10 +49,11 @@ def cmd_swap(args) -> int:
     cfg = SwapConfig(nonrigid=not args.rigid, nonrigid_iterations=args.iterations,
                      match_orientation=not args.no_frames, with_scale=not args.no_scale,
                      check_fit=not args.no_check)
+    progress = Progress()
     rec = swap_texture(target, region, source, src_region, pairs=pairs, config=cfg,
-                       progress=_progress("swap"))
+                       progress=progress.fraction("swap"))
     out = _save(target, args.field, rec, args.out)
-    _report(rec, out)
+    _report(rec, out, progress)
     return 0
 
 
@@ -74,10 +69,11 @@ def cmd_fill(args) -> int:
         raise EditError("--template-uv is needed when the template is another field")
     t_region = read_region(args.template_region, template.num_vertices)
     t_uv = read_uvs(args.template_uv, template.num_vertices) if args.template_uv else uv
+    progress = Progress()
     rec = fill_texture(target, region, uv, template, t_region, t_uv, scale=args.scale,
-                       progress=_progress("fill"))
+                       progress=progress.fraction("fill"))
     out = _save(target, args.field, rec, args.out)
-    _report(rec, out)
+    _report(rec, out, progress)
     return 0
 
 
@@ -137,9 +133,10 @@ def cmd_paint(args) -> int:
         layer = paint_layer(nm.read_image(args.painted)[..., :3], nm.read_image(args.original)[..., :3])
     else:
         raise EditError("give the paint: --paint LAYER.png (RGBA), or --painted IMAGE.png with --original RENDER.png")
-    rec = paint_texture(field, K, c2w, w, h, layer, progress=_progress("paint"))
+    progress = Progress()
+    rec = paint_texture(field, K, c2w, w, h, layer, progress=progress.fraction("paint"))
     out = _save(field, args.field, rec, args.out)
-    _report(rec, out)
+    _report(rec, out, progress)
     return 0
 
 

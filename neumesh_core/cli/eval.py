@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 
-from .common import _add_data_options, _add_device_option, _add_render_options, _device, _print_eval, _render_settings
+from .common import Progress, _add_data_options, _add_device_option, _add_render_options, _device, _print_eval, _render_settings
 
 
 def cmd_eval(args) -> int:
@@ -13,8 +13,11 @@ def cmd_eval(args) -> int:
     field = nm.load_field(args.field, device=_device(args))
     scene = nm.load_scene(args.data, downscale=args.downscale, background=args.background)
     masked = scene.kind == "dtu" if args.masked == "auto" else args.masked == "yes"
+    progress = Progress()
     r = nm.evaluate(field, scene.split(args.split), background=scene.background, masked=masked,
-                    out_dir=args.renders, settings=_render_settings(args))
+                    out_dir=args.renders, settings=_render_settings(args),
+                    progress=progress.count("evaluation", "views"))
+    progress.end()
     _print_eval(r)
     if not scene.has_masks:
         from ..field.background import background_of

@@ -4,43 +4,63 @@ from __future__ import annotations
 import os
 import sys
 
-from .common import (ProgressBar, _add_data_options, _add_device_option, _add_field_options,
+from .common import (Progress, _add_data_options, _add_device_option, _add_field_options,
                      _add_train_options, _device, _field_config, _train_config)
+from .poses import add_colmap_log_option
 from .scaffold import add_scaffold_options
 
 
 def cmd_fit(args) -> int:
+    from ..reconstruct.poses import colmap_log
+
+    # pycolmap's own log lines stay hidden through every stage (poses, and any stage that calls it)
+    with colmap_log(args.colmap_log):
+        return _fit(args)
+
+
+def _fit(args) -> int:
     from ..data.frame import parse_box
     from ..fit import fit
-    from .scaffold import StageProgress, config_from_args
+    from .scaffold import config_from_args
 
-    bar = ProgressBar()
+    progress = Progress()
+    started = []
+
+    def log(message):   # fit() logs between stages: the stage before is over
+        progress.end()
+        progress.say(message)
 
     def train_cb(p):
-        if p.step == 1 or p.step % args.log_every == 0 or p.step >= p.total_steps:
-            bar(p)
-        return None
+        if not started:
+            started.append(True)
+            log("stage 2/3: training")
+        progress.training(p)
+        if p.fraction >= 1.0:   # the budget is spent: fit() saves the field and evaluates next
+            log("stage 3/3: evaluation")
+            progress.update("evaluation", 0.0, "saving the field, rendering the held-out photos")
 
-    data = _data_or_poses(args)
+    data = _data_or_poses(args, progress)
     if data is None:
         return 2
-    print("stage 1/3: scaffold (skipped when OUT/scaffold.ply exists)", file=sys.stderr)
-    tcfg = _train_config(args, os.path.join(args.out, "field.neumesh"))
-    tcfg.log_every = 1
+    progress.say("stage 1/3: scaffold (skipped when OUT/scaffold.ply exists)")
     summary = fit(data, args.out, downscale=args.downscale, background=args.background,
-                  scaffold_config=config_from_args(args), field_config=_field_config(args), train_config=tcfg,
-                  scaffold_progress=StageProgress(), train_callback=train_cb,
-                  log=lambda m: print(m, file=sys.stderr), device=_device(args),
+                  scaffold_config=config_from_args(args), field_config=_field_config(args),
+                  train_config=_train_config(args, os.path.join(args.out, "field.neumesh")),
+                  scaffold_progress=progress.scaffold, train_callback=train_cb, log=log, device=_device(args),
                   box=None if args.box is None else parse_box(args.box),
                   background_model=args.background_model == "on")
     ev = summary.get("eval")
+    figures = ", ".join(f"{k} {v:.4f}" for k, v in ev.items() if k != "render_s") if ev else ""
+    if progress.stage == "evaluation":
+        progress.end(figures or "no held-out photos")
+    progress.end()
     if ev:
-        print("stage 3/3: evaluation: " + ", ".join(f"{k} {v:.4f}" for k, v in ev.items() if k != "render_s"))
+        print("evaluation: " + figures)
     print(f"fit done in {summary['seconds']:.0f}s; outputs in {args.out}")
     return 0
 
 
-def _data_or_poses(args):
+def _data_or_poses(args, progress: Progress):
     """The dataset folder: --data, or OUT/poses made from --images / --video first (reused when a
     previous run left it complete). None (after an error line) when the options do not say which."""
     given = [n for n in ("data", "images", "video") if getattr(args, n)]
@@ -56,11 +76,12 @@ def _data_or_poses(args):
     poses_dir = os.path.join(args.out, "poses")
     if os.path.isfile(os.path.join(poses_dir, "poses_report.json")) and \
             os.path.isdir(os.path.join(poses_dir, "sparse", "0")):
-        print(f"stage 0/3: poses (reusing {poses_dir}; delete it to recover them again)", file=sys.stderr)
+        progress.say(f"stage 0/3: poses (reusing {poses_dir}; delete it to recover them again)")
         return poses_dir
-    print("stage 0/3: poses from the photos (pycolmap on the CPU)", file=sys.stderr)
+    progress.say("stage 0/3: poses from the photos (pycolmap on the CPU)")
     recover_poses(poses_dir, images=args.images, video=args.video, fps=args.fps,
-                  config=PosesConfig(num_threads=args.threads or -1))
+                  config=PosesConfig(num_threads=args.threads or -1, colmap_log=args.colmap_log),
+                  progress=progress, say=progress.say)
     return poses_dir
 
 
@@ -81,12 +102,12 @@ def add_commands(sub) -> None:
     g.add_argument("--video", default=None, help="a video clip: sharp frames at --fps, then as --images")
     g.add_argument("--fps", type=float, default=2.0, help="frames per second taken from --video (default 2)")
     p.add_argument("--out", required=True, help="output folder: scaffold.ply, field.neumesh, fit.json")
-    p.add_argument("--log-every", type=int, default=25, help="steps between progress lines")
     p.add_argument("--box", default=None, metavar="CX,CY,CZ,SX,SY,SZ",
                    help="object box: centre and half-sizes in world units (default: automatic, around "
                         "what the cameras look at; only for photos without masks)")
     p.add_argument("--background-model", choices=["on", "off"], default="on",
                    help="photos without masks: learn the room outside the box (default on)")
+    add_colmap_log_option(p)
     add_scaffold_options(p)
     _add_field_options(p)
     _add_train_options(p)

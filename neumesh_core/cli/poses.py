@@ -4,55 +4,47 @@ from __future__ import annotations
 import os
 import sys
 
-
-class _Progress:
-    """One refreshed status line on a terminal, a line per stage change otherwise."""
-
-    def __init__(self, stream=None):
-        self.stream = stream or sys.stderr
-        self.tty = self.stream.isatty()
-        self.last = None
-
-    def __call__(self, p) -> None:
-        line = f"[{100 * p.fraction:5.1f}%] {p.stage}: {p.message} ({p.elapsed_s:.0f}s)"
-        if self.tty:
-            print("\r" + line.ljust(80), end="", file=self.stream, flush=True)
-        elif (p.stage, p.registered) != self.last:
-            print(line, file=self.stream, flush=True)
-        self.last = (p.stage, p.registered)
-        return None
-
-    def done(self) -> None:
-        if self.tty:
-            print(file=self.stream)
+from .common import Progress
 
 
 def recover_poses(out: str, *, images: str | None = None, video: str | None = None, fps: float = 2.0,
-                  min_sharpness: float = 20.0, config=None):
+                  min_sharpness: float = 20.0, config=None, progress: Progress | None = None, say=print):
     """Poses for photos (``images``, read in place) or a video's sharp frames (written to OUT/images):
-    a COLMAP model in ``out`` that ``--data out`` loads. Progress on stderr; returns the report."""
-    from ..reconstruct.poses import PosesConfig, estimate_poses
+    a COLMAP model in ``out`` that ``--data out`` loads. Progress through ``progress`` (stderr), the
+    summary through ``say`` (stdout); returns the report."""
+    from ..reconstruct.poses import PosesConfig, PosesError, estimate_poses
     from ..reconstruct.video import frames_from_video
 
+    progress = progress or Progress()
+    cfg = config or PosesConfig()
     sequential = False
     if video:
         images = os.path.join(out, "images")
-        print(f"extracting frames at {fps:g} fps from {video} into {images} ...", file=sys.stderr)
+        progress.say(f"extracting frames at {fps:g} fps from {video} into {images} ...")
         paths = frames_from_video(video, images, fps=fps, min_sharpness=min_sharpness)
-        print(f"{len(paths)} frames kept", file=sys.stderr)
+        progress.say(f"{len(paths)} frames kept")
         sequential = True
-    bar = _Progress()
     try:
-        rep = estimate_poses(images, out, config or PosesConfig(), callback=bar, sequential=sequential)
+        rep = estimate_poses(images, out, cfg, callback=progress.poses, sequential=sequential)
+    except PosesError as exc:
+        if cfg.colmap_log:
+            raise
+        raise PosesError(f"{exc} (--colmap-log shows COLMAP's own log lines)") from exc
     finally:
-        bar.done()
-    print(f"registered {rep.registered} of {rep.num_images} photos, mean reprojection error "
-          f"{rep.mean_reprojection_error:.2f} px, {rep.num_points} points, {rep.seconds:.0f}s "
-          f"(features {rep.stage_seconds.get('extract', 0):.0f}s, matching {rep.stage_seconds.get('match', 0):.0f}s, "
-          f"mapping {rep.stage_seconds.get('map', 0):.0f}s)")
+        progress.end()
+    say(f"registered {rep.registered} of {rep.num_images} photos, mean reprojection error "
+        f"{rep.mean_reprojection_error:.2f} px, {rep.num_points} points, {rep.seconds:.0f}s "
+        f"(features {rep.stage_seconds.get('extract', 0):.0f}s, matching {rep.stage_seconds.get('match', 0):.0f}s, "
+        f"mapping {rep.stage_seconds.get('map', 0):.0f}s)")
     if rep.unregistered:
-        print(f"not placed: {', '.join(rep.unregistered[:10])}" + (" ..." if len(rep.unregistered) > 10 else ""))
+        say(f"not placed: {', '.join(rep.unregistered[:10])}" + (" ..." if len(rep.unregistered) > 10 else ""))
     return rep
+
+
+def add_colmap_log_option(p) -> None:
+    p.add_argument("--colmap-log", action="store_true",
+                   help="show pycolmap's own log lines (COLMAP's details of each step, on stderr); by default "
+                        "only its errors show beside NeuMesh's progress")
 
 
 def cmd_poses(args) -> int:
@@ -62,7 +54,8 @@ def cmd_poses(args) -> int:
         print("error: give either --images DIR (photos) or --video clip.mp4", file=sys.stderr)
         return 2
     cfg = PosesConfig(matcher=args.matcher, max_image_size=args.max_image_size, camera_model=args.camera_model,
-                      single_camera=not args.per_image_camera, num_threads=args.threads or -1)
+                      single_camera=not args.per_image_camera, num_threads=args.threads or -1,
+                      colmap_log=args.colmap_log)
     rep = recover_poses(args.out, images=args.images, video=args.video, fps=args.fps,
                         min_sharpness=args.min_sharpness, config=cfg)
     print(f"model: {rep.model_dir}; train with: neumesh fit --data {args.out} --out DIR")
@@ -90,4 +83,5 @@ def add_commands(sub) -> None:
     p.add_argument("--per-image-camera", action="store_true",
                    help="one camera per photo (photos from different cameras or zoom levels)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
+    add_colmap_log_option(p)
     p.set_defaults(func=cmd_poses)

@@ -10,6 +10,7 @@ import sys
 import time
 
 from ..reconstruct.build import ScaffoldConfig
+from .common import Progress
 
 
 def _positive_int(s: str) -> int:
@@ -87,38 +88,6 @@ def config_from_args(args):
         compute_iou=not args.no_metrics, chamfer_samples=0 if args.no_metrics else 100_000, **caps)
 
 
-class StageProgress:
-    """progress(stage, fraction) printer: one line per stage start/end, throttled updates between."""
-
-    def __init__(self, stream=None):
-        self._stream = stream  # None: whatever sys.stderr is at write time (it can be swapped)
-        self.stage = None
-        self.t_stage = time.perf_counter()
-        self.last = 0.0
-
-    @property
-    def stream(self):
-        return self._stream if self._stream is not None else sys.stderr
-
-    def __call__(self, stage: str, fraction: float) -> bool:
-        now = time.perf_counter()
-        if stage != self.stage:
-            if self.stage is not None:
-                self.stream.write(f"  {self.stage}: done in {now - self.t_stage:.1f}s\n")
-            self.stage, self.t_stage, self.last = stage, now, now
-            self.stream.write(f"[{stage}] ...\n")
-        elif now - self.last > 5.0 or fraction >= 1.0:
-            self.last = now
-            self.stream.write(f"  {stage}: {fraction:5.1%} ({now - self.t_stage:.0f}s)\n")
-        self.stream.flush()
-        return True
-
-    def finish(self):
-        if self.stage is not None:
-            self.stream.write(f"  {self.stage}: done in {time.perf_counter() - self.t_stage:.1f}s\n")
-            self.stage = None
-
-
 def report_path_for(mesh_path: str) -> str:
     return os.path.splitext(mesh_path)[0] + ".scaffold.json"
 
@@ -130,16 +99,16 @@ def run_scaffold(args) -> int:
     from ..reconstruct.build import build_scaffold
 
     t0 = time.perf_counter()
-    print(f"loading {args.data} (downscale {args.downscale}) ...", file=sys.stderr)
+    progress = Progress()
+    progress.say(f"loading {args.data} (downscale {args.downscale}) ...")
     scene = load_scene(args.data, downscale=args.downscale, background=args.background)
     tr = scene.split("train")
-    print(f"  {len(tr)} training views {tr.cameras.width}x{tr.cameras.height}, "
-          f"masks: {'yes' if tr.masks is not None else 'no'} ({time.perf_counter() - t0:.1f}s)", file=sys.stderr)
-    prog = StageProgress()
+    progress.say(f"  {len(tr)} training views {tr.cameras.width}x{tr.cameras.height}, "
+                 f"masks: {'yes' if tr.masks is not None else 'no'} ({time.perf_counter() - t0:.1f}s)")
     verbose = getattr(args, "verbose", False)
-    mesh, rep = build_scaffold(scene, config_from_args(args), progress=prog,
-                               log=(lambda s: print("  " + s, file=sys.stderr)) if verbose else None)
-    prog.finish()
+    mesh, rep = build_scaffold(scene, config_from_args(args), progress=progress.scaffold,
+                               log=(lambda s: progress.say("  " + s)) if verbose else None)
+    progress.end()
     rep.timings["load"] = time.perf_counter() - t0 - rep.timings.get("total", 0.0)
     save_mesh(mesh, args.out)
     jpath = args.report or report_path_for(args.out)

@@ -4,6 +4,8 @@ from __future__ import annotations
 import sys
 import time
 
+from .common import Progress, _fmt_time
+
 
 def add_commands(sub) -> None:
     p = sub.add_parser(
@@ -33,22 +35,18 @@ def add_commands(sub) -> None:
     p.set_defaults(func=cmd_semantics)
 
 
-class _Progress:
-    def __init__(self):
-        self.stage = None
-        self.tty = sys.stderr.isatty()
+_STAGES = {"features": ("2D features", "views"), "rays": ("marching rays", "views"), "train": ("training", "steps")}
 
-    def __call__(self, p):
-        if p.stage != self.stage:
-            if self.stage is not None and self.tty:
-                sys.stderr.write("\n")
-            self.stage = p.stage
-        label = {"features": "2D features", "rays": "marching rays", "train": "training"}[p.stage]
-        line = f"{label}: {p.step}/{p.total}"
+
+def _distill_progress(progress: Progress):
+    """distill_semantics' callback (a DistillProgress) through the command line's printer."""
+    def callback(p):
+        label, unit = _STAGES[p.stage]
+        detail = f"{p.step} of {p.total} {unit}"
         if p.stage == "train":
-            line += f" loss {p.loss:.4f} eta {p.eta_s:.0f}s"
-        sys.stderr.write(("\r" + line) if self.tty else (line + "\n"))
-        sys.stderr.flush()
+            detail += f"  loss {p.loss:.4f}  eta {_fmt_time(p.eta_s)}"
+        progress.update(f"semantics: {label}", p.step / max(1, p.total), detail)
+    return callback
 
 
 def cmd_semantics(args) -> int:
@@ -71,12 +69,13 @@ def cmd_semantics(args) -> int:
     except ValueError as exc:
         raise nm.NeuMeshError(f"semantics options: {exc}") from exc
     t0 = time.perf_counter()
+    progress = Progress()
     try:
-        res = distill_semantics(field, scene, extractor, cfg, callback=_Progress())
+        res = distill_semantics(field, scene, extractor, cfg, callback=_distill_progress(progress))
     except KeyboardInterrupt:
-        print("\ninterrupted; nothing written", file=sys.stderr)
+        progress.say("interrupted; nothing written")
         return 130
-    print(file=sys.stderr)
+    progress.end()
     if res.cancelled:
         print("cancelled; nothing written", file=sys.stderr)
         return 1

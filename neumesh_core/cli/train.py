@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 import sys
 
-from .common import (ProgressBar, _add_data_options, _add_device_option, _add_field_options,
+from .common import (Progress, _add_data_options, _add_device_option, _add_field_options,
                      _add_train_options, _device, _field_config, _print_eval, _train_config)
 
 
@@ -27,14 +27,17 @@ def cmd_train(args) -> int:
         field = nm.create_field(mesh, _field_config(args), device=device)
         print(f"scaffold {mesh_path}: {mesh.num_vertices} vertices, radius {field.radius:.4g}",
               file=sys.stderr)
-    res = nm.train(field, scene, _train_config(args, args.out), callback=ProgressBar())
+    progress = Progress()
+    res = nm.train(field, scene, _train_config(args, args.out), callback=progress.training)
+    progress.end()
     state = "interrupted (Ctrl-C)" if res.interrupted else ("stopped" if res.cancelled else "done")
     avg = f" (weights averaged over {res.averaged} snapshots)" if res.averaged else ""
     print(f"{state} at step {res.steps_done}: train psnr {res.final_psnr:.2f} in {res.seconds:.0f}s; "
           f"saved {args.out}{avg}", file=sys.stderr)
     if "val" in scene.splits and not res.interrupted and args.eval:
         r = nm.evaluate(field, scene.split("val"), background=scene.background,
-                        masked=scene.kind == "dtu")
+                        masked=scene.kind == "dtu", progress=progress.count("evaluation", "views"))
+        progress.end()
         _print_eval(r)
     return 130 if res.interrupted else 0
 

@@ -91,6 +91,8 @@ def test_console_script_entry_point():
 
 
 def test_fit_runs_every_stage_and_resumes(tmp_path, capsys):
+    """Every stage, then a resumed run. Stderr (not a terminal here) gets plain lines for each stage:
+    where it starts, how far it got, when it ended; no carriage returns."""
     from neumesh_core.data.synthetic import make_default_scene
 
     d = tmp_path / "s"
@@ -101,6 +103,12 @@ def test_fit_runs_every_stage_and_resumes(tmp_path, capsys):
     assert main(common + ["--steps", "4"]) == 0
     s1 = json.load(open(out / "fit.json"))
     assert not s1["scaffold"]["reused"] and s1["train"]["steps"] == 4 and "psnr" in s1["eval"]
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    for stage in ("scaffold: hull", "scaffold: mesh", "training", "evaluation"):
+        lines = [ln for ln in err.splitlines() if ln.startswith(f"[{stage}] ")]
+        assert len(lines) >= 2 and " done in " in lines[-1], (stage, err)
+    assert "[training] 100%  step 4/4  loss" in err and "[evaluation] done in" in err and "psnr" in err
     assert main(common + ["--steps", "8"]) == 0
     s2 = json.load(open(out / "fit.json"))
     assert s2["scaffold"]["reused"] and s2["resumed_from_step"] == 4 and s2["train"]["steps"] == 8

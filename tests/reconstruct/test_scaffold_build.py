@@ -207,7 +207,11 @@ def test_cli_writes_mesh_and_report(small_scene_dir, tmp_path, capsys):
     assert abs(m.num_vertices - 3000) <= 450
     d = json.loads((tmp_path / "m" / "scaffold.scaffold.json").read_text())
     assert d["num_vertices"] == m.num_vertices and d["silhouette_iou"]["mean"] > 0.95
-    assert "silhouette IoU" in capsys.readouterr().out
+    cap = capsys.readouterr()
+    assert "silhouette IoU" in cap.out
+    for stage in ("bounds", "hull", "mvs", "mesh", "metrics"):   # stderr not a terminal: plain lines
+        assert f"[scaffold: {stage}] done in " in cap.err, cap.err
+    assert "\r" not in cap.err
     rc = main(["scaffold", "--data", str(tmp_path / "nope"), "--out", str(out)])
     assert rc == 2
 
