@@ -3,9 +3,10 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 
 from .common import (Progress, _add_data_options, _add_device_option, _add_field_options,
-                     _add_train_options, _device, _field_config, _train_config)
+                     _add_train_options, _device, _field_config, _fmt_time, _train_config)
 from .poses import add_colmap_log_option
 from .scaffold import add_scaffold_options
 
@@ -23,6 +24,7 @@ def _fit(args) -> int:
     from ..fit import fit
     from .scaffold import config_from_args
 
+    t0 = time.perf_counter()
     progress = Progress()
     started = []
 
@@ -56,7 +58,7 @@ def _fit(args) -> int:
     progress.end()
     if ev:
         print("evaluation: " + figures)
-    print(f"fit done in {summary['seconds']:.0f}s; outputs in {args.out}")
+    print(f"fit done in {_fmt_time(time.perf_counter() - t0)}; outputs in {args.out}")
     return 0
 
 
