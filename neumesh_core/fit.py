@@ -1,10 +1,11 @@
 """`fit`: images alone -> scaffold -> trained field -> evaluation (resumable per stage).
 
-Real captures without masks (issue 49): the object box (``box``, else found from the cameras and
-sparse points, ``data.frame.object_box``) bounds the scaffold (built inside it by photometric density
-fitting: no masks needed), is saved with the field, and a background model (``field.background``)
-holds everything outside it, trained together with the field on full frames; evaluation is full
-frame with the background on.
+Real captures without masks: the object box (``box``, else found in the capture's sparse points,
+triangulated from the photos when the capture has none: ``capture_box``) bounds the scaffold (one
+surface fused from the photos' depths, ``reconstruct/fusion.py``), is saved with the field, and a
+background model (``field.background``) holds everything outside it, the support the object rests on
+included: fitted with the scaffold's density grid, then trained on with the field on full frames;
+evaluation is full frame with the background on.
 
 out_dir layout: scaffold.ply (+ scaffold.scaffold.json report), field.neumesh, fit.json (summary).
 The scaffold stage is skipped when out_dir/scaffold.ply exists (delete it to rebuild); training
@@ -28,47 +29,58 @@ def is_unmasked_capture(scene) -> bool:
     return not scene.has_masks and scene.background is None and scene.kind != "dtu"
 
 
-def capture_box(scene, box=None, log=None):
+def capture_box(scene, box=None, log=None, progress=None):
     """The object box of ``scene`` and the scaffold's bounds set to it: ``box`` when given (any scene),
-    else found from what the cameras look at for a capture without masks (None for masked data,
-    whose scaffold the masks bound). The same step for ``neumesh fit`` and the add-on's Build scaffold."""
+    else, for a capture without masks, the box around the object the cameras look at, found in its
+    sparse points (``data.frame.find_object``; the capture's own points, else triangulated from its
+    training photos: ``reconstruct.points.capture_points``, ``progress(fraction)``); None for masked
+    data, whose scaffold the masks bound. The same step for ``neumesh fit`` and the add-on."""
     if box is None and is_unmasked_capture(scene):
-        from .data.frame import object_box
+        from .data.frame import find_object
+        from .reconstruct.points import capture_points
 
-        pts = None if scene.capture is None else scene.capture.points
-        box = object_box(scene.split("train").cameras.c2w, pts)
+        pts = None if scene.capture is None else capture_points(scene.capture, progress=progress, log=log)
+        found = find_object(scene.split("train").cameras.c2w, pts)
+        box = found.box
         if log is not None:
-            log(f"object box (automatic; --box cx,cy,cz,sx,sy,sz overrides): centre "
+            for note in found.notes:
+                log(f"object box: {note}")
+            log(f"object box (automatic, from {box.source}; --box cx,cy,cz,sx,sy,sz overrides): centre "
                 f"{np.round(box.centre, 3).tolist()}, half-sizes {np.round(box.half_extents, 3).tolist()}")
     if box is not None:
         scene.bbox = box.aabb()   # the scaffold is built inside the box
     return box
 
 
-def prepare_capture_field(field, scene, box, background_model: bool = True) -> None:
+def prepare_capture_field(field, scene, box, background_model: bool = True, fitted_background=None) -> None:
     """A new field for ``scene``: it keeps ``box`` (saved with it; edits and deformation act inside) and,
     with ``background_model`` and photos without masks (:func:`is_unmasked_capture`), a background
-    model for the photos outside the box. Nothing for None."""
+    model for the photos outside the box: ``fitted_background`` (the one the scaffold was fitted with)
+    when given, else a new one. Nothing for None."""
     if box is not None:
         field.object_box = box
     if background_model and box is not None and is_unmasked_capture(scene):
         from .field.background import attach_background, fit_background_for
 
-        attach_background(field, fit_background_for(scene.split("train").cameras.c2w, box,
-                                                    None if scene.capture is None else scene.capture.points))
+        model = fitted_background
+        if model is None or not np.allclose(model.box.centre, box.centre):
+            model = fit_background_for(scene.split("train").cameras.c2w, box,
+                                       None if scene.capture is None else scene.capture.points)
+        attach_background(field, model)
 
 
 def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, background="white",
         scaffold_config: Optional[ScaffoldConfig] = None, field_config=None, train_config=None,
         scaffold_progress: Optional[Callable[[str, float], object]] = None,
         train_callback=None, evaluate_split: str = "val", log: Callable[[str], None] = print,
-        device="cpu", box=None, background_model: bool = True) -> dict:
+        device="cpu", box=None, background_model: bool = True, eval_progress=None) -> dict:
     """Run the whole pipeline on a dataset folder; returns a summary dict (also written to fit.json).
 
     ``device``: where the field trains and is evaluated (the scaffold is built on the CPU).
     ``box``: a ``data.frame.ObjectBox`` for the object (None: automatic for captures without masks).
     ``background_model``: without masks, fit a background model outside the box (off: the field
-    alone must explain the whole frame; for comparisons)."""
+    alone must explain the whole frame; for comparisons). ``eval_progress(done, total)``: the
+    evaluation's progress over the held-out photos."""
     from .data.loader import load_scene
     from .errors import VertexMismatchError
     from .evaluate import evaluate
@@ -81,18 +93,21 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
     t0 = time.perf_counter()
     scene = load_scene(data_dir, downscale=downscale, background=background)
     summary = {"data": os.path.abspath(data_dir), "downscale": downscale}
-    box = capture_box(scene, box, log)
+    box = capture_box(scene, box, log, progress=None if scaffold_progress is None
+                      else (lambda f: scaffold_progress("sparse points", f)))
     if box is not None:
         summary["object_box"] = box.to_dict()
 
     mesh_path = os.path.join(out_dir, "scaffold.ply")
     report_path = os.path.join(out_dir, "scaffold.scaffold.json")
+    fitted_background = None
     if os.path.isfile(mesh_path):
         mesh = load_mesh(mesh_path)
         log(f"scaffold: reusing {mesh_path} ({mesh.num_vertices} vertices); delete it to rebuild")
         summary["scaffold"] = {"reused": True, "vertices": mesh.num_vertices}
     else:
-        mesh, rep = build_scaffold(scene, scaffold_config or ScaffoldConfig(), progress=scaffold_progress)
+        mesh, rep = build_scaffold(scene, scaffold_config or ScaffoldConfig(), progress=scaffold_progress, box=box)
+        fitted_background = rep.background
         save_mesh(mesh, mesh_path)
         rep.save(report_path)
         log(rep.summary())
@@ -114,7 +129,8 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
         summary["resumed_from_step"] = done
     else:
         field = create_field(mesh, field_config or FieldConfig(), device=device)
-        prepare_capture_field(field, scene, box, background_model=background_model)
+        prepare_capture_field(field, scene, box, background_model=background_model,
+                              fitted_background=fitted_background)
     res = train(field, scene, tcfg, callback=train_callback)
     if os.path.abspath(tcfg.checkpoint_path) != os.path.abspath(field_path):
         save_field(field, field_path)  # (the trainer already wrote field_path with its step/optimiser)
@@ -122,7 +138,8 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
                         "seconds": getattr(res, "seconds", None)}
     if evaluate_split in scene.splits:
         metrics = evaluate(field, scene.split(evaluate_split),
-                           background=scene.background or (0.0, 0.0, 0.0), masked=scene.kind == "dtu")
+                           background=scene.background or (0.0, 0.0, 0.0), masked=scene.kind == "dtu",
+                           progress=eval_progress)
         summary["eval"] = metrics.get("mean", metrics) if isinstance(metrics, dict) else metrics
     summary["seconds"] = time.perf_counter() - t0
     with open(os.path.join(out_dir, "fit.json"), "w") as fh:

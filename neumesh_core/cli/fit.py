@@ -50,7 +50,8 @@ def _fit(args) -> int:
                   train_config=_train_config(args, os.path.join(args.out, "field.neumesh")),
                   scaffold_progress=progress.scaffold, train_callback=train_cb, log=log, device=_device(args),
                   box=None if args.box is None else parse_box(args.box),
-                  background_model=args.background_model == "on")
+                  background_model=args.background_model == "on",
+                  eval_progress=progress.count("evaluation", "held-out photos"))
     ev = summary.get("eval")
     figures = ", ".join(f"{k} {v:.4f}" for k, v in ev.items() if k != "render_s") if ev else ""
     if progress.stage == "evaluation":

@@ -150,13 +150,21 @@ def _bbox(capture: Capture, c2w: np.ndarray) -> tuple[np.ndarray, str]:
     return np.stack([lo, hi]).astype(np.float32), "the camera positions"
 
 
-def capture_object_box(capture: Capture, holdout_every: int = 8):
-    """The object box of ``capture`` (:func:`.frame.object_box` of its training cameras and sparse
-    points): the box ``neumesh fit`` finds for the scene loaded from it, without reading a photo (the
-    add-on's Import Cameras shows it as the NeuMesh Box)."""
+def capture_object_box(capture: Capture, points: Optional[np.ndarray] = None, holdout_every: int = 8):
+    """The object box of ``capture`` (:func:`.frame.object_box` of its training cameras and ``points``,
+    else the capture's own sparse points): the box ``neumesh fit`` finds for the scene loaded from
+    it, without reading a photo (the add-on's Import Cameras). A capture without points (instant-ngp's
+    transforms.json) gets its points from ``nm.capture_points`` (triangulated from the photos)."""
     from .frame import object_box
 
-    return object_box(capture.c2w[_split_indices(capture, holdout_every)["train"]], capture.points)
+    pts = capture.points if points is None else points
+    return object_box(training_photos(capture, holdout_every).c2w, pts)
+
+
+def training_photos(capture: Capture, holdout_every: int = 8) -> Capture:
+    """The photos of ``capture`` that train a field: its 'train' split, else all but every
+    ``holdout_every``-th photo (what :func:`scene_from_capture` holds out)."""
+    return capture.subset(_split_indices(capture, holdout_every)["train"])
 
 
 def _split_indices(capture: Capture, holdout_every: int) -> dict:

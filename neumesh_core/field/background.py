@@ -1,12 +1,20 @@
-"""The background model of real captures (issue 49; the paper's "unbounded scenes").
+"""The background model of real captures (the paper's "unbounded scenes").
 
 The mesh field holds the object inside its :class:`~neumesh_core.data.frame.ObjectBox`; everything
-else (the room) is a separate, cheap field in plain torch: a dense grid of density + colour features in
-mip-NeRF 360's contracted space (``y = (x - centre) / radius``, ``|y| <= 1`` kept, beyond it
-``(2 - 1/|y|) y/|y|``, so the whole world fits in a ball of radius 2), read trilinearly, and a tiny
-MLP (features + view direction -> colour).  Each ray is sampled from where it leaves the object box
-(or, missing the box, from its closest approach to the frame centre) to far away, evenly in
-disparity (1/t); the last interval reaches infinity (the background is opaque: a photo has no holes).
+else (the room, the support the object stands on or hangs from) is a separate, cheap field in plain
+torch: density + colour features in mip-NeRF 360's contracted space (``y = (x - centre) / radius``,
+``|y| <= 1`` kept, beyond it ``(2 - 1/|y|) y/|y|``, so the whole world fits in a ball of radius 2),
+read from K-Planes (or a dense grid), and a tiny MLP (features + view direction -> colour).
+
+Sampling (``version`` 2, what ``neumesh fit`` trains): the space is the box's own (``y`` in the box's
+axes, centred on the box), so a wall or table parallel to the box's faces lies in one plane of the
+K-Planes; each ray is sampled at even steps of its length in the contracted space (even in distance
+inside the ball, even in disparity beyond it) from the camera to far away, and the samples inside
+the object box hold nothing. A ray just inside the box's outline and one just outside it are sampled
+alike, so the box's edges leave no seam. The last interval reaches infinity (the background is
+opaque: a photo has no holes). Version 1 (files written before it): world axes, each ray sampled
+evenly in disparity from where it leaves the box (or, missing the box, from its closest approach to
+the frame centre); such files render as they were trained.
 
 The renderer composites it behind the mesh field by the mesh field's transmittance:
 ``rgb = rgb_field + (1 - opacity_field) * rgb_background`` (``render.renderer.render_rays``,
@@ -82,7 +90,7 @@ class BackgroundModel(nn.Module):
 
     def __init__(self, centre, radius: float, box=None, resolution: int = 64, features: int = 8,
                  hidden: int = 32, samples: int = 48, far_factor: float = 100.0, planes=(),
-                 plane_features: int = 8):
+                 plane_features: int = 8, version: int = 1):
         super().__init__()
         planes = tuple(int(p) for p in planes)
         if resolution < 2 or features < 1 or samples < 2 or radius <= 0:
@@ -95,6 +103,9 @@ class BackgroundModel(nn.Module):
         self.resolution, self.features, self.hidden = int(resolution), int(features), int(hidden)
         self.samples, self.far_factor = int(samples), float(far_factor)
         self.planes, self.plane_features = planes, int(plane_features)
+        if int(version) not in (1, 2):
+            raise ValueError(f"BackgroundModel: version 1 or 2, got {version}")
+        self.version = int(version)
         gen = torch.Generator().manual_seed(0)
         if not self.planes:
             r = self.resolution
@@ -117,7 +128,7 @@ class BackgroundModel(nn.Module):
                 "box": None if self.box is None else self.box.to_dict(), "resolution": self.resolution,
                 "features": self.features, "hidden": self.hidden, "samples": self.samples,
                 "far_factor": self.far_factor, "planes": list(self.planes),
-                "plane_features": self.plane_features}
+                "plane_features": self.plane_features, "version": self.version}
 
     @classmethod
     def from_config(cls, cfg: dict) -> "BackgroundModel":
@@ -126,7 +137,7 @@ class BackgroundModel(nn.Module):
         box = None if cfg.get("box") is None else ObjectBox.from_dict(cfg["box"])
         return cls(cfg["centre"], cfg["radius"], box, int(cfg["resolution"]), int(cfg["features"]),
                    int(cfg["hidden"]), int(cfg["samples"]), float(cfg["far_factor"]), tuple(cfg.get("planes", ())),
-                   int(cfg.get("plane_features", 8)))
+                   int(cfg.get("plane_features", 8)), int(cfg.get("version", 1)))
 
     def tv_loss(self) -> torch.Tensor:
         """K-Planes' total variation of the feature planes: the mean squared difference of neighbouring
@@ -140,23 +151,74 @@ class BackgroundModel(nn.Module):
         return total
 
     # -- sampling ------------------------------------------------------------------------------------
+    def _frame(self, like: torch.Tensor):
+        """(centre (3,), rotation (3,3)) of the model's space: the box's axes for version 2."""
+        c = torch.as_tensor(self.centre_np, dtype=like.dtype, device=like.device)
+        if self.version == 2 and self.box is not None:
+            return c, torch.as_tensor(self.box.rotation, dtype=like.dtype, device=like.device)
+        return c, None
+
     def ray_start(self, o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-        """Where each ray's background begins: the box exit, else its closest approach to the centre."""
+        """Version 1: where each ray's background begins: the box exit, else its closest approach to
+        the centre."""
         c = torch.as_tensor(self.centre_np, dtype=o.dtype, device=o.device)
         t_close = ((c - o) * d).sum(-1).clamp_min(0)
         if self.box is None:
             return torch.zeros_like(t_close)
-        bc = torch.as_tensor(self.box.centre, dtype=o.dtype, device=o.device)
-        bh = torch.as_tensor(self.box.half_extents, dtype=o.dtype, device=o.device)
-        br = torch.as_tensor(self.box.rotation, dtype=o.dtype, device=o.device)
-        t_in, t_out = ray_box_exit(o, d, bc, bh, br)
+        t_in, t_out = self._box_range(o, d)
         hit = (t_in <= t_out) & (t_out > 0)
         return torch.where(hit, t_out.clamp_min(0), t_close)
 
+    def _box_range(self, o: torch.Tensor, d: torch.Tensor):
+        bc = torch.as_tensor(self.box.centre, dtype=o.dtype, device=o.device)
+        bh = torch.as_tensor(self.box.half_extents, dtype=o.dtype, device=o.device)
+        br = torch.as_tensor(self.box.rotation, dtype=o.dtype, device=o.device)
+        return ray_box_exit(o, d, bc, bh, br)
+
+    def _edges_v1(self, origins, dirs, jitter):
+        R, S = origins.shape[0], self.samples
+        t0 = self.ray_start(origins, dirs).clamp_min(0.02 * self.radius)
+        t_far = t0 + self.far_factor * self.radius
+        u = torch.arange(S + 1, dtype=origins.dtype, device=origins.device) / S   # S intervals
+        if jitter is not None:
+            u = (u[None, :] + (jitter[:, None].to(origins.dtype) - 0.5) / S).clamp(0, 1)
+        else:
+            u = u[None, :].expand(R, -1)
+        # evenly in disparity between 1/t0 and 1/t_far
+        return 1.0 / (1.0 / t0[:, None] * (1 - u) + 1.0 / t_far[:, None] * u)
+
+    def _edges_v2(self, origins, dirs, jitter, candidates: int = 128):
+        """Interval edges (R, S+1) at even steps of each ray's length in the contracted space, from
+        0.01 radius to ``far_factor`` radii (found on ``candidates`` points even in disparity)."""
+        R, S = origins.shape[0], self.samples
+        dt, dev = origins.dtype, origins.device
+        near, far = 0.01 * self.radius, self.far_factor * self.radius
+        u = torch.arange(candidates + 1, dtype=dt, device=dev) / candidates
+        tc = 1.0 / (1.0 / near * (1 - u) + 1.0 / far * u)                          # (M+1,)
+        c, rot = self._frame(origins)
+        x = origins[:, None, :] + dirs[:, None, :] * tc[None, :, None] - c
+        y = contract((x if rot is None else x @ rot) / self.radius)
+        seg = (y[:, 1:] - y[:, :-1]).norm(dim=-1)                                   # (R, M)
+        L = torch.cat([torch.zeros_like(seg[:, :1]), seg.cumsum(1)], 1)           # (R, M+1)
+        v = torch.arange(S + 1, dtype=dt, device=dev) / S
+        if jitter is not None:
+            v = (v[None, :] + (jitter[:, None].to(dt) - 0.5) / S).clamp(0, 1)
+        else:
+            v = v[None, :].expand(R, -1)
+        target = (v * L[:, -1:]).contiguous()
+        k = torch.searchsorted(L.contiguous(), target).clamp(1, candidates)
+        L0, L1 = L.gather(1, k - 1), L.gather(1, k)
+        w = ((target - L0) / (L1 - L0).clamp_min(1e-12)).clamp(0, 1)
+        return tc[k - 1] + w * (tc[k] - tc[k - 1])
+
     def query(self, x: torch.Tensor, d: torch.Tensor):
         """Density per radius (S,) and colour (S,3) at world points ``x`` (S,3) seen along ``d``."""
-        c = torch.as_tensor(self.centre_np, dtype=x.dtype, device=x.device)
-        z = contract((x - c) / self.radius) * 0.5          # in [-1, 1]^3 for grid_sample
+        c, rot = self._frame(x)
+        if rot is not None:
+            x, d = (x - c) @ rot, d @ rot
+            z = contract(x / self.radius) * 0.5          # in [-1, 1]^3 for grid_sample
+        else:
+            z = contract((x - c) / self.radius) * 0.5
         if not self.planes:
             g = F.grid_sample(self.grid, z.view(1, -1, 1, 1, 3), mode="bilinear", align_corners=True)
             g = g.view(1 + self.features, -1).t()
@@ -174,19 +236,14 @@ class BackgroundModel(nn.Module):
         R, S = origins.shape[0], self.samples
         if R == 0:
             return origins.new_zeros(0, 3), origins.new_zeros(0)
-        t0 = self.ray_start(origins, dirs).clamp_min(0.02 * self.radius)
-        t_far = t0 + self.far_factor * self.radius
-        u = torch.arange(S + 1, dtype=origins.dtype, device=origins.device) / S   # S intervals
-        if jitter is not None:
-            u = (u[None, :] + (jitter[:, None].to(origins.dtype) - 0.5) / S).clamp(0, 1)
-        else:
-            u = u[None, :].expand(R, -1)
-        # evenly in disparity between 1/t0 and 1/t_far
-        t = 1.0 / (1.0 / t0[:, None] * (1 - u) + 1.0 / t_far[:, None] * u)
+        t = self._edges_v2(origins, dirs, jitter) if self.version == 2 else self._edges_v1(origins, dirs, jitter)
         mid = 0.5 * (t[:, 1:] + t[:, :-1])
         x = origins[:, None, :] + dirs[:, None, :] * mid[..., None]
         sigma, rgb = self.query(x.reshape(-1, 3), dirs[:, None, :].expand(-1, S, -1).reshape(-1, 3))
         sigma, rgb = sigma.view(R, S), rgb.view(R, S, 3)
+        if self.version == 2 and self.box is not None:   # the object box holds nothing of the room
+            t_in, t_out = self._box_range(origins, dirs)
+            sigma = torch.where((mid > t_in[:, None]) & (mid < t_out[:, None]), torch.zeros_like(sigma), sigma)
         dt = (t[:, 1:] - t[:, :-1]) / self.radius
         alpha = 1 - torch.exp(-sigma * dt)
         alpha = torch.cat([alpha[:, :-1], torch.ones_like(alpha[:, -1:])], 1)   # opaque at infinity
@@ -208,16 +265,18 @@ def background_for(c2w: np.ndarray, box, points: Optional[np.ndarray] = None, ra
     return BackgroundModel(fr.centre, fr.radius if radius is None else radius, box, **kw)
 
 
-#: the background model of fitted real captures (neumesh fit): K-Planes at 128 and 512 texels, 32
-#: samples a ray, the contraction ball twice the object box's largest half-size
-#: (docs/real_captures.md: 64^3 dense grid 16.8 dB -> see the log there)
-FIT_BACKGROUND = {"planes": (128, 512), "samples": 32}
+#: the background model of fitted real captures (neumesh fit): K-Planes at 128 and 512 texels in the
+#: object box's axes, 32 samples a ray even in the contracted space, the contraction ball centred on
+#: the box and twice its largest half-size (docs/real_captures.md)
+FIT_BACKGROUND = {"planes": (128, 512), "samples": 32, "version": 2}
 
 
 def fit_background_for(c2w: np.ndarray, box, points: Optional[np.ndarray] = None) -> BackgroundModel:
-    """The background model ``neumesh fit`` trains for a real capture (:data:`FIT_BACKGROUND`)."""
-    radius = None if box is None else 2.0 * float(np.max(box.half_extents))
-    return background_for(c2w, box, points, radius=radius, **FIT_BACKGROUND)
+    """The background model ``neumesh fit`` trains for a real capture (:data:`FIT_BACKGROUND`): centred
+    on ``box`` in its axes (without a box: the cameras' frame, world axes)."""
+    if box is None:
+        return background_for(c2w, None, points, **{**FIT_BACKGROUND, "version": 1})
+    return BackgroundModel(box.centre, 2.0 * float(np.max(box.half_extents)), box, **FIT_BACKGROUND)
 
 
 def attach_background(field, model: Optional[BackgroundModel]) -> None:

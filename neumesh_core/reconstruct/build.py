@@ -50,13 +50,16 @@ def _resize_for_density(imgs: ImageSet, max_side: int) -> ImageSet:
 
 def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
                    progress: Callable[[str, float], object] | None = None,
-                   log: Callable[[str], None] | None = None):
+                   log: Callable[[str], None] | None = None, box=None):
     """Reconstruct a mesh scaffold from posed images.
 
     scene_or_imageset: a :class:`Scene` (its "train" split, bbox, background and reference mesh are
     used) or an :class:`ImageSet` (no bbox: the volume seen by the cameras is used).
+    box: the object box (``data.frame.ObjectBox``) of photos without masks: method "fusion" builds the
+    surface in it (without it, the scene's bbox as an axis-aligned box).
     progress(stage, fraction) -> False cancels (raises Cancelled). Stages: "bounds", "hull",
-    "density", "mesh", "metrics".  log(str) receives human-readable details.
+    "density", "mesh", "metrics" ("fusion": "density", "depths", "fusion", "mesh", "metrics").
+    log(str) receives human-readable details.
     Returns (Mesh, ScaffoldReport).  Raises ScaffoldError (a DataError) on unusable input.
     """
     cfg = config or ScaffoldConfig()
@@ -94,20 +97,22 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
     has_masks = images.masks is not None
     method = cfg.method
     if method == "auto":
-        method = "hull+mvs" if has_masks else "density"
+        method = "hull+mvs" if has_masks else "fusion"
         if has_masks and one_sided_capture(images.cameras):
             rep.notes.append("the cameras see the object from one side: the visual hull says little about "
                              "depth; multi-view stereo carves it (method 'hull+mvs')")
         if not has_masks:
-            rep.notes.append("no masks/alpha in the data: falling back to photometric-only density "
-                             "fitting (slower, less accurate silhouettes); add masks for a visual hull")
+            rep.notes.append("no masks/alpha in the data: the surface comes from the photos alone (a density grid "
+                             "fitted with a background model, its depths fused); add masks for a visual hull")
     if method in ("hull", "hull+mvs", "hull+density") and not has_masks:
         raise ScaffoldError(f"method '{method}' needs masks (alpha for Blender data, mask/ for DTU) "
                             "but the images have none; add masks or use method 'density'")
-    if method == "density" and bbox is None and not has_masks:
-        raise ScaffoldError("no masks and no bounding box: cannot tell the object from the background; "
-                            "provide masks (alpha / mask folder) or a scene bbox (e.g. 'aabb' in transforms)")
+    if method in ("density", "fusion") and bbox is None and box is None and not has_masks:
+        raise ScaffoldError("no masks and no object box: cannot tell the object from the background; "
+                            "provide masks (alpha / mask folder) or an object box (--box cx,cy,cz,sx,sy,sz)")
     rep.method = method
+    if method == "fusion":
+        return _fused(images, box, bbox, cfg, rep, check, say, t_all)
 
     # ---------------------------------------------------------------- bounds
     t0 = time.perf_counter()
@@ -285,6 +290,33 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
         rep.chamfer = ch
     check("metrics", 1.0)
     rep.timings["metrics"] = time.perf_counter() - t0
+    rep.timings["total"] = time.perf_counter() - t_all
+    return mesh, rep
+
+
+def _fused(images: ImageSet, box, bbox, cfg: ScaffoldConfig, rep: ScaffoldReport, check, say, t_all: float):
+    """Method "fusion" (``fusion.py``): the surface of photos without masks, inside ``box``."""
+    from ..data.frame import ObjectBox
+    from .fusion import build_fused_scaffold
+
+    if box is None:
+        box = ObjectBox.from_aabb(bbox)
+    dimgs = _resize_for_density(images, cfg.density_max_image_side)
+    built = build_fused_scaffold(dimgs, box, cfg, cfg.fusion, check=check, log=say)
+    mesh = built.mesh
+    rep.bbox = [box.aabb()[0].tolist(), box.aabb()[1].tolist()]
+    rep.density, rep.fusion, rep.meshing = built.report["density"], built.report["fusion"], built.report["meshing"]
+    rep.timings.update(built.report["timings"])
+    rep.background = built.background
+    if mesh.num_vertices == 0 or len(mesh.faces) == 0:
+        raise ScaffoldError("the photos agree on no surface inside the object box: check that the box holds the "
+                            "object (--box) and that the poses belong to the photos")
+    if len(mesh.faces) > cfg.max_faces:
+        raise ScaffoldError(
+            f"the scaffold has {len(mesh.faces)} faces (> max_faces={cfg.max_faces}); lower target_vertices "
+            "(--vertices) or raise max_faces (--max-faces)")
+    rep.num_vertices, rep.num_faces = int(mesh.num_vertices), int(len(mesh.faces))
+    check("metrics", 1.0)
     rep.timings["total"] = time.perf_counter() - t_all
     return mesh, rep
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Optional
 
 import numpy as np
@@ -17,20 +17,23 @@ class ScaffoldError(DataError):
     """The scaffold cannot be built from this input (the message says what to change)."""
 
 
-METHODS = ("auto", "hull", "hull+mvs", "hull+density", "density")
+METHODS = ("auto", "hull", "hull+mvs", "hull+density", "density", "fusion")
 
 
 @dataclass
 class ScaffoldConfig:
     """Settings of :func:`build_scaffold`.
 
-    method: "auto" (with masks: "hull+mvs"; without masks: photometric density), "hull" (visual
+    method: "auto" (with masks: "hull+mvs"; without masks: "fusion"), "hull" (visual
         hull only; fastest; no concavities; needs masks), "hull+mvs" (hull, then plane-sweep stereo
         depth maps fused on the hull grid carve what no silhouette shows: concavities, and the depth
         of one-sided captures such as DTU; textureless parts keep the hull; needs masks. On lego it
         lifts a 4-minute fit from 27.0 to 29.0 dB; on DTU it is what makes the scaffold usable),
         "hull+density" (hull, then a density grid fitted by volume rendering; slower; needs masks),
-        "density" (photometric density only; needs a bbox; no masks needed).
+        "density" (photometric density only; needs a bbox; no masks needed; an iso-level of the grid),
+        "fusion" (photos without masks, what "auto" picks for them: the density grid fitted with a
+        background model behind it, its per-view depths fused into one surface; needs an object box;
+        ``fusion.py``).
     target_vertices: vertex count the mesh is resampled to (within ~12%); 0 keeps the grid's count.
     max_mesh_grid: cap on that resampled grid (~this^3 nodes in all); beyond it the mesh is midpoint-
         subdivided instead.  640 reaches ~2M vertices on scan24 (3.2 GB peak at 567^3; 420 stopped
@@ -74,6 +77,7 @@ class ScaffoldConfig:
     iou_views: int = 0          # 0: all training views
     compute_iou: bool = True
     chamfer_samples: int = 100_000  # against Scene.mesh_path when present; 0 disables
+    fusion: Optional["FusionConfig"] = None  # "fusion" settings (None: FusionConfig())
     seed: int = 0
 
 
@@ -92,11 +96,16 @@ class ScaffoldReport:
     density: dict = field(default_factory=dict)
     mvs: dict = field(default_factory=dict)
     meshing: dict = field(default_factory=dict)
+    fusion: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
     config: dict = field(default_factory=dict)
+    #: "fusion": the background model fitted with the density grid (world space; not saved), for the
+    #: field's training to start from
+    background: Optional[object] = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
-        return json.loads(json.dumps(asdict(self), default=_json_default))
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "background"}
+        return json.loads(json.dumps(d, default=_json_default))
 
     def save(self, path: str) -> None:
         os.makedirs(os.path.dirname(os.path.abspath(path)) or ".", exist_ok=True)

@@ -4,7 +4,11 @@ Density is stored per node of a regular grid over the scaffold box and trilinear
 sigma is expressed per voxel length (alpha of one voxel = 1 - exp(-sigma)).  Colour is a per-node
 RGB (SH degree 0).  Density is confined to an ``allowed`` region (the dilated visual hull, or the
 whole box without masks).  Losses: photometric MSE, mask BCE on opacity (when masks exist) and a
-small total-variation term.
+small total-variation term.  Behind the grid each ray sees: a known background colour, the ground
+truth (masks), a background model (``field/background.py``: the room of a photo without masks,
+trained with the grid, so the room is not painted onto the box), or a learnt colour per view.
+:func:`grid_depths` renders the fitted grid's median depth and opacity per view (what
+``fusion.py`` fuses into one surface).
 """
 from __future__ import annotations
 
@@ -28,6 +32,7 @@ class DensityResult:
     final_loss: float
     final_psnr: float
     rays_per_sec: float
+    spacing: np.ndarray = None   # (3,) node spacing per axis of the final grid (voxel is their mean)
 
 
 _CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=torch.long)
@@ -59,12 +64,45 @@ def _ray_box(o, d, lo, hi):
     return tn, tf
 
 
+def _pixel_rays(K: torch.Tensor, c2w: torch.Tensor, px: torch.Tensor):
+    """Unit rays (origins, dirs) through pixel positions ``px`` (R,2) of cameras ``K`` (R,3,3),
+    ``c2w`` (R,4,4) (OpenCV)."""
+    yc = (px[:, 1] - K[:, 1, 2]) / K[:, 1, 1]
+    xc = (px[:, 0] - K[:, 0, 2] - K[:, 0, 1] * yc) / K[:, 0, 0]
+    dcam = torch.stack([xc, yc, torch.ones_like(xc)], -1)
+    d = torch.einsum("rij,rj->ri", c2w[:, :3, :3], dcam)
+    return c2w[:, :3, 3], d / d.norm(dim=-1, keepdim=True)
+
+
+def _box_samples(o, d, lo_t, hi_t, n_samples: int, step_world: float, offset: torch.Tensor):
+    """Samples along each ray from where it enters the box: t (R,S), points (R,S,3) and which lie in
+    the box (R,S). ``offset`` (R,1): each ray's stratification offset in [0, 1)."""
+    tn, tf = _ray_box(o, d, lo_t, hi_t)
+    steps = torch.arange(n_samples, dtype=torch.float32)[None] + offset
+    t = tn[:, None] + steps * step_world
+    valid = (tf > tn)[:, None] & (t < tf[:, None])
+    return t, o[:, None, :] + d[:, None, :] * t[..., None], valid
+
+
+def _grid_index(pts, lo_t, vox_vec, dims):
+    idx = ((pts - lo_t) / vox_vec).round().long()
+    for a in range(3):
+        idx[..., a] = idx[..., a].clamp(0, dims[a] - 1)
+    return idx
+
+
 def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, lo, voxel: float,
                 resolutions=(64, 128), iters=(300, 400), batch_rays: int = 4096,
                 background=None, use_masks: bool = True, lr: float = 0.1, mask_weight: float = 0.5,
-                tv_weight: float = 1e-4, seed: int = 0, check=None, log=None) -> DensityResult:
+                tv_weight: float = 1e-4, seed: int = 0, check=None, log=None, background_model=None,
+                background_lr: float = 1e-2, empty_init: float = -2.0) -> DensityResult:
     """Fit the grid. ``allowed``/``init_inside``: bool node grids (any resolution) over the box
     starting at ``lo`` with spacing ``voxel``; they are resampled to each stage's grid.
+    ``background_model``: a module ``(origins, dirs, jitter) -> (rgb, opacity)`` for what each ray
+    sees behind the box (e.g. a BackgroundModel in the images' frame), trained with the grid at
+    ``background_lr``; it takes the place of the learnt colour per view of photos without masks.
+    ``empty_init``: the density parameter the nodes outside ``init_inside`` start from (softplus of it
+    per voxel length: -2 is a light fog, -5 nearly clear air).
     ``check(fraction)`` is called every few iterations (it raises to cancel)."""
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -79,7 +117,7 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
     if use_masks and images.masks is not None:
         masks = torch.from_numpy(np.ascontiguousarray(images.float_masks().reshape(N, H * W)))
     bg = None if background is None else torch.tensor(background, dtype=torch.float32)
-    learn_bg = masks is None and bg is None
+    learn_bg = masks is None and bg is None and background_model is None
     bg_param = torch.full((N, 3), 0.0, requires_grad=True) if learn_bg else None
 
     K = torch.as_tensor(cams.K)
@@ -102,7 +140,7 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
         allow = (allow > 0.01).float()
         if sig_param is None:
             inside = F.interpolate(inside_t, size=dims, mode="trilinear", align_corners=True)
-            sig0 = torch.where(inside > 0.5, torch.tensor(3.0), torch.tensor(-2.0))
+            sig0 = torch.where(inside > 0.5, torch.tensor(3.0), torch.tensor(float(empty_init)))
             sig_param = sig0.clone()
             col_param = torch.zeros((1, 3) + dims)
         else:
@@ -114,6 +152,8 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
         params = [{"params": [table], "lr": lr}]
         if bg_param is not None:
             params.append({"params": [bg_param], "lr": 0.01})
+        if background_model is not None:
+            params.append({"params": list(background_model.parameters()), "lr": background_lr})
         try:
             opt = torch.optim.Adam(params, betas=(0.9, 0.99), fused=True)
         except (RuntimeError, TypeError):  # fused kernels unavailable on this build
@@ -127,26 +167,13 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
             pi = torch.randint(0, H * W, (batch_rays,), generator=gen)
             px = torch.stack([(pi % W).float() + torch.rand(batch_rays, generator=gen),
                               (pi // W).float() + torch.rand(batch_rays, generator=gen)], -1)
-            Kv, Cv = K[vi], c2w[vi]
-            yc = (px[:, 1] - Kv[:, 1, 2]) / Kv[:, 1, 1]
-            xc = (px[:, 0] - Kv[:, 0, 2] - Kv[:, 0, 1] * yc) / Kv[:, 0, 0]
-            dcam = torch.stack([xc, yc, torch.ones_like(xc)], -1)
-            d = torch.einsum("rij,rj->ri", Cv[:, :3, :3], dcam)
-            d = d / d.norm(dim=-1, keepdim=True)
-            o = Cv[:, :3, 3]
+            o, d = _pixel_rays(K[vi], c2w[vi], px)
             gt = imgs[vi, pi]
             gm = masks[vi, pi] if masks is not None else None
-            tn, tf = _ray_box(o, d, lo_t, hi_t)
-            hit = tf > tn
             # --- stratified samples inside the box
             S = n_samples
-            steps = (torch.arange(S, dtype=torch.float32)[None] + torch.rand(batch_rays, 1, generator=gen))
-            t = tn[:, None] + steps * step_world
-            valid = hit[:, None] & (t < tf[:, None])
-            pts = o[:, None, :] + d[:, None, :] * t[..., None]
-            idx = ((pts - lo_t) / vox_vec).round().long()
-            for a in range(3):
-                idx[..., a] = idx[..., a].clamp(0, dims[a] - 1)
+            t, pts, valid = _box_samples(o, d, lo_t, hi_t, S, step_world, torch.rand(batch_rays, 1, generator=gen))
+            idx = _grid_index(pts, lo_t, vox_vec, dims)
             valid &= allow_bool[idx[..., 0], idx[..., 1], idx[..., 2]]
             sel = valid.nonzero(as_tuple=True)
             p_sel = pts[sel]
@@ -165,7 +192,9 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
             w = alpha * T
             rgb = (w[..., None] * col).sum(1)
             op = w.sum(1)
-            if bg_param is not None:
+            if background_model is not None:
+                bgc, _ = background_model(o, d, jitter=torch.rand(batch_rays, generator=gen))
+            elif bg_param is not None:
                 bgc = torch.sigmoid(bg_param[vi])
             elif bg is not None:
                 bgc = bg.expand_as(rgb)
@@ -201,4 +230,47 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
         sig = (F.softplus(sig_param) * allow)[0, 0].numpy()  # last stage's grid
     el = time.perf_counter() - t_start
     return DensityResult(sig.astype(np.float32), np.asarray(lo, np.float32), vox, done, last_loss,
-                         last_psnr, rays_done / max(el, 1e-9))
+                         last_psnr, rays_done / max(el, 1e-9), vox_vec.numpy().astype(np.float64))
+
+
+@torch.no_grad()
+def grid_depths(res: DensityResult, cameras, chunk: int = 8192, check=None):
+    """Median depth (the ray distance where the grid's opacity reaches half its total; inf where the
+    total stays below 0.5) and opacity of every pixel of every camera: (depth (N,H,W), opacity
+    (N,H,W)) float32, the grid composited as :func:`fit_density` trains it (no background)."""
+    sig = torch.from_numpy(np.ascontiguousarray(res.sigma, np.float32))
+    dims = tuple(sig.shape)
+    table = sig.reshape(-1, 1).contiguous()
+    vox_vec = torch.as_tensor(res.spacing, dtype=torch.float32)
+    vox = float(vox_vec.mean())
+    lo_t = torch.as_tensor(np.asarray(res.lo, np.float32))
+    ext = vox_vec * (torch.tensor(dims, dtype=torch.float32) - 1)
+    hi_t = lo_t + ext
+    n_samples = int(min(512, math.ceil(1.6 * max(dims))))
+    step_world = float(ext.max() * 1.8 / n_samples)
+    N, H, W = len(cameras), cameras.height, cameras.width
+    K, c2w = torch.as_tensor(cameras.K, dtype=torch.float32), torch.as_tensor(cameras.c2w, dtype=torch.float32)
+    depth = np.full((N, H * W), np.inf, np.float32)
+    opac = np.zeros((N, H * W), np.float32)
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float32) + 0.5, torch.arange(W, dtype=torch.float32) + 0.5,
+                            indexing="ij")
+    pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
+    for v in range(N):
+        for s in range(0, H * W, chunk):
+            px = pix[s:s + chunk]
+            R = px.shape[0]
+            o, d = _pixel_rays(K[v].expand(R, 3, 3), c2w[v].expand(R, 4, 4), px)
+            t, pts, valid = _box_samples(o, d, lo_t, hi_t, n_samples, step_world, torch.full((R, 1), 0.5))
+            sel = valid.nonzero(as_tuple=True)
+            dens = torch.zeros(R, n_samples)
+            dens[sel] = trilinear(table, dims, (pts[sel] - lo_t) / vox_vec)[:, 0] * (step_world / vox)
+            w = (1.0 - torch.exp(-dens)) * torch.exp(-(torch.cumsum(dens, 1) - dens))
+            op = w.sum(1)
+            cw = torch.cumsum(w, 1)
+            k = torch.searchsorted(cw, (0.5 * op)[:, None].contiguous()).clamp_max(n_samples - 1)[:, 0]
+            dep = t.gather(1, k[:, None])[:, 0]
+            depth[v, s:s + R] = torch.where(op >= 0.5, dep, torch.full_like(dep, float("inf"))).numpy()
+            opac[v, s:s + R] = op.numpy()
+        if check is not None:
+            check((v + 1) / N)
+    return depth.reshape(N, H, W), opac.reshape(N, H, W)

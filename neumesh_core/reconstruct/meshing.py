@@ -10,16 +10,24 @@ import torch.nn.functional as F
 from ..mesh import Mesh
 
 
-def marching_cubes(values: np.ndarray, level: float, lo, voxel: float) -> Mesh:
+def marching_cubes(values: np.ndarray, level: float, lo, voxel: float, mask: np.ndarray | None = None) -> Mesh:
     """Iso-surface of node values (nx,ny,nz) at ``level`` (inside = values > level), outward CCW faces.
 
-    The grid is padded with an outside layer so the surface is always closed.
+    The grid is padded with an outside layer so the surface is always closed.  With ``mask`` (bool per
+    node) only the cubes whose nodes are all in the mask make faces: an open surface where the mask
+    ends (no padding), its faces towards the lower values.
     """
     from skimage.measure import marching_cubes as _mc
 
     v = np.asarray(values, np.float32)
     if v.size == 0 or not v.max() > level:
         return Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64))
+    if mask is not None:
+        if not (mask.any() and v[mask].max() > level and v[mask].min() < level):
+            return Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64))
+        verts, faces, _, _ = _mc(v, level=level, spacing=(voxel, voxel, voxel), allow_degenerate=False,
+                                 mask=np.asarray(mask, bool))
+        return Mesh((verts + np.asarray(lo, np.float32)[None]).astype(np.float32), faces.astype(np.int64))
     outside = np.float32(min(float(v.min()), level) - 1.0)
     v = np.pad(v, 1, mode="constant", constant_values=outside)
     verts, faces, _, _ = _mc(v, level=level, spacing=(voxel, voxel, voxel), allow_degenerate=False)
@@ -110,19 +118,28 @@ def resample_grid(values: np.ndarray, lo, voxel: float, new_voxel: float):
     return r[0, 0].numpy(), np.asarray(lo, np.float32), actual
 
 
+def _resample_mask(mask: np.ndarray, shape) -> np.ndarray:
+    """A node mask on a resampled grid: the nodes whose trilinear neighbourhood is wholly in ``mask``."""
+    t = torch.from_numpy(np.ascontiguousarray(mask, np.float32))[None, None]
+    r = F.interpolate(t, size=tuple(int(d) for d in shape), mode="trilinear", align_corners=True)
+    return r[0, 0].numpy() > 0.999
+
+
 def extract_with_target(values: np.ndarray, level: float, lo, voxel: float, target_vertices: int,
                         min_fraction: float, max_grid_nodes: int = 420 ** 3, tolerance: float = 0.12,
-                        max_rounds: int = 3, check=None):
+                        max_rounds: int = 3, check=None, mask: np.ndarray | None = None):
     """Marching cubes, clean, drop floaters, and re-extract on a resampled grid so that the vertex
     count lands within ``tolerance`` of ``target_vertices`` (0 = keep the grid resolution).
+    ``mask``: the nodes that may make faces (an open surface; :func:`marching_cubes`).
 
     Returns (mesh, info dict).
     """
     info = {"rounds": []}
     cur_vals, cur_lo, cur_voxel = values, np.asarray(lo, np.float32), voxel
+    cur_mask = mask
     best = None
     for rnd in range(max_rounds):
-        m = marching_cubes(cur_vals, level, cur_lo, cur_voxel)
+        m = marching_cubes(cur_vals, level, cur_lo, cur_voxel, mask=cur_mask)
         m = clean_mesh(m, merge_eps=cur_voxel * 1e-3)
         faces_before = len(m.faces)
         m, ncomp, nkept = keep_large_components(m, min_fraction=min_fraction)
@@ -146,6 +163,8 @@ def extract_with_target(values: np.ndarray, level: float, lo, voxel: float, targ
             if new_voxel >= cur_voxel * 0.999:
                 break
         cur_vals, cur_lo, cur_voxel = resample_grid(values, lo, voxel, new_voxel)
+        if mask is not None:
+            cur_mask = _resample_mask(mask, cur_vals.shape)
     info["final_voxel"] = float(cur_voxel)
     # the grid cap stopped us well short of the target: split triangles (x4 vertices) if that is closer
     if target_vertices and best is not None and best.num_vertices and \
