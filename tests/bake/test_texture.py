@@ -13,7 +13,7 @@ import neumesh_core as nm
 from neumesh_core.bake import BakeResult, bake_texture, dilate, save_bake, texel_coverage, uv_pixels
 from neumesh_core.metrics import psnr
 from neumesh_core.render.raster import raster_triangles, render_textured_mesh
-from .conftest import one_thread
+from ..conftest import one_thread
 
 
 @pytest.fixture(scope="module")

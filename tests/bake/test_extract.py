@@ -13,7 +13,7 @@ from neumesh_core.bake import ExtractConfig, ProjectConfig, density_grid, extrac
 from neumesh_core.bake.surface import surface_offsets
 from neumesh_core.errors import NeuMeshError
 from neumesh_core.mesh import vertex_normals
-from .conftest import one_thread, textured_field
+from ..conftest import one_thread, textured_field
 
 
 @pytest.fixture(scope="module")

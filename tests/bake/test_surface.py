@@ -10,7 +10,7 @@ from neumesh_core.bake import SurfaceFitConfig, fit_to_field, offset_stats, surf
 from neumesh_core.bake.surface import render_disagreement, view_cameras
 from neumesh_core.data.synthetic import default_mesh
 from neumesh_core.mesh import vertex_normals
-from .conftest import one_thread, textured_field
+from ..conftest import one_thread, textured_field
 
 
 @pytest.fixture(scope="module")
