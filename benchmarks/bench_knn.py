@@ -77,7 +77,7 @@ def main(argv=None) -> int:
               "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
               "torch": torch.__version__, "backends": {}}
     ref = None
-    from neumesh_core.field.knn_triton import triton_runs_on
+    from neumesh_core.kernels.knn import triton_runs_on
 
     for b in KNN_BACKENDS:
         if b == "triton" and not triton_runs_on(device):

@@ -162,7 +162,7 @@ def profile_frame(field, cam, size, settings, device) -> dict:
 
 def sweep_options(field, cam, device, repeats, grid, size=800) -> list:
     import neumesh_core as nm
-    from neumesh_core.render import fused_triton as ft
+    from neumesh_core.kernels import fused as ft
 
     rows = []
     saved = dict(ft.KERNEL_OPTIONS)
@@ -200,7 +200,7 @@ def sweep_grid(which: str) -> list:
     benchmarks/kernel_resources.py) -- on an H200 with triton 3.6.0 tf32 once ended in an illegal memory
     access that poisons the CUDA context, so gpu_check.sh runs this set last, in a process of its own
     (``--sweep-only``), tf32 at its end.  Only images >= 50 dB from the torch render count."""
-    from neumesh_core.render import fused_triton as ft
+    from neumesh_core.kernels import fused as ft
 
     base = {**ft.KERNEL_OPTIONS, "block": ft.default_block("cuda"), "cells_per_radius": ft.default_cells("cuda")}
     if which == "precision":   # fp16 first (spills a quarter of fp32's), the tf32 that once crashed last
@@ -265,7 +265,7 @@ def breakdown(field, cam, device, size, repeats) -> dict:
     step-major so that neighbouring points are neighbouring rays (as the fused kernel's blocks are)."""
     import neumesh_core as nm
     from neumesh_core.data.cameras import pixel_rays
-    from neumesh_core.field.knn_triton import TritonHashGrid, knn_radius_triton
+    from neumesh_core.kernels.knn import TritonHashGrid, knn_radius_triton
     from neumesh_core.render.renderer import default_step
 
     Ks = scaled(cam[0], size / 400)
@@ -308,7 +308,7 @@ def breakdown(field, cam, device, size, repeats) -> dict:
 def train_steps(field, cams, device, steps: int, rays: int, repeats_warm: int = 3) -> dict:
     """The heavy part of a training step (render_rays(train=True) of ``rays`` random pixels of the views,
     jittered, and the backward pass of an L2 loss) with the torch marcher and with the kernel's march
-    (render/fused_triton.march_rays_fused; the torch decoders either way): seconds per step, rays per
+    (kernels/fused.march_rays_fused; the torch decoders either way): seconds per step, rays per
     second, samples per step, and the two paths' loss and code gradients on the same batch compared."""
     import neumesh_core as nm
     from neumesh_core.data.cameras import pixel_rays
@@ -425,7 +425,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     import neumesh_core as nm
     from neumesh_core.data.deformations import bend
-    from neumesh_core.render import fused_triton as ft
+    from neumesh_core.kernels import fused as ft
 
     t_start = time.perf_counter()
     dev = torch.device(args.device)

@@ -4,7 +4,7 @@
 #     bash benchmarks/gpu_check.sh                     # a field made on the spot (no data needed)
 #     FIELD=runs/lego/field.neumesh DATA=path/to/nerf_synthetic/lego bash benchmarks/gpu_check.sh
 #
-# 1. the CUDA tests: tests/render/test_fused_triton.py (the kernels compiled for the GPU, against the torch
+# 1. the CUDA tests: tests/kernels/ (the kernels compiled for the GPU, against the torch
 #    path on the same GPU) and tests/test_device.py (the CUDA path against the CPU path);
 # 2. benchmarks/bench_render_gpu.py: a short sweep of the kernel's launch options (static and refill
 #    schedules, block sizes, a register cap, the neighbour search's early out), then both backends,
@@ -54,7 +54,7 @@ export PYTHONPATH="$PWD:${PYTHONPATH:-}"
 
 echo "== tests (kernels compiled for the GPU; first calls include Triton's compilation)"
 timeout "${TEST_TIMEOUT_S:-120}" $PY -m pytest -q -p no:cacheprovider --durations=8 \
-    tests/render/test_fused_triton.py tests/test_device.py 2>&1 | tee "$OUT/tests.log"
+    tests/kernels tests/test_device.py 2>&1 | tee "$OUT/tests.log"
 TEST_RC=${PIPESTATUS[0]}
 echo "tests exit code: $TEST_RC (124: timed out)" | tee -a "$OUT/tests.log"
 

@@ -69,7 +69,7 @@ def main(argv=None) -> int:
         print("kernel_resources: triton does not import (pip install -e '.[gpu]')", file=sys.stderr)
         return 2
     import neumesh_core as nm
-    from neumesh_core.render import fused_triton as ft
+    from neumesh_core.kernels import fused as ft
 
     cfg = nm.FieldConfig()
     rows = []

@@ -1,5 +1,5 @@
 """How much work the fused renderer's neighbour search does, counted without a GPU: the rounds and
-K-merges of ``field/knn_triton.knn_keys`` for the points a real frame evaluates, with and without
+K-merges of ``kernels/knn.knn_keys`` for the points a real frame evaluates, with and without
 ``knn_early_out``.
 
     python benchmarks/knn_merges.py                       # the built-in blob (163,842 vertices), 800²
@@ -31,7 +31,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _results import write_results  # noqa: E402
 
-from neumesh_core.field.knn_triton import TritonHashGrid, cell_order  # noqa: E402
+from neumesh_core.kernels.knn import TritonHashGrid, cell_order  # noqa: E402
 
 
 def count_merges(points: np.ndarray, live: np.ndarray, grid, k: int, block: int, chunk: int = 1024,

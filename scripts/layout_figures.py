@@ -19,7 +19,7 @@ PKG = "neumesh_core"
 LAYERS = {
     "errors": 0, "mesh": 0, "imageio": 0, "metrics": 0, "device": 0,
     "data": 1,
-    "field": 2, "sampling": 2,
+    "field": 2, "sampling": 2, "kernels": 2,
     "render": 3,
     "train": 4, "reconstruct": 4, "deform": 4,
     "edit": 5, "semantics": 5, "bake": 5, "evaluate": 5,

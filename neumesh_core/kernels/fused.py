@@ -1,14 +1,15 @@
 """The fused GPU renderer: one Triton kernel marches rays through the occupancy grid, finds each
-sample's K nearest scaffold vertices (:func:`neumesh_core.field.knn_triton.knn_keys`), evaluates the
+sample's K nearest scaffold vertices (:func:`neumesh_core.kernels.knn.knn_keys`), evaluates the
 geometry and radiance decoders and composites, with no host synchronisation inside a frame.
 
 Reference: :func:`neumesh_core.render.renderer.render_rays` (the torch marcher
 :func:`~neumesh_core.sampling.marcher.march_rays`, the field's ``decode`` and
 :func:`~neumesh_core.render.volume.composite`), which stays the default on the CPU and the path for
 everything this kernel does not cover.  ``RenderSettings.backend`` chooses: "auto" (this kernel on CUDA
-when triton imports and the field is supported, torch otherwise), "torch" or "triton".
+when triton imports and the field is supported, torch otherwise), "torch" or "triton";
+:func:`neumesh_core.kernels.path.render_path` decides.
 
-The kernel itself (and how it marches, searches and decodes): :mod:`neumesh_core.render.fused_kernel`.
+The kernel itself (and how it marches, searches and decodes): :mod:`neumesh_core.kernels.fused_kernel`.
 
 Covered: one field, one radiance decoder, no texture frames, no semantics (:func:`supported` says why
 a field is not).  What the whole kernel does not render (training with autograd, jitter, vertex ids,
@@ -25,77 +26,10 @@ from typing import Optional
 
 import torch
 
-from ..field.knn_triton import (TritonHashGrid, decode_keys, next_pow2, require_triton, triton, triton_available,
-                                triton_runs_on)
 from .fused_kernel import render_kernel
-
-BACKENDS = ("auto", "torch", "triton")
-
-
-def supported(field) -> Optional[str]:
-    """None when the fused kernel renders ``field`` exactly as the torch path does, else the reason
-    it does not (the torch path then renders it)."""
-    if len(field.rad_decoders) != 1:
-        return "the field has several radiance decoders (decoder binding after a texture edit)"
-    if field.tex_frame is not None:
-        return "the field has texture frames (a swap or fill from a differently oriented surface)"
-    if field.code_prior is not None:
-        return "coarse code levels are attached (training)"
-    if field.config.sh_degree > 4 or field.config.sh_degree < 1:
-        return f"sh_degree {field.config.sh_degree} (the kernel encodes degrees 1-4)"
-    if field.config.k > 32:
-        return f"k={field.config.k} (the kernel keeps up to 32 neighbours)"
-    if not math.isfinite(field.radius) or field.radius <= 0:
-        return "the field's radius is not finite"
-    return None
-
-
-def use_triton(settings, fields, device, *, train: bool = False, jitter=None, vertex_ids: bool = False,
-               semantics: bool = False) -> bool:
-    """Whether :func:`render_rays` renders this call with the fused kernel alone (``settings.backend``).
-    Training, jitter, vertex ids, semantics and several fields composited together take render_rays'
-    torch path (autograd, the extra outputs, the joint sort), whose marching the kernel still does where
-    it covers the fields (:func:`use_fused_march`)."""
-    backend = _backend(settings)
-    if backend == "torch":
-        return False
-    whole = not (train or jitter is not None or vertex_ids or semantics) and len(fields) == 1
-    if backend == "auto":
-        return whole and supported(fields[0]) is None and torch.device(device).type == "cuda" and triton_available()
-    # "triton" asked for explicitly: every field must be covered
-    for f in fields:
-        _require_supported(f, device)
-    return whole
-
-
-def use_fused_march(settings, field, device) -> bool:
-    """Whether render_rays' torch path marches ``field`` with the kernel (:func:`march_rays_fused`, the
-    torch decoders then decode its samples): "auto" on CUDA when triton imports and the kernel covers the
-    field, "triton" always (an error when it cannot), "torch" never."""
-    backend = _backend(settings)
-    if backend == "torch":
-        return False
-    if backend == "auto":
-        return supported(field) is None and torch.device(device).type == "cuda" and triton_available()
-    _require_supported(field, device)
-    return True
-
-
-def _backend(settings) -> str:
-    backend = getattr(settings, "backend", "auto")
-    if backend not in BACKENDS:
-        raise ValueError(f"RenderSettings.backend must be one of {', '.join(BACKENDS)}, not {backend!r}")
-    return backend
-
-
-def _require_supported(field, device) -> None:
-    require_triton(device)
-    reason = supported(field)
-    if reason is not None:
-        from ..errors import NeuMeshError
-
-        raise NeuMeshError(f"the Triton renderer cannot render this: {reason}; use "
-                           "RenderSettings(backend='auto') to fall back to the torch renderer")
+from .knn import TritonHashGrid, decode_keys, next_pow2, require_triton, triton
+# the choice of path lives in path.py; its callers on the launch side read it here too
+from .path import BACKENDS, supported, use_fused_march, use_triton  # noqa: F401
 
 
 # ---------------------------------------------------------------------------------------------- tables
@@ -283,7 +217,7 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
     program's lane takes the next ray as soon as its own finishes, so no lane idles beside a long ray;
     programs_per_sm: how many such programs each multiprocessor runs); maxnreg: None or a cap on the
     registers per thread (``benchmarks/kernel_resources.py`` shows what each cap spills); knn_early_out:
-    the neighbour search skips the merges no candidate needs (``knn_triton.knn_keys``; the same image).
+    the neighbour search skips the merges no candidate needs (``kernels.knn.knn_keys``; the same image).
     ``ray_order`` ("tiles" or "rows") is read by ``render_camera``: the order of the pixels it hands
     the kernel (``renderer.tile_order``: 8 x 4 screen patches per 32 rays)."""
     opts = _checked({**KERNEL_OPTIONS, **options})

@@ -1,11 +1,9 @@
-"""The Triton kernels against their torch references: the K-nearest-vertex search
-(field/knn_triton.py vs knn_radius_reference) and the fused renderer (render/fused_triton.py vs the torch
-render_rays), early and post interpolation, at rest and deformed.
+"""The fused renderer (neumesh_core/kernels/fused.py, fused_kernel.py) against the torch render_rays:
+early and post interpolation, at rest and deformed; its march against the torch marcher; the path
+choice; the ahead-of-time build for a GPU.
 
-Without a GPU the kernels run in Triton's interpreter (TRITON_INTERPRET=1, set here before triton is
-imported): slow, so the scenes are tiny.  With a GPU (benchmarks/gpu_check.sh) they run compiled on CUDA.
-Skipped, with the reason, where triton does not import (install the optional extra: ``.[gpu]``).
-"""
+Without a GPU the kernels run in Triton's interpreter (tests/kernels/helpers.py); with a GPU
+(benchmarks/gpu_check.sh) compiled on CUDA."""
 import os
 import subprocess
 import sys
@@ -14,103 +12,18 @@ import numpy as np
 import pytest
 import torch
 
-if not torch.cuda.is_available() and "triton" not in sys.modules:
-    os.environ.setdefault("TRITON_INTERPRET", "1")
+from .helpers import DEVICE, ROOT, scene  # first: sets TRITON_INTERPRET, skips without triton  # isort: skip
+import neumesh_core as nm
+from neumesh_core.errors import NeuMeshError
+from neumesh_core.metrics import psnr
 
-triton = pytest.importorskip("triton", reason="triton is not installed (pip install -e '.[gpu]')")
-
-import neumesh_core as nm  # noqa: E402
-from neumesh_core.errors import NeuMeshError  # noqa: E402
-from neumesh_core.field import knn_triton  # noqa: E402
-from neumesh_core.field.knn import knn_radius_reference  # noqa: E402
-from neumesh_core.metrics import psnr  # noqa: E402
-
-from ..conftest import textured_field  # noqa: E402
-
-DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-if not knn_triton.triton_runs_on(DEVICE):
-    pytest.skip("triton was imported before TRITON_INTERPRET=1 could be set and there is no GPU; run "
-                "this module on its own or with TRITON_INTERPRET=1", allow_module_level=True)
-
-
-@pytest.mark.parametrize("cells_per_radius", [1, 2])
-def test_knn_kernel_matches_the_reference(cells_per_radius):
-    g = torch.Generator().manual_seed(0)
-    verts = torch.rand(1500, 3, generator=g)
-    pts = torch.rand(300, 3, generator=g) * 1.4 - 0.2        # some outside the vertices' box
-    pts[0] = torch.tensor([5.0, 5.0, 5.0])                   # nothing within the radius
-    r = 0.12
-    index = knn_triton.TritonKNNIndex(verts.to(DEVICE), 4, r, block=64 if DEVICE == "cuda" else 512,
-                                      cells_per_radius=cells_per_radius)
-    idx, dist = index.query(pts.to(DEVICE))
-    ref_i, ref_d = knn_radius_reference(pts, verts, 4, r)
-    idx, dist = idx.cpu(), dist.cpu()
-    assert torch.equal(torch.isinf(dist), torch.isinf(ref_d))
-    assert (idx == -1).equal(ref_i == -1) and bool((idx[0] == -1).all())
-    assert (ref_i >= 0).sum() > 400 and (ref_i == -1).sum() > 30   # both cases are exercised
-    fin = torch.isfinite(ref_d)
-    assert torch.allclose(dist[fin], ref_d[fin], atol=1e-6)
-    assert torch.equal(idx, ref_i)   # random positions: no ties
-
-
-@pytest.mark.parametrize("cells_per_radius", [1, 2])
-def test_knn_early_out_finds_the_same_neighbours(cells_per_radius):
-    """early_out merges only the candidates nearer than a row's worst key: dense vertices (~40 within
-    the radius of a point, so most rounds need fewer than K merges) must give the reference's keys."""
-    g = torch.Generator().manual_seed(1)
-    verts = torch.rand(6000, 3, generator=g)
-    pts = torch.rand(200, 3, generator=g)
-    r = 0.12
-    grid = knn_triton.TritonHashGrid(verts.to(DEVICE), r, cells_per_radius)
-    idx, dist = knn_triton.knn_radius_triton(pts.to(DEVICE), grid, 4, block=64 if DEVICE == "cuda" else 256,
-                                             early_out=True)
-    ref_i, ref_d = knn_radius_reference(pts, verts, 4, r)
-    assert (ref_i >= 0).all()
-    assert torch.equal(idx.cpu(), ref_i) and torch.allclose(dist.cpu(), ref_d, atol=1e-6)
-
-
-def test_cells_are_read_nearest_first():
-    for c, centre in ((1, 13), (2, 62)):
-        order = knn_triton.cell_order(c)
-        s = 2 * c + 1
-        assert sorted(order.tolist()) == list(range(s ** 3)) and order[0].item() == centre
-        o = order.long()
-        length = (o // (s * s) - c) ** 2 + ((o // s) % s - c) ** 2 + (o % s - c) ** 2
-        assert bool((length[1:] >= length[:-1]).all())
-
-
-def test_knn_kernel_with_fewer_vertices_than_k_and_a_huge_box():
-    verts = torch.tensor([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [1e3, 0.0, 0.0]])   # a sparse, wide box
-    pts = torch.tensor([[0.01, 0.0, 0.0], [999.99, 0.0, 0.0], [500.0, 0.0, 0.0]])
-    grid = knn_triton.TritonHashGrid(verts.to(DEVICE), 0.1)
-    assert np.prod(grid.dims) <= knn_triton.MAX_TABLE_CELLS
-    idx, dist = knn_triton.knn_radius_triton(pts.to(DEVICE), grid, 4)
-    ref_i, ref_d = knn_radius_reference(pts, verts, 4, 0.1)
-    assert torch.equal(idx.cpu(), ref_i) and torch.allclose(dist.cpu(), ref_d, atol=1e-6, equal_nan=True)
-
-
-def _scene(interpolation, deformed):
-    from neumesh_core.data.synthetic import default_mesh
-
-    field = textured_field(default_mesh(subdiv=2), interpolation, grid_resolution=32).to(DEVICE)
-    if deformed:
-        v = field.rest_vertices * torch.tensor([1.15, 1.0, 0.9], device=DEVICE)
-        v = v + 0.2 * torch.sin(2.0 * v[:, 1:2])           # a bend: per-vertex rotations differ
-        field.set_vertices(v)
-        assert field.to_rest is not None
-    K = np.array([[11.0, 0.0, 6.0], [0.5, 11.0, 6.0], [0.0, 0.0, 1.0]], np.float32)   # with skew
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]) @ \
-        np.array([[1.0, 0.0, 0.0], [0.0, 0.98, -0.2], [0.0, 0.2, 0.98]])
-    c2w[:3, 3] = -6.0 * c2w[:3, 2]
-    return field, K, c2w
+from ..conftest import textured_field
 
 
 @pytest.mark.parametrize("interpolation", ["early", "post"])
 @pytest.mark.parametrize("deformed", [False, True], ids=["rest", "deformed"])
 def test_fused_render_matches_the_torch_render(interpolation, deformed):
-    field, K, c2w = _scene(interpolation, deformed)
+    field, K, c2w = scene(interpolation, deformed)
     w = h = 12
     far = None
     if deformed:   # a holdout in front of part of the field (per-pixel far distances)
@@ -133,7 +46,7 @@ def test_fused_render_matches_the_torch_render(interpolation, deformed):
 
 def test_backend_choice_and_errors():
     from neumesh_core.data.synthetic import default_mesh
-    from neumesh_core.render.fused_triton import supported, use_triton
+    from neumesh_core.kernels.fused import supported, use_triton
 
     field = textured_field(default_mesh(subdiv=1), "early")
     with pytest.raises(ValueError, match="backend"):
@@ -157,9 +70,9 @@ def test_half_precision_products_stay_close_to_the_reference(monkeypatch):
     """precision="fp16": the decoders' products with operands rounded to half precision (tensor cores
     on a GPU), fp32 sums.  Rounding shows (the image is not the fp32 one) but stays far under what an
     eye sees; an unknown precision is refused before anything runs."""
-    from neumesh_core.render import fused_triton as ft
+    from neumesh_core.kernels import fused as ft
 
-    field, K, c2w = _scene("post", False)
+    field, K, c2w = scene("post", False)
     ref = nm.render_camera(field, K, c2w, 12, 12, settings=nm.RenderSettings(backend="torch"))
     fp32 = nm.render_camera(field, K, c2w, 12, 12, settings=nm.RenderSettings(backend="triton"))
     monkeypatch.setitem(ft.KERNEL_OPTIONS, "precision", "fp16")
@@ -179,7 +92,7 @@ def test_the_kernel_builds_for_a_gpu_ahead_of_time(tmp_path):
     fp16 and of the training's march (samples out, jitter).  Once a restructured loop ran in the interpreter and failed in Triton 3.6's layout passes."""
     pytest.importorskip("triton.backends.nvidia")
     code = ("import sys, neumesh_core as nm\n"
-            "from neumesh_core.render import fused_triton as ft\n"
+            "from neumesh_core.kernels import fused as ft\n"
             "for kw in ({}, dict(schedule='refill', interpolation='post', deformed=True, precision='fp16'),\n"
             "           dict(march=True, jitter=True)):\n"
             "    k = ft.compile_for(nm.FieldConfig(), 90, **kw)\n"
@@ -191,16 +104,16 @@ def test_the_kernel_builds_for_a_gpu_ahead_of_time(tmp_path):
     run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0 and "built" in run.stdout, run.stderr[-3000:]
     if DEVICE == "cpu":   # this process imported triton in interpreter mode: a clear error, no crash
-        from neumesh_core.render import fused_triton as ft
+        from neumesh_core.kernels import fused as ft
 
         with pytest.raises(RuntimeError, match="TRITON_INTERPRET"):
             ft.compile_for(nm.FieldConfig(), 90)
 
 
 def test_knn_early_out_and_ray_order_render_the_same_image(monkeypatch):
-    from neumesh_core.render import fused_triton as ft
+    from neumesh_core.kernels import fused as ft
 
-    field, K, c2w = _scene("early", True)
+    field, K, c2w = scene("early", True)
     st = nm.RenderSettings(backend="triton")
     full = nm.render_camera(field, K, c2w, 12, 12, settings=st)
     monkeypatch.setitem(ft.KERNEL_OPTIONS, "knn_early_out", True)
@@ -218,9 +131,9 @@ def test_refill_schedule_renders_what_the_static_one_does(monkeypatch):
     soon as theirs finishes.  With 16-ray blocks and 2 programs each lane renders several of the 144
     rays, in an order that depends on when the others finish; every ray must still come out as the
     torch reference renders it."""
-    from neumesh_core.render import fused_triton as ft
+    from neumesh_core.kernels import fused as ft
 
-    field, K, c2w = _scene("early", True)
+    field, K, c2w = scene("early", True)
     ref = nm.render_camera(field, K, c2w, 12, 12, settings=nm.RenderSettings(backend="torch"))
     monkeypatch.setitem(ft.KERNEL_OPTIONS, "schedule", "refill")
     monkeypatch.setitem(ft.KERNEL_OPTIONS, "block", 16)
@@ -246,11 +159,11 @@ def test_fused_march_keeps_the_torch_marchers_samples(interpolation, deformed, j
     same densities and the same neighbours, with either schedule; a ray that keeps more samples than
     MARCH_SLOTS makes the chunk run again with room for it."""
     from neumesh_core.data.cameras import pixel_rays
-    from neumesh_core.render import fused_triton as ft
+    from neumesh_core.kernels import fused as ft
     from neumesh_core.render.renderer import default_step
     from neumesh_core.sampling.marcher import march_rays
 
-    field, K, c2w = _scene(interpolation, deformed)
+    field, K, c2w = scene(interpolation, deformed)
     o, d = pixel_rays(K, c2w, 12, 12, device=DEVICE)
     jit = torch.rand(len(o), generator=torch.Generator().manual_seed(3)).to(DEVICE) if jitter else None
     step = default_step(field, nm.RenderSettings())
@@ -282,10 +195,10 @@ def test_a_training_step_marches_with_the_kernel_and_decodes_with_torch():
     """render_rays(train=True) with backend "triton": the kernel marches (jittered), the torch decoders
     decode the kept samples with autograd; the loss and every gradient are the torch path's."""
     from neumesh_core.data.cameras import pixel_rays
-    from neumesh_core.render import fused_triton as ft
+    from neumesh_core.kernels import fused as ft
     from neumesh_core.render.renderer import render_rays
 
-    field, K, c2w = _scene("early", False)
+    field, K, c2w = scene("early", False)
     o, d = pixel_rays(K, c2w, 12, 12, device=DEVICE)
     jit = torch.rand(len(o), generator=torch.Generator().manual_seed(4)).to(DEVICE)
     target = torch.rand(len(o), 3, generator=torch.Generator().manual_seed(5)).to(DEVICE)
@@ -309,31 +222,3 @@ def test_a_training_step_marches_with_the_kernel_and_decodes_with_torch():
     assert not ft.use_triton(nm.RenderSettings(backend="triton"), [field], DEVICE, train=True)
     assert ft.use_fused_march(nm.RenderSettings(backend="triton"), field, DEVICE)
     assert not ft.use_fused_march(nm.RenderSettings(), field, "cpu")
-
-
-def test_triton_neighbour_index_serves_the_torch_path():
-    """FieldConfig(knn="triton"): the field's own neighbour queries (the torch marcher, edits, the
-    occupancy refresh) answered by the Triton kernel; on a GPU "kdtree" gives it too.  The same render as
-    the KD-tree's, and make_index names it."""
-    from neumesh_core.data.synthetic import default_mesh
-    from neumesh_core.field.knn import make_index
-
-    verts = torch.rand(800, 3, generator=torch.Generator().manual_seed(6))
-    index = make_index(verts.to(DEVICE), 4, 0.15, "triton")
-    assert isinstance(index, knn_triton.TritonKNNIndex)
-    pts = torch.rand(100, 3, generator=torch.Generator().manual_seed(7))
-    idx, dist = index.query(pts.to(DEVICE))
-    ref_i, ref_d = knn_radius_reference(pts, verts, 4, 0.15)
-    assert torch.equal(idx.cpu(), ref_i) and torch.allclose(dist.cpu(), ref_d, atol=1e-6, equal_nan=True)
-    if DEVICE == "cuda":
-        assert isinstance(make_index(verts.cuda(), 4, 0.15, "kdtree"), knn_triton.TritonKNNIndex)
-    mesh = default_mesh(subdiv=2)
-    kd = textured_field(mesh, "early", grid_resolution=32).to(DEVICE)
-    tr = textured_field(mesh, "early", grid_resolution=32, knn="triton").to(DEVICE)
-    assert isinstance(tr.scaffold.index, knn_triton.TritonKNNIndex)
-    _, K, c2w = _scene("early", False)
-    st = nm.RenderSettings(backend="torch")
-    a = nm.render_camera(kd, K, c2w, 12, 12, settings=st)
-    b = nm.render_camera(tr, K, c2w, 12, 12, settings=st)
-    assert a.opacity.max() > 0.9 and a.n_samples == b.n_samples
-    assert np.abs(a.rgb - b.rgb).max() < 1e-5

@@ -10,7 +10,7 @@ handles a block of queries; nothing is synchronised with the host.
 The kernel keeps each query's K best candidates as 64-bit keys ``(float bits of the distance) << 32 |
 vertex id`` (non-negative float32 bits order like the floats), replacing the largest key whenever a
 closer vertex turns up; the keys sort by distance, then by vertex id.  :func:`knn_keys` is the
-``@triton.jit`` building block the fused renderer (:mod:`neumesh_core.render.fused_triton`) calls
+``@triton.jit`` building block the fused renderer (:mod:`neumesh_core.kernels.fused`) calls
 per sample; :class:`TritonKNNIndex` has the ``query`` interface of the other indices.
 
 Triton is optional (``pip install neumesh[gpu]``, or the wheel that comes with CUDA builds of torch):
