@@ -6,7 +6,7 @@ The bucket is picked by a box in lego's scaffold coordinates (the NeRF-synthetic
 towards -y, the bucket is its high end), the anchors are the body (y > -0.1) and the base plate
 (z < -0.3); the arm between them bends.  The handle is lifted by ``--lift`` and tilted by ``--tilt``
 degrees about its centre; ``nm.deform.arap`` solves from rest.  The field at rest (left) and deformed
-(right) from one camera; the solve's figures go to benchmarks/results/arap_picture_lego.json.
+(right) from one camera; the solve's figures go to benchmarks/results/log/arap_picture_lego.json.
 """
 from __future__ import annotations
 
@@ -20,10 +20,9 @@ import torch
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 import neumesh_core as nm  # noqa: E402
+from benchmarks._results import use_threads, write_results  # noqa: E402
 from neumesh_core.data.synthetic import look_at_opencv  # noqa: E402
-from _results import write_results  # noqa: E402
 
 
 def main(argv=None):
@@ -35,7 +34,7 @@ def main(argv=None):
     ap.add_argument("--tilt", type=float, default=-20.0)
     ap.add_argument("--cage", type=int, default=0, help="solve on a cage of this many vertices (0: full)")
     args = ap.parse_args(argv)
-    torch.set_num_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", "1"))))
+    use_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", "1"))))
     field = nm.load_field(args.field)
     v = field.rest_vertices.numpy().astype(np.float64)
     x, y, z = v[:, 0], v[:, 1], v[:, 2]

@@ -93,14 +93,14 @@ class FieldTables:
 
 def default_block(device) -> int:
     """Rays per program: 32 on a GPU (with 4 warps: on an H200 the fastest of the options timed by
-    ``benchmarks/bench_render_gpu.py --sweep``, 37.7 ms for lego 800² against 44.7 ms for 64 rays x 8
+    ``benchmarks/bench/bench_render_gpu.py --sweep``, 37.7 ms for lego 800² against 44.7 ms for 64 rays x 8
     warps, although the sm_90 build of 64 x 8 spills less: a smaller block waits less for its slowest
     ray); in the interpreter (CPU) one big block, since there each operation costs about the same for any
     block size."""
     return 32 if torch.device(device).type == "cuda" else 1024
 
 
-# launch options, chosen by benchmarks/bench_render_gpu.py (``--sweep``); render_rays_fused's defaults
+# launch options, chosen by benchmarks/bench/bench_render_gpu.py (``--sweep``); render_rays_fused's defaults
 # (block / cells_per_radius None: by device, see default_block / default_cells; num_warps: per program)
 KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 4, "cells_per_radius": None, "scan": 8,
                   "schedule": "static", "programs_per_sm": 8, "maxnreg": None, "knn_early_out": False,
@@ -111,7 +111,7 @@ def default_cells(device) -> int:
     """Neighbour-grid cells per radius: 1 on a GPU and in the interpreter (27 cells a radius wide; on an
     H200 37.7 ms for lego 800² against 41.8 ms with 125 half-radius cells, which measured fewer vertices
     but walked more cells -- before knn_keys read them nearest first and pruned them, which cuts their
-    rounds about threefold (benchmarks/knn_merges.py); the GPU sweep times both again)."""
+    rounds about threefold (benchmarks/diagnose/knn_merges.py); the GPU sweep times both again)."""
     return 1
 
 
@@ -150,7 +150,7 @@ def compile_for(cfg, arch: int = 90, *, interpolation: str = "early", deformed: 
     GPU: Triton's compiler and the ptxas it ships.  ``options`` as :func:`render_rays_fused`'s (block and
     cells_per_radius default to a GPU's).  Returns Triton's compiled kernel (``.asm["cubin"]``, ...).
     ``march`` / ``jitter``: the variant :func:`march_rays_fused` runs (training).  Used to check that
-    each variant compiles with the installed Triton, and by ``benchmarks/kernel_resources.py`` to read
+    each variant compiles with the installed Triton, and by ``benchmarks/diagnose/kernel_resources.py`` to read
     its registers and spills."""
     import inspect
 
@@ -216,7 +216,7 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
     "static" (a program's lanes keep their rays until the last one finishes) or "refill" (a persistent
     program's lane takes the next ray as soon as its own finishes, so no lane idles beside a long ray;
     programs_per_sm: how many such programs each multiprocessor runs); maxnreg: None or a cap on the
-    registers per thread (``benchmarks/kernel_resources.py`` shows what each cap spills); knn_early_out:
+    registers per thread (``benchmarks/diagnose/kernel_resources.py`` shows what each cap spills); knn_early_out:
     the neighbour search skips the merges no candidate needs (``kernels.knn.knn_keys``; the same image).
     ``ray_order`` ("tiles" or "rows") is read by ``render_camera``: the order of the pixels it hands
     the kernel (``renderer.tile_order``: 8 x 4 screen patches per 32 rays)."""

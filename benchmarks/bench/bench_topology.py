@@ -11,9 +11,9 @@
    (each builds its remapped field), Join (Ctrl+J), the first sync of the joined object.
 
 The field is untrained (timings do not depend on training).  Prints figures and writes
-benchmarks/results/topology.json.
+benchmarks/results/log/topology.json.
 
-    .venv/bin/python benchmarks/bench_topology.py [--vertices 300000] [--frames 5]
+    .venv/bin/python benchmarks/bench/bench_topology.py [--vertices 300000] [--frames 5]
 """
 from __future__ import annotations
 
@@ -25,12 +25,12 @@ import time
 
 from bench_addon import _BASE, MODULE, ROOT, sphere_grid  # noqa: F401  (sets up a private Blender home)
 
-import bmesh  # noqa: E402
-import bpy  # noqa: E402
+import bpy  # noqa: E402  (first: the bpy module provides bmesh)
+import bmesh  # noqa: E402, I001
 import numpy as np  # noqa: E402
 
 import build_addon  # noqa: E402
-from _results import write_results  # noqa: E402
+from benchmarks._results import add_options, write_results  # noqa: E402
 
 
 def _sync_frames(addon, arm, frames: int) -> list:
@@ -56,7 +56,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--vertices", type=int, default=300_000)
     ap.add_argument("--frames", type=int, default=5)
-    ap.add_argument("--results-dir", default=None)
+    add_options(ap, "results_dir")
     a = ap.parse_args(argv)
 
     zip_path = build_addon.build(os.path.join(_BASE, "neumesh.zip"))
@@ -140,7 +140,6 @@ def main(argv=None) -> int:
                               "objects_after_separate": len(items), "items_after_join": len(items2)}
     print("separate {separate:.2f} s + first sync {first_sync_after_separate:.2f} s; join {join:.2f} s + first "
           "sync {first_sync_after_join:.2f} s; round trip {total:.2f} s".format(**res["separate_join_s"]))
-    res["loadavg_at_end"] = list(os.getloadavg())
     write_results(res, "topology.json", a.results_dir)
     return 0
 

@@ -1,8 +1,8 @@
 """Texture swap / fill speed on a real scaffold, and the render cost of a field with two decoders.
 
-    python benchmarks/bench_edit.py --mesh runs/lego/scaffold.ply            # untrained field on the mesh
-    python benchmarks/bench_edit.py --field runs/lego/field.neumesh           # a trained field
-    python benchmarks/bench_edit.py                                           # the built-in blob (subdiv 7)
+    python benchmarks/bench/bench_edit.py --mesh runs/lego/scaffold.ply      # untrained field on the mesh
+    python benchmarks/bench/bench_edit.py --field runs/lego/field.neumesh     # a trained field
+    python benchmarks/bench/bench_edit.py                                     # the built-in blob (subdiv 7)
 
 Regions: the target is the ``--region-size`` vertices nearest the scaffold's +x extreme, the source
 the same number nearest the -x extreme (two different shapes: the automatic alignment and the ARAP
@@ -11,26 +11,25 @@ extremes of a scaffold fit each other, and ``fit_ok`` records whether the check 
 (``nonrigid_s``), the transfer (``transfer_s``: IDW weights, decoder binding, row writes), the whole
 swap, and a fill through planar UVs.  Render: a 400^2 frame of the field as trained (one decoder),
 with a second decoder present but unused, and with half the vertices bound to the second decoder
-(median of ``--repeats``).  Writes benchmarks/results/edit_<name>.json.
+(median of ``--repeats``).  Writes benchmarks/results/log/edit_<name>.json.
 """
 from __future__ import annotations
 
 import argparse
 import copy
 import os
-import platform
 import sys
 import time
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.cli import turntable_cameras  # noqa: E402
 from neumesh_core.data.synthetic import default_mesh  # noqa: E402
 from neumesh_core.edit.fill import planar_uvs  # noqa: E402
-from _results import write_results  # noqa: E402
+from benchmarks._results import add_options, timed, use_threads, write_results  # noqa: E402
 
 
 def _region_near(points: np.ndarray, axis: int, sign: float, n: int) -> np.ndarray:
@@ -39,29 +38,21 @@ def _region_near(points: np.ndarray, axis: int, sign: float, n: int) -> np.ndarr
 
 
 def _render_time(field, cam, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        out = nm.render_camera(field, cam.K[0], cam.c2w[0], cam.width, cam.height)
-        times.append(out.seconds)
-    return float(np.median(times))
+    return timed(lambda: nm.render_camera(field, cam.K[0], cam.c2w[0], cam.width, cam.height), repeats).median
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", help="trained field file (.neumesh)")
-    ap.add_argument("--mesh", help="scaffold mesh: an untrained field is made on it (timings only)")
+    add_options(ap, "field", "mesh", "threads", "name", "results_dir",
+                mesh=dict(help="scaffold mesh: an untrained field is made on it (timings only)"))
     ap.add_argument("--subdiv", type=int, default=7, help="built-in blob subdivision when neither is given")
     ap.add_argument("--region-size", type=int, default=50_000, help="vertices per region (default 50,000)")
     ap.add_argument("--repeats", type=int, default=3, help="renders per configuration (median)")
     ap.add_argument("--resolution", type=int, default=400, help="render size (square, default 400)")
     ap.add_argument("--interpolation", choices=["post", "early"], default=None,
                     help="override the field's interpolation for the render timings")
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
-    ap.add_argument("--name", help="results name (default: from the input file)")
-    ap.add_argument("--results-dir", default=None, help="folder for the JSON (default benchmarks/results)")
     args = ap.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    use_threads(args.threads or None)
 
     t0 = time.perf_counter()
     if args.field:
@@ -137,7 +128,6 @@ def main(argv=None) -> int:
         "fill": {"total_s": fill_s, "scale": 3.0, "target_corners": frec.info["target_corners"]},
         "render_s": render, "resolution": args.resolution,
         "targets": {"transfer_s": 0.5, "align_with_nonrigid_s": 5.0},
-        "machine": {"cpu": platform.processor() or platform.machine(), "threads": torch.get_num_threads()},
     }
     write_results(result, f"edit_{name}.json", args.results_dir)
     return 0

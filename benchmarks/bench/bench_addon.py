@@ -16,17 +16,18 @@
    core, ...) with the core's own render of the same frame (``nm.render_camera``: the same field
    posed with the vertices the engine used, the same K, c2w, size, supersampling and background) in a
    plain Python process, and in the Blender process itself. Each Blender and the core are persistent
-   worker processes (benchmarks/f12_worker.py) driven in turn, so machine load hits both alike.
+   worker processes (benchmarks/workers/f12_worker.py) driven in turn, so machine load hits both alike.
    Target: median F12 / median core <= 1.3. ``--threads N`` sets the add-on preference *CPU threads*
    and the core's torch threads alike (0: all cores); on a busy 2-core machine use 1 (two OpenMP
    threads there alternate between ~1x and ~8x the time). ``--label`` keeps a run as a variant;
    ``--blender-env NEUMESH_JEMALLOC=off`` measures Blender's allocator as it was.
 
 The field is created untrained (timings do not depend on training). Prints figures and writes
-benchmarks/results/addon.json (a run of some sections keeps the file's other sections).
+benchmarks/results/log/addon.json (``--results-dir``, ``--name``; a run of some sections keeps the file's
+other sections; each section holds the machine record of its run).
 
-    .venv/bin/python benchmarks/bench_addon.py [--vertices 100000] [--repeat 3] [--sections preview,f12]
-    .venv/bin/python benchmarks/bench_addon.py --sections f12 --threads 1 --in-blender-core   # the docs' figures
+    .venv/bin/python benchmarks/bench/bench_addon.py [--vertices 100000] [--repeat 3] [--sections preview,f12]
+    .venv/bin/python benchmarks/bench/bench_addon.py --sections f12 --threads 1 --in-blender-core   # the docs' figures
 """
 from __future__ import annotations
 
@@ -34,7 +35,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -42,10 +42,11 @@ import threading
 import tempfile
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "blender_tests"))
 import user_dirs  # noqa: E402
+from benchmarks._results import LOG_DIR, add_options, machine_record, timed, write_results  # noqa: E402
 
 _BASE = user_dirs.redirect("neumesh_bench_")
 
@@ -96,17 +97,18 @@ def main(argv=None):
                     help="f12: extra environment of the Blender workers (e.g. LD_PRELOAD=..., MALLOC_CONF=...)")
     ap.add_argument("--in-blender-core", action="store_true",
                     help="f12: also time the core render inside the Blender process (a diagnostic column)")
-    ap.add_argument("--threads", type=int, default=0,
-                    help="f12: the add-on preference CPU threads in each Blender, and torch's threads in the "
-                         "core process (0: all cores, the add-on's default)")
+    add_options(ap, "threads", "name", "results_dir",
+                threads=dict(default=0, help="f12: the add-on preference CPU threads in each Blender, and torch's "
+                                             "threads in the core process (0: all cores, the add-on's default)"),
+                name=dict(default="addon", help="results name (default addon)"))
     ap.add_argument("--label", default="",
                     help="f12: store the run under f12_vs_core.variants[LABEL] instead of as the main figures")
-    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "addon.json"))
     a = ap.parse_args(argv)
     sections = {x.strip() for x in a.sections.split(",") if x.strip()}
     res = {}
-    if os.path.isfile(a.out):
-        with open(a.out) as fh:
+    path = os.path.join(a.results_dir or LOG_DIR, f"{a.name}.json")
+    if os.path.isfile(path):
+        with open(path) as fh:
             res = json.load(fh)
     if "preview" in sections:
         res.update(bench_preview(a))
@@ -119,10 +121,7 @@ def main(argv=None):
         else:
             f12["variants"] = old.get("variants", {})
             res["f12_vs_core"] = f12
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    with open(a.out, "w") as fh:
-        json.dump(res, fh, indent=1)
-    print("wrote", a.out)
+    write_results(res, f"{a.name}.json", a.results_dir)
     return 0
 
 
@@ -205,12 +204,9 @@ def bench_preview(a) -> dict:
     t_setv = time.perf_counter() - t
     addon.render.fields._CACHE[obj.name_full].last_vertices = None
     low_w, low_h = vw // 8, vh // 8
-    lows = []
-    for _ in range(3):  # best of 3: the 2-core machine is shared, single timings are noisy
-        t = time.perf_counter()
-        nm.render_camera(f_cached, addon.render.frame.scale_K(K, vw, vh, low_w, low_h), c2w, low_w, low_h)
-        lows.append(time.perf_counter() - t)
-    t_low = min(lows)
+    # best of 3: the 2-core machine is shared, single timings are noisy
+    t_low = timed(lambda: nm.render_camera(f_cached, addon.render.frame.scale_K(K, vw, vh, low_w, low_h), c2w,
+                                           low_w, low_h), repeats=3).best
 
     # F12 at 400x400
     scene.render.resolution_x = scene.render.resolution_y = 400
@@ -226,8 +222,6 @@ def bench_preview(a) -> dict:
 
     best = min(runs, key=lambda r: r["total_s"])
     res = {
-        "machine": {"cpu_count": os.cpu_count(), "loadavg_at_end": list(os.getloadavg()), "torch_threads": torch.get_num_threads(),
-                    "platform": platform.platform(), "bpy": bpy.app.version_string, "torch": torch.__version__},
         "scaffold": {"vertices": int(len(V)), "faces": int(len(F)), "create_field_s": t_create,
                      "blender_mesh_foreach_set_s": t_mesh, "first_load_and_sync_s": t_load},
         "preview": {"viewport": [vw, vh], "first_level": [vw // 8, vh // 8], "runs": runs,
@@ -235,7 +229,8 @@ def bench_preview(a) -> dict:
                     "median_total_to_1_8_s": float(np.median([r["total_to_1_8_s"] for r in runs])),
                     "first_preview_divisors": [r["first_preview_divisor"] for r in runs],
                     "best_total_s": best["total_s"], "set_vertices_s": t_setv, "render_1_8_only_s": t_low,
-                    "target_s": 0.5, "meets_target": float(np.median([r["total_s"] for r in runs])) <= 0.5},
+                    "target_s": 0.5, "meets_target": float(np.median([r["total_s"] for r in runs])) <= 0.5,
+                    "machine": {**machine_record(), "bpy": bpy.app.version_string}},
         "f12_400x400": {"seconds": f12, "median_s": float(np.median(f12))},
     }
     print(f"scaffold: {len(V)} vertices, {len(F)} faces; create_field {t_create:.2f}s, "
@@ -253,7 +248,7 @@ def bench_preview(a) -> dict:
 
 
 class _Worker:
-    """A benchmarks/f12_worker.py process: one command a line in, 'NEUMESH_BENCH {json}' lines out."""
+    """A benchmarks/workers/f12_worker.py process: one command a line in, 'NEUMESH_BENCH {json}' lines out."""
 
     def __init__(self, name, cmd, env, timeout=600):
         self.name, self.log = name, []
@@ -319,7 +314,7 @@ def bench_f12_vs_core(a) -> dict:
     sys.path.insert(0, ROOT)
     import neumesh_core as nm
 
-    worker = os.path.join(ROOT, "benchmarks", "f12_worker.py")
+    worker = os.path.join(ROOT, "benchmarks", "workers", "f12_worker.py")
     V, F = sphere_grid(a.vertices)
     fpath = os.path.join(_BASE, "f12_field.neumesh")
     nm.save_field(nm.create_field(nm.Mesh(V, F), nm.FieldConfig()), fpath)
@@ -332,7 +327,7 @@ def bench_f12_vs_core(a) -> dict:
                    "with the same inputs in a plain Python process ('core'; with --in-blender-core also in "
                    "the Blender process, 'core_in_blender'), interleaved F12, core, F12, core, ...; the first "
                    "F12 (field load + posing) is a warm-up, not counted",
-           "target_ratio": 1.3, "runs": {}}
+           "target_ratio": 1.3, "runs": {}, "machine": machine_record()}
     for kind in [k.strip() for k in a.blenders.split(",") if k.strip()]:
         tmp = tempfile.mkdtemp(prefix=f"f12_{kind}_", dir=_BASE)
         inputs = os.path.join(tmp, "inputs.npz")

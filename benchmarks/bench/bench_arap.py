@@ -1,8 +1,8 @@
 """ARAP deformation (issue 52): speed on a big scaffold and its cage, and fidelity against ground truth.
 
-    python benchmarks/bench_arap.py                                  # both parts, built-in defaults
-    python benchmarks/bench_arap.py --mesh /work/runs/lego/scaffold.ply --skip-drop
-    python benchmarks/bench_arap.py --skip-speed --field runs/blob.neumesh
+    python benchmarks/bench/bench_arap.py                            # both parts, built-in defaults
+    python benchmarks/bench/bench_arap.py --mesh /work/runs/lego/scaffold.ply --skip-drop
+    python benchmarks/bench/bench_arap.py --skip-speed --field runs/blob.neumesh
 
 *Speed* (``--mesh``, else an ellipsoid icosphere of 164k vertices, the size of lego's scaffold): the bottom
 15% of the object anchored, the top 10% a handle dragged through ``--moves`` small rotations (a drag).
@@ -17,27 +17,26 @@ blob's bottom anchored, its top a handle moved as an analytic bend of 35/70/140 
 ground truth of that same deformed surface (bench_deform.py's truth and cameras), beside the undeformed
 field and the analytic bend.  Variants: the full solve (texture frames from ``set_vertices``), the same
 vertices with the texture frames taken from ARAP's own rotations, and the cage solve.  Goal: drop <= 1 dB
-up to 70 degrees.  Writes benchmarks/results/arap.json (``--name``).
+up to 70 degrees.  Writes benchmarks/results/log/arap.json (``--name``).
 """
 from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.data.deformations import bend  # noqa: E402
 from neumesh_core.data.mesh_truth import render_mesh_truth  # noqa: E402
 from neumesh_core.deform import ArapConfig, ArapSolver, polar_rotations  # noqa: E402
 from neumesh_core.metrics import masked_psnr, psnr, ssim  # noqa: E402
-from _results import write_results  # noqa: E402
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 from bench_deform import cameras, check_builtin, trained_field, ROOT  # noqa: E402
 
 
@@ -257,7 +256,12 @@ def drop(args) -> dict:
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--mesh", default=None, help="the big mesh for the speed part (default: 164k ellipsoid)")
+    add_options(ap, "mesh", "field", "threads", "name", "results_dir",
+                mesh=dict(help="the big mesh for the speed part (default: 164k ellipsoid)"),
+                field=dict(default=os.path.join(ROOT, "runs", "blob.neumesh"), help="the drop part's field"),
+                threads=dict(default=max(1, int(os.environ.get("OMP_NUM_THREADS", "1"))),
+                             help="torch threads (default: OMP_NUM_THREADS, else 1)"),
+                name=dict(default="arap", help="results name (default arap)"))
     ap.add_argument("--subdiv", type=int, default=7)
     ap.add_argument("--cage", type=int, default=30000, help="cage vertices of the speed part's preview")
     ap.add_argument("--iterations", type=int, nargs="+", default=[4, 2],
@@ -267,7 +271,6 @@ def main(argv=None) -> dict:
     ap.add_argument("--frame-iterations", type=int, default=0,
                     help="also time a solve from rest on the full mesh with this many iterations (a frame change)")
     ap.add_argument("--moves", type=int, default=5)
-    ap.add_argument("--field", default=os.path.join(ROOT, "runs", "blob.neumesh"))
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--degrees", type=float, nargs="*", default=[35, 70, 140])
     ap.add_argument("--solve-iterations", type=int, default=100, help="iterations of the drop part's solves")
@@ -278,18 +281,14 @@ def main(argv=None) -> dict:
                     "each ARAP bend, first view")
     ap.add_argument("--skip-speed", action="store_true")
     ap.add_argument("--skip-drop", action="store_true")
-    ap.add_argument("--name", default="arap")
-    ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    torch.set_num_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", "1"))))
-    result = {"machine": {"cpu": platform.processor() or platform.machine(), "threads": torch.get_num_threads(),
-                          "load_average_at_start": os.getloadavg()[0]}}
+    use_threads(args.threads)
+    result = {}
     if not args.skip_speed:
         result["speed"] = speed(args)
     if not args.skip_drop:
         result["drop"] = drop(args)
-    result["machine"]["load_average_at_end"] = os.getloadavg()[0]
-    write_results(result, f"{args.name}.json", args.out)
+    write_results(result, f"{args.name}.json", args.results_dir)
     return result
 
 

@@ -1,14 +1,14 @@
 """Texture painting speed and quality on a trained field: a stroke of ~5,000 pixels on one 400^2 view.
 
-    python benchmarks/bench_paint.py --field runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
-    python benchmarks/bench_paint.py                                     # the built-in scene, trained briefly
+    python benchmarks/bench/bench_paint.py --field runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
+    python benchmarks/bench/bench_paint.py                               # the built-in scene, trained briefly
 
 The stroke is a band of rows through the middle of the object in the chosen view, cut to the object's
 pixels (opacity > 0.95) and to ``--pixels`` pixels, painted in a saturated colour.  Prints the apply
 time and its split (render: the painted pixels and the box around them; surface: the affected
 vertices; weights: how the box's rays depend on their modification colours; solve), the PSNR inside
 the stroke afterwards, how many pixels outside the stroke changed, how wide the stroke's edge is, and
-writes benchmarks/results/paint_<name>_atlas.json (``--target atlas``, the default: texel paint in a
+writes benchmarks/results/log/paint_<name>_atlas.json (``--target atlas``, the default: texel paint in a
 paint atlas, made first and timed apart) or paint_<name>.json (``--target colours``: the per-vertex
 modification colours).  ``--figure``: the stroke before/after/another view, and a thin line with
 lettering painted both ways.
@@ -18,17 +18,16 @@ from __future__ import annotations
 import argparse
 import copy
 import os
-import platform
 import sys
 import time
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.metrics import psnr  # noqa: E402
-from _results import write_results  # noqa: E402
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
 
 def stroke_mask(opacity: np.ndarray, pixels: int) -> np.ndarray:
@@ -131,8 +130,9 @@ def figure(args, field, edited, K, c2w, W, H, before, after, cams) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", help="trained field (.neumesh); default: the built-in scene trained 1500 steps")
-    ap.add_argument("--data", help="dataset whose camera is painted on (default: a turntable view)")
+    add_options(ap, "field", "data", "threads", "name", "results_dir",
+                field=dict(help="trained field (.neumesh); default: the built-in scene trained 1500 steps"),
+                data=dict(help="dataset whose camera is painted on (default: a turntable view)"))
     ap.add_argument("--split", default="val")
     ap.add_argument("--view", type=int, default=0)
     ap.add_argument("--resolution", type=int, default=400, help="view size without --data (square)")
@@ -146,12 +146,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-surface", action="store_true",
                     help="atlas: render the painted pixels again instead of passing the render painted on")
     ap.add_argument("--figure", help="write before | after | another view, and a thin line + lettering, here (PNG)")
-    ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--name", default=None)
-    ap.add_argument("--results-dir", default=None)
     args = ap.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    use_threads(args.threads or None)
     if args.field:
         field = nm.load_field(args.field)
         name = args.name or os.path.basename(os.path.dirname(os.path.abspath(args.field)))
@@ -228,8 +224,7 @@ def main(argv=None) -> int:
               "max_change_outside_2px": float(delta[outside].max()), "target_apply_s": 2.0,
               "target_stroke_psnr_db": 30.0,
               "surface_given": i.get("surface_given"),
-              "machine": {"cpu": platform.processor() or platform.machine(), "threads": torch.get_num_threads(),
-                          "loadavg_before_apply": list(load_before), "loadavg_end": list(os.getloadavg()),
+              "machine": {"loadavg_before_apply": list(load_before),
                           "note": "2 cores shared by six developers' jobs: timings are upper bounds"}}
     if args.figure:
         result["figure"] = figure(args, field, edited, K, c2w, W, H, before, after, cams)

@@ -7,16 +7,15 @@ the rest shape is written without a solve; the preview cage is factorised in the
 viewport path (the drag thread on the ``--preview`` cage):
 per move, the seconds from the moved Empty to the live shape key written (*Add* starts factorising
 the cage in the background; the moves start once it is ready: ``preview_ready_after_add_s``).  Then a frame change (the
-solve from rest on the full mesh, *Frame iterations*).  Writes benchmarks/results/<name>.json.
+solve from rest on the full mesh, *Frame iterations*).  Writes benchmarks/results/log/<name>.json.
 
-    .venv/bin/python benchmarks/bench_arap_addon.py                         # built-in scene
-    .venv/bin/python benchmarks/bench_arap_addon.py --mesh /work/runs/lego/scaffold.ply --name arap_addon_lego
+    .venv/bin/python benchmarks/bench/bench_arap_addon.py                   # built-in scene
+    .venv/bin/python benchmarks/bench/bench_arap_addon.py --mesh /work/runs/lego/scaffold.ply --name arap_addon_lego
 """
 from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 
@@ -27,24 +26,22 @@ import mathutils  # noqa: E402
 import numpy as np  # noqa: E402
 
 import build_addon  # noqa: E402
-from _results import write_results  # noqa: E402
+from benchmarks._results import add_options, write_results  # noqa: E402
 from neumesh_core.data.synthetic.shape import default_mesh as _default_mesh  # noqa: E402
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--mesh", default=None, help="a .ply (default: the built-in scene's scaffold)")
+    add_options(ap, "mesh", "name", "results_dir", mesh=dict(help="a .ply (default: the built-in scene's scaffold)"),
+                name=dict(default="arap_addon_builtin", help="results name (default arap_addon_builtin)"))
     ap.add_argument("--subdiv", type=int, default=5, help="built-in scaffold's subdivisions")
     ap.add_argument("--preview", type=int, default=30000, help="preview cage vertices (0: full mesh)")
     ap.add_argument("--iterations", type=int, default=2, help="Iterations per move (the add-on default: 2)")
     ap.add_argument("--frame-iterations", type=int, default=30)
     ap.add_argument("--moves", type=int, default=4)
     ap.add_argument("--skip-frame", action="store_true", help="no full-mesh frame solve (slow on big meshes)")
-    ap.add_argument("--name", default="arap_addon_builtin")
-    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
 
-    load_start = os.getloadavg()[0]
     zip_path = build_addon.build(os.path.join(_BASE, "neumesh.zip"))
     bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -112,12 +109,10 @@ def main(argv=None) -> int:
         out["frame_solve_cpu_s"] = round(time.process_time() - c, 3)
         out["frame_iterations"] = a.frame_iterations
         print(f"frame change (full mesh from rest, {a.frame_iterations} iterations): {out['frame_solve_s']} s")
-    result = {"machine": {"cpu": platform.processor() or platform.machine(),
-                          "omp_threads": os.environ.get("OMP_NUM_THREADS"),
-                          "load_average_at_start": load_start, "load_average_at_end": os.getloadavg()[0],
+    result = {"machine": {"omp_threads": os.environ.get("OMP_NUM_THREADS"),
                           "note": "2 shared cores, other jobs running: see the load averages and CPU times"},
               "arap_addon": out}
-    print(write_results(result, f"{a.name}.json", a.out))
+    write_results(result, f"{a.name}.json", a.results_dir)
     return 0
 
 

@@ -1,43 +1,37 @@
 """Scaffold benchmark: build the mesh scaffold of a dataset and report size, time and quality.
 
-    python benchmarks/bench_scaffold.py --data ../shared/data/nerf_synthetic/lego
-    python benchmarks/bench_scaffold.py --data ../shared/data/dtu/scan24 --downscale 2
+    python benchmarks/bench/bench_scaffold.py --data ../shared/data/nerf_synthetic/lego
+    python benchmarks/bench/bench_scaffold.py --data ../shared/data/dtu/scan24 --downscale 2
 
 Prints vertex count, build time per stage and the silhouette IoU on the training masks (plus the
 Chamfer distance when the dataset ships a reference mesh.ply) and writes
-benchmarks/results/scaffold_<name>.json (the mesh itself goes to --out, default /tmp: datasets under
+benchmarks/results/log/scaffold_<name>.json (the mesh itself goes to --out, default /tmp: datasets under
 ../shared/data are licensed and nothing derived from them is committed).
 """
 from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
-from _results import write_results  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, help="dataset folder (Blender/NeRF-synthetic or DTU)")
+    add_options(ap, "data", "name", "threads", "results_dir",
+                data=dict(required=True, help="dataset folder (Blender/NeRF-synthetic or DTU)"),
+                name=dict(help="result name (default: dataset folder name)"))
     ap.add_argument("--out", default=None, help="folder for the mesh (default: a temp folder)")
-    ap.add_argument("--name", default=None, help="result name (default: dataset folder name)")
     ap.add_argument("--downscale", type=float, default=1, help="image downscale factor (default 1)")
     ap.add_argument("--method", default="auto", choices=["auto", "hull", "hull+mvs", "hull+density", "density"])
     ap.add_argument("--vertices", type=int, default=200_000, help="target vertex count (default 200000)")
     ap.add_argument("--resolution", type=int, default=256, help="hull grid resolution (default 256)")
     ap.add_argument("--iters", default="300,300", help="density iterations per stage (hull+density/density)")
-    ap.add_argument("--threads", type=int, default=0, help="torch threads (default: all cores)")
     args = ap.parse_args(argv)
-
-    import torch
-
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    use_threads(args.threads or None)
     from neumesh_core.data.loader import load_scene
     from neumesh_core.mesh import save_mesh
     from neumesh_core.reconstruct import ScaffoldConfig, build_scaffold
@@ -67,12 +61,10 @@ def main(argv=None) -> int:
         "build_seconds": rep.timings["total"], "load_seconds": t_load, "timings": rep.timings,
         "silhouette_iou": rep.silhouette_iou, "chamfer": rep.chamfer, "hull": rep.hull,
         "density": rep.density, "meshing": rep.meshing, "notes": rep.notes, "mesh": mesh_path,
-        "machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-                    "torch": torch.__version__, "python": platform.python_version()},
     }
     print(f"vertices {rep.num_vertices}, build {rep.timings['total']:.1f}s, silhouette IoU "
           f"{(rep.silhouette_iou or {}).get('mean', float('nan')):.4f}")
-    write_results(res, f"scaffold_{name}.json", default=str)
+    write_results(res, f"scaffold_{name}.json", args.results_dir, default=str)
     return 0
 
 

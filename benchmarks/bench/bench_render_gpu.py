@@ -3,9 +3,9 @@ interpolation modes, at rest and deformed, at 800² and 400², with kernel launc
 synchronisations per frame (torch.profiler) and the images compared (PSNR against the torch render).
 Needs a CUDA GPU; nothing else here does.
 
-    python benchmarks/bench_render_gpu.py --field runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
-    python benchmarks/bench_render_gpu.py                       # no data: a field made on the spot
-    python benchmarks/bench_render_gpu.py --field f.neumesh --cameras cams.json   # [{"K", "c2w", "width"}, ...]
+    python benchmarks/bench/bench_render_gpu.py --field runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
+    python benchmarks/bench/bench_render_gpu.py                 # no data: a field made on the spot
+    python benchmarks/bench/bench_render_gpu.py --field f.neumesh --cameras cams.json   # [{"K", "c2w", "width"}, ...]
 
 Without ``--field`` the field is made here: an untrained field (random codes, a dense shell of density
 around the surface, the scaffold's mesh mask as the occupancy grid) on the built-in blob subdivided to
@@ -20,7 +20,7 @@ warps, the static or refill schedule and its programs per multiprocessor) on one
 decoders alone on one frame's samples.  Then the seconds from a new pose (``set_vertices`` of host positions) to its first 800² frame on the
 host.  ``--train-steps N`` first times N training steps (forward and
 backward of ``--train-rays`` random pixels) with the torch marcher and with the kernel's march.  ``--budget-s`` stops starting new configurations after that many seconds (the
-JSON then says which were skipped).  Writes benchmarks/results/render_gpu_<name>.json.
+JSON then says which were skipped).  Writes benchmarks/results/log/render_gpu_<name>.json.
 """
 from __future__ import annotations
 
@@ -35,9 +35,8 @@ import time
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _results import write_results  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from benchmarks._results import add_options, timed, write_results  # noqa: E402
 from neumesh_core.metrics import psnr  # noqa: E402
 
 
@@ -110,14 +109,8 @@ def sync(device) -> None:
 
 def best_time(fn, repeats: int, device) -> float:
     """The fastest of ``repeats`` (at least one) synchronised calls of ``fn``, seconds."""
-    best = 1e9
-    for _ in range(max(1, repeats)):
-        sync(device)
-        t = time.perf_counter()
-        fn()
-        sync(device)
-        best = min(best, time.perf_counter() - t)
-    return best
+    sync(device)
+    return timed(fn, max(1, repeats), sync=lambda: sync(device)).best
 
 
 def frame_times(field, cams, size, settings, repeats, device):
@@ -197,7 +190,7 @@ def sweep_grid(which: str) -> list:
     H200 sweep, docs/benchmarks.md, now with rays in 8 x 4 tiles) against rays in rows, the refill
     schedule, smaller blocks, a register cap, the neighbour search's early out and half-radius cells.
     "precision": the fp32 default against fp16 and tf32 products (tensor cores; they spill far less,
-    benchmarks/kernel_resources.py) -- on an H200 with triton 3.6.0 tf32 once ended in an illegal memory
+    benchmarks/diagnose/kernel_resources.py) -- on an H200 with triton 3.6.0 tf32 once ended in an illegal memory
     access that poisons the CUDA context, so gpu_check.sh runs this set last, in a process of its own
     (``--sweep-only``), tf32 at its end.  Only images >= 50 dB from the torch render count."""
     from neumesh_core.kernels import fused as ft
@@ -398,8 +391,10 @@ def measure(field, cams, st, args, dev, key) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", help="a .neumesh field; without it a field is made on the spot")
-    ap.add_argument("--data", help="dataset whose val cameras are rendered")
+    add_options(ap, "field", "data", "device", "name", "results_dir",
+                field=dict(help="a .neumesh field; without it a field is made on the spot"),
+                data=dict(help="dataset whose val cameras are rendered"),
+                device=dict(default="cuda", help="cuda (default); cpu only to try the script out"))
     ap.add_argument("--cameras", help="JSON list of {K, c2w, width} (instead of --data)")
     ap.add_argument("--subdiv", type=int, default=7, help="procedural field: blob subdivisions (7: 163,842 vertices)")
     ap.add_argument("--views", type=int, default=3)
@@ -419,9 +414,6 @@ def main(argv=None) -> int:
     ap.add_argument("--train-steps", type=int, default=0,
                     help="also time N training steps (forward + backward) with each marcher, before the sweep")
     ap.add_argument("--train-rays", type=int, default=16384, help="rays per training step (--train-steps)")
-    ap.add_argument("--device", default="cuda", help="cuda (default); cpu only to try the script out")
-    ap.add_argument("--name", default=None)
-    ap.add_argument("--results-dir", default=None)
     args = ap.parse_args(argv)
     import neumesh_core as nm
     from neumesh_core.data.deformations import bend

@@ -1,8 +1,8 @@
 """Capture benchmark: images -> scaffold -> trained field within a wall-clock budget -> evaluation.
 
-    python benchmarks/bench_fit.py --data ../shared/data/nerf_synthetic/lego --budget-min 60 \
+    python benchmarks/bench/bench_fit.py --data ../shared/data/nerf_synthetic/lego --budget-min 60 \
         --interpolation early --radius-scale 3 --eval-views 0 --supersample 1 --eval-step-scale 0
-    python benchmarks/bench_fit.py --data ../shared/data/dtu/scan24 --budget-min 60 --marks 15,30,45 \
+    python benchmarks/bench/bench_fit.py --data ../shared/data/dtu/scan24 --budget-min 60 --marks 15,30,45 \
         --downscale 4 --interpolation early --radius-scale 2.5 --vertices 2000000
 
 The budget covers scaffold + training (the clock starts before the scaffold).  Snapshots are saved when
@@ -10,7 +10,7 @@ the clock passes each --marks minute; all evaluation happens after training, so 
 budget.  Evaluation renders 2 x 2 rays per pixel (--supersample: the area filter of the downscaled
 photographs) at half the training step (--eval-step-scale); the final figures of a plain render, one ray
 per pixel at the training step, are in the JSON too ("plain_render").  Prints the figures and writes
-benchmarks/results/fit_<scene>.json.
+benchmarks/results/log/fit_<scene>.json.
 """
 from __future__ import annotations
 
@@ -23,16 +23,22 @@ import time
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, ROOT)
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.field.knn import KNN_BACKENDS  # noqa: E402
 from neumesh_core.reconstruct import ScaffoldConfig, build_scaffold  # noqa: E402
-from _results import write_results  # noqa: E402
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, help="dataset folder (Blender or DTU format)")
+    add_options(ap, "data", "threads", "device", "results_dir",
+                data=dict(required=True, help="dataset folder (Blender or DTU format)"),
+                threads=dict(default=0, help="torch threads (default 0: one per core)"),
+                device=dict(help="cpu (default) | cuda | auto: where the field trains"),
+                results_dir=dict(help="folder for the results JSON (default benchmarks/results/log; on a "
+                                      "borrowed GPU machine point it at a folder that comes back)"))
     ap.add_argument("--out", help="work folder (default runs/fit_<scene>)")
     ap.add_argument("--budget-min", type=float, default=60.0, help="scaffold + training wall budget")
     ap.add_argument("--marks", default="15,30", help="minutes at which snapshots are evaluated")
@@ -80,13 +86,9 @@ def main(argv=None) -> int:
                     help="seed of the ray batches and TV samples (default: TrainConfig's; the field's init is fixed)")
     ap.add_argument("--knn", default="kdtree", choices=KNN_BACKENDS,
                     help="neighbour search: kdtree (pykdtree on the CPU) or hashgrid (torch, on the field's device)")
-    ap.add_argument("--device", default="cpu", help="cpu (default) | cuda | auto: where the field trains")
-    ap.add_argument("--results-dir", default=None,
-                    help="folder for the results JSON (default benchmarks/results; on a borrowed GPU "
-                         "machine point it at a folder that comes back)")
     ap.add_argument("--results-name", default=None, help="results file name (default fit_<scene>.json)")
     args = ap.parse_args(argv)
-    torch.set_num_threads(os.cpu_count() or 1)
+    use_threads(args.threads)
     from neumesh_core.device import resolve_device
 
     device = resolve_device(args.device)

@@ -1,7 +1,7 @@
 """Deformation fidelity against ground truth: a built-in-scene field, deformed, against the mesh tracer.
 
-    python benchmarks/bench_deform.py --field runs/blob.neumesh        # a field of the built-in scene
-    python benchmarks/bench_deform.py                                   # runs/blob.neumesh if present,
+    python benchmarks/bench/bench_deform.py --field runs/blob.neumesh  # a field of the built-in scene
+    python benchmarks/bench/bench_deform.py                             # runs/blob.neumesh if present,
                                                                         # else trains --steps and saves it
 
 Each deformation of ``neumesh_core.data.deformations.DEFORMATIONS`` (bend 35/70/140 deg, twist 90 deg,
@@ -11,7 +11,7 @@ the field's rest vertices (``field.set_vertices``) and to the mesh that the grou
 (``neumesh_core.data.mesh_truth.render_mesh_truth``: the rest-pose appearance carried with the
 surface, view direction rotated into the rest pose).  Each is rendered from ``--views`` cameras at
 ``--size``^2 and scored (PSNR, SSIM) against its truth, beside the undeformed figure (the same field
-and cameras against the mesh truth of the rest pose).  Writes benchmarks/results/deform_<name>.json
+and cameras against the mesh truth of the rest pose).  Writes benchmarks/results/log/deform_<name>.json
 and, with ``--picture``, a sheet of the worst deformations (field vs truth).
 """
 from __future__ import annotations
@@ -19,22 +19,21 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import platform
 import sys
 import time
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, ROOT)
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.data.deformations import DEFORMATIONS, inverted_fraction  # noqa: E402
 from neumesh_core.data.mesh_truth import render_mesh_truth  # noqa: E402
 from neumesh_core.data.synthetic import CAMERA_ANGLE_X, look_at_opencv, surface_radius  # noqa: E402
 from neumesh_core.metrics import masked_psnr, psnr, ssim  # noqa: E402
-from _results import write_results  # noqa: E402
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # (azimuth, elevation) in degrees: four views around the blob, none a training view
 VIEWS = [(-60.0, 20.0), (30.0, -10.0), (120.0, 35.0), (210.0, 5.0), (-150.0, -40.0), (75.0, 60.0)]
 
@@ -118,18 +117,19 @@ def trained_field(path: str, steps: int):
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", default=os.path.join(ROOT, "runs", "blob.neumesh"),
-                    help="a field of the built-in scene (trained with --steps and saved there if missing)")
+    add_options(ap, "field", "name", field=dict(default=os.path.join(ROOT, "runs", "blob.neumesh"),
+                help="a field of the built-in scene (trained with --steps and saved there if missing)"),
+                name=dict(default="blob", help="results name (default blob)"))
     ap.add_argument("--steps", type=int, default=600)
-    ap.add_argument("--name", default="blob")
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--only", nargs="*", default=None, help="deformation names (default: all)")
     ap.add_argument("--picture", default=None, help="PNG of the worst deformations (field vs truth)")
     ap.add_argument("--worst", type=int, default=4)
-    ap.add_argument("--out", default=None, help="results folder (default benchmarks/results)")
+    add_options(ap, "threads", "results_dir", threads=dict(default=max(1, int(os.environ.get("OMP_NUM_THREADS", "1"))),
+                                                           help="torch threads (default: OMP_NUM_THREADS, else 1)"))
     args = ap.parse_args(argv)
-    torch.set_num_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", "1"))))
+    use_threads(args.threads)
     field, trained = trained_field(args.field, args.steps)
     check_builtin(field)
     cams = cameras(args.views, args.size)
@@ -165,9 +165,8 @@ def main(argv=None) -> dict:
         "truth": "mesh tracer: rest-pose appearance carried with the surface, view direction rotated "
                  "into the rest pose by each triangle's rest->deformed rotation",
         "undeformed": base, "deformed": rows,
-        "machine": {"cpu": platform.processor() or platform.machine(), "threads": torch.get_num_threads()},
     }
-    write_results(result, f"deform_{args.name}.json", args.out)
+    write_results(result, f"deform_{args.name}.json", args.results_dir)
     return result
 
 

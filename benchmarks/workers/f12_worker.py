@@ -33,7 +33,7 @@ import sys
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
+ROOT = os.path.dirname(os.path.dirname(HERE))
 
 
 def say(**kw):
@@ -88,7 +88,7 @@ def run_core(field_path, inputs_path, threads):
 
     import neumesh_core as nm
 
-    torch.set_num_threads(threads or all_cores())
+    torch.set_num_threads(threads or all_cores())   # the add-on's rule for "0: all cores" (its CPU threads)
     inp = dict(np.load(inputs_path))
     field = nm.load_field(field_path)
     field.set_vertices(inp["vertices"])

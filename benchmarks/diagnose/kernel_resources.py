@@ -2,15 +2,15 @@
 a CUDA target (no GPU needed: Triton's compiler and the cuobjdump it ships), with the registers and the
 stack (spilled registers, local memory) per thread and the programs that fit on one multiprocessor.
 
-    python benchmarks/kernel_resources.py                 # the lego field's sizes, sm_90 (H100 / H200)
-    python benchmarks/kernel_resources.py --arch 89       # an RTX 40xx
+    python benchmarks/diagnose/kernel_resources.py             # the lego field's sizes, sm_90 (H100 / H200)
+    python benchmarks/diagnose/kernel_resources.py --arch 89   # an RTX 40xx
 
 The decoder sizes are those of ``FieldConfig()`` (the lego field's).  A variant is (schedule, early or
 post, at rest or deformed, rays per program, warps, neighbour-grid cells per radius).  Spills are local
 memory traffic inside the hottest loop; registers x threads bound the programs an SM keeps resident
 (65,536 registers), i.e. how much gather latency the others can hide.  Timing needs a GPU
 (``bench_render_gpu.py --sweep``); this says which variants are worth its time.  Writes
-benchmarks/results/kernel_resources_sm<arch>.json.
+benchmarks/results/log/kernel_resources_sm<arch>.json.
 """
 from __future__ import annotations
 
@@ -22,9 +22,8 @@ import sys
 import tempfile
 import time
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _results import write_results  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from benchmarks._results import add_options, write_results  # noqa: E402
 
 DEFAULT_VARIANTS = ("static,early,rest,32,4,1;refill,early,rest,32,4,1;static,early,rest,64,8,2;"
                     "static,early,rest,16,2,1;refill,early,rest,16,2,1;static,post,rest,32,4,1;"
@@ -60,8 +59,7 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default=DEFAULT_VARIANTS,
                     help="';'-separated schedule,early|post,rest|deformed,block,warps,cells[,precision[,maxnreg|-[,eo|-"
                          "[,march]]]] (eo: knn_early_out; march: the training's march, samples out and jitter)")
-    ap.add_argument("--name", default=None)
-    ap.add_argument("--results-dir", default=None)
+    add_options(ap, "name", "results_dir")
     args = ap.parse_args(argv)
     try:
         import triton  # noqa: F401

@@ -1,6 +1,6 @@
 """Where does a trained field lose PSNR on held-out views?  Splits the foreground error by cause.
 
-    python benchmarks/diagnose_fit.py --field runs/fit_scan24/field.neumesh --data ../shared/data/dtu/scan24 --downscale 4
+    python benchmarks/diagnose/diagnose_fit.py --field runs/fit_scan24/field.neumesh --data ../shared/data/dtu/scan24 --downscale 4
 
 Per view (foreground = mask > 0.5; needs masks or alpha):
   psnr_fg         the headline figure (as bench_fit reports it)
@@ -14,18 +14,17 @@ Per view (foreground = mask > 0.5; needs masks or alpha):
                   cameras rendered at --coverage-scale): fraction, PSNR and share of the squared error
                   in each group.  Error in rarely seen parts is a capture limit; error on well-seen
                   surface is the field's (or the light's)
-Prints a table and writes benchmarks/results/diagnose_<scene>.json.  Diagnostic only: the corrected
+Prints a table and writes benchmarks/results/log/diagnose_<scene>.json.  Diagnostic only: the corrected
 figures use the held-out images and are never results.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from benchmarks._results import add_options, write_results  # noqa: E402
 
 
 COVERAGE_GROUPS = {"<3": (0, 3), "3-9": (3, 10), ">=10": (10, 1 << 30)}
@@ -51,15 +50,14 @@ def coverage_split(pred, gt, covered, depth, K, c2w, cov_cams, cov_depths) -> di
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", required=True, help="trained field (.neumesh)")
-    ap.add_argument("--data", required=True, help="dataset folder (Blender or DTU format)")
+    add_options(ap, "field", "data", "results_dir", field=dict(required=True, help="trained field (.neumesh)"),
+                data=dict(required=True, help="dataset folder (Blender or DTU format)"))
     ap.add_argument("--downscale", type=float, default=1)
     ap.add_argument("--split", default="val")
     ap.add_argument("--sigma", type=float, default=16.0, help="shading correction blur (px)")
     ap.add_argument("--no-coverage", action="store_true", help="skip the training-view coverage split")
     ap.add_argument("--coverage-split", default="train", help="views that count for coverage")
     ap.add_argument("--coverage-scale", type=float, default=0.5, help="resolution of their depth maps")
-    ap.add_argument("--out", default=None, help="JSON path (default benchmarks/results/diagnose_<scene>.json)")
     args = ap.parse_args(argv)
 
     import numpy as np
@@ -113,12 +111,8 @@ def main(argv=None) -> int:
     print(f"{'mean':>10} {mean['psnr_fg']:8.2f} {mean['uncovered']:7.2%} {mean['psnr_covered']:8.2f} "
           f"{mean['psnr_gain']:7.2f} {mean['psnr_shading']:8.2f}")
     name = os.path.basename(os.path.normpath(args.data))
-    path = args.out or os.path.join(HERE, "results", f"diagnose_{name}.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w") as fh:
-        json.dump({"field": args.field, "data": args.data, "downscale": args.downscale, "split": args.split,
-                   "sigma": args.sigma, "mean": mean, "views": rows}, fh, indent=2)
-    print(f"wrote {path}")
+    write_results({"field": args.field, "data": args.data, "downscale": args.downscale, "split": args.split,
+                   "sigma": args.sigma, "mean": mean, "views": rows}, f"diagnose_{name}.json", args.results_dir)
     return 0
 
 

@@ -16,26 +16,25 @@ and three oracles on the same views:
   this mesh): the loss due to the mesh's geometry alone;
 * ``bake``: the baked texture.
 
-Writes ``bake_diagnose_<name>.json`` and, with ``--figure``, field | bake | error x4 per view.
+Writes ``benchmarks/results/log/bake_diagnose_<name>.json`` and, with ``--figure``, field | bake | error x4 per view.
 """
 from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.bake import bake_texture, decimate  # noqa: E402
 from neumesh_core.render.raster import depth_buffer, render_textured_mesh  # noqa: E402
 
-from benchmarks._results import write_results  # noqa: E402
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
 
 def psnr(a, b) -> float:
@@ -80,9 +79,9 @@ def mesh_oracle(field, vertices, faces, K, c2w, w, h, bg, window):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", required=True)
-    ap.add_argument("--data", required=True)
-    ap.add_argument("--name", default="lego")
+    add_options(ap, "field", "data", "name", "threads", "results_dir", field=dict(required=True),
+                data=dict(required=True), name=dict(default="lego", help="results name (default lego)"),
+                threads=dict(default=1, help="torch threads (default 1)"))
     ap.add_argument("--split", default="val")
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--downscale", type=float, default=2)
@@ -97,11 +96,9 @@ def main(argv=None) -> int:
     ap.add_argument("--voxel", type=float, default=0.35)
     ap.add_argument("--tolerance", type=float, default=0.5)
     ap.add_argument("--window", type=float, default=1.0, help="mesh oracle: radii each side of the mesh depth")
-    ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--figure")
-    ap.add_argument("--results-dir")
     args = ap.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    use_threads(args.threads)
     scene = nm.load_scene(args.data, downscale=args.downscale)
     split = scene.split(args.split)
     cams = split.cameras
@@ -168,8 +165,7 @@ def main(argv=None) -> int:
               "mesh_faces": b.info["mesh_faces"], "bake_s": round(bake_s, 2),
               "mean": {k: float(np.mean([p[k] for p in per])) for k in keys},
               "squared_error_share": share, "pixel_share": pix, "per_view": per,
-              "machine": {"cpu_threads": torch.get_num_threads(), "platform": platform.platform(),
-                          "loadavg": os.getloadavg(), "note": "2 shared, loaded CPU cores"}}
+              "machine": {"note": "2 shared, loaded CPU cores"}}
     print(result["mean"], share, pix)
     if args.figure:
         nm.save_image(args.figure, np.concatenate(rows, 0))

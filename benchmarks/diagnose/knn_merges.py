@@ -2,8 +2,8 @@
 K-merges of ``kernels/knn.knn_keys`` for the points a real frame evaluates, with and without
 ``knn_early_out``.
 
-    python benchmarks/knn_merges.py                       # the built-in blob (163,842 vertices), 800²
-    python benchmarks/knn_merges.py --field lego.neumesh  # a trained field
+    python benchmarks/diagnose/knn_merges.py                       # the built-in blob (163,842 vertices), 800²
+    python benchmarks/diagnose/knn_merges.py --field lego.neumesh  # a trained field
 
 The points: each pixel's ray at the depth the torch renderer gives it (pixels it finds opaque), in the
 kernel's blocks of ``--block`` consecutive rays of the list render_camera hands it (the pixels whose
@@ -15,7 +15,7 @@ min(K, the largest number of a row's candidates nearer than its worst key) with 
 four, each with its own rounds, a tile's cells beyond a row's K-th nearest so far left out; "2_all":
 every cell, as the kernel did before).  Only the first surface point of each ray is counted.
 A merge is two row reductions of 64-bit keys and two selects over the (rays, 32) tile, the heaviest
-part of a round.  Writes benchmarks/results/knn_merges_<name>.json.
+part of a round.  Writes benchmarks/results/log/knn_merges_<name>.json.
 """
 from __future__ import annotations
 
@@ -27,9 +27,8 @@ import time
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _results import write_results  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
 from neumesh_core.kernels.knn import TritonHashGrid, cell_order  # noqa: E402
 
@@ -109,21 +108,21 @@ def _count_blocks(pts: np.ndarray, liv: np.ndarray, grid, k: int, ncp: int, near
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", default=None, help="a .neumesh file (default: the procedural blob)")
+    add_options(ap, "field", "threads", "name", "results_dir",
+                field=dict(help="a .neumesh file (default: the procedural blob)"),
+                threads=dict(default=0, help="torch threads (default 0: one per core)"))
     ap.add_argument("--subdiv", type=int, default=7)
     ap.add_argument("--size", type=int, default=800)
     ap.add_argument("--block", type=int, default=32, help="rays per program (the GPU default)")
     ap.add_argument("--cells", type=int, nargs="+", default=[1, 2], help="cells per radius")
-    ap.add_argument("--name", default=None)
-    ap.add_argument("--results-dir", default=None)
     args = ap.parse_args(argv)
     import neumesh_core as nm
     from neumesh_core.render.renderer import tile_order
 
-    from bench_render_gpu import orbit_cameras, procedural_field, scaled
+    from benchmarks.bench.bench_render_gpu import orbit_cameras, procedural_field, scaled
     from neumesh_core.data.cameras import pixel_rays
 
-    torch.set_num_threads(max(1, os.cpu_count() or 1))
+    use_threads(args.threads)
     if args.field:
         field = nm.load_field(args.field)
         name = args.name or os.path.splitext(os.path.basename(args.field))[0]

@@ -2,8 +2,8 @@
 part's floor on this machine (matmul rate and memory bandwidth measured in the same run), in both
 interpolation modes, plus whole-frame times at 400² and 800² and the viewport's first-preview figures.
 
-    python benchmarks/bench_render.py --field runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
-    python benchmarks/bench_render.py --field runs/blob.neumesh            # orbit cameras around the field
+    python benchmarks/bench/bench_render.py --field runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
+    python benchmarks/bench/bench_render.py --field runs/blob.neumesh      # orbit cameras around the field
 
 Parts (seconds per frame, measured by timing the core's functions from the outside; nothing in the
 core changes):
@@ -24,7 +24,8 @@ renders a different image (the codes were trained for one mode): it is a cost pr
 ``--baseline-tree DIR`` (a checkout of earlier code) also renders the same 400² views with that code
 in a subprocess, in ``--rounds`` interleaved rounds with this code's renders: frame times of both
 (each view's best) and the PSNR of this code's image against the earlier one (the "same images"
-check).  Writes benchmarks/results/render_<name>.json.
+check; that process times with its own loop: it imports the other checkout's modules, not this tree's
+helper).  Writes benchmarks/results/log/render_<name>.json.
 """
 from __future__ import annotations
 
@@ -42,9 +43,8 @@ import time
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _results import write_results  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from benchmarks._results import add_options, timed, use_threads, write_results  # noqa: E402
 
 
 _BASELINE = r"""
@@ -88,10 +88,10 @@ def baseline_comparison(field, field_path: str, tree: str, cams, size: int, roun
             old_t.append(json.loads(r.stdout.split("BASELINE", 1)[1]))
             times = []
             for i, c in enumerate(spec):
-                t = time.perf_counter()
-                o = nm.render_camera(field, np.array(c["K"], np.float32), np.array(c["c2w"]), size, size)
-                times.append(time.perf_counter() - t)
-                new_imgs[i] = o.rgb
+                run = timed(lambda: nm.render_camera(field, np.array(c["K"], np.float32), np.array(c["c2w"]), size,
+                                                     size))
+                times.append(run.best)
+                new_imgs[i] = run.result.rgb
             new_t.append(times)
         old_imgs = np.load(img_file)
         psnr = [image_psnr(new_imgs[i], old_imgs[str(i)]) for i in range(len(spec))]
@@ -107,21 +107,11 @@ def baseline_comparison(field, field_path: str, tree: str, cams, size: int, roun
 def machine_floors(threads: int) -> dict:
     """Matmul rate (fp32, 2048², best of 5) and copy bandwidth (256 MB, best of 5) in this process."""
     a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
-    best = 1e9
-    for _ in range(5):
-        t = time.perf_counter()
-        torch.mm(a, b)
-        best = min(best, time.perf_counter() - t)
-    flops = 2 * 2048 ** 3 / best
+    flops = 2 * 2048 ** 3 / timed(lambda: torch.mm(a, b), 5).best
     x = torch.empty(64 * 2 ** 20)
     x.fill_(1.0)
     y = torch.empty_like(x)
-    best = 1e9
-    for _ in range(5):
-        t = time.perf_counter()
-        y.copy_(x)
-        best = min(best, time.perf_counter() - t)
-    bw = 2 * x.numel() * 4 / best     # read + write
+    bw = 2 * x.numel() * 4 / timed(lambda: y.copy_(x), 5).best     # read + write
     return {"threads": threads, "matmul_gflops": flops / 1e9, "copy_gbytes_per_s": bw / 1e9}
 
 
@@ -280,15 +270,8 @@ def scaled(K, factor: float):
 def time_frames(field, cams, size: int, repeats: int, settings=None):
     import neumesh_core as nm
 
-    out = []
-    for K, c2w in cams:
-        best = 1e9
-        for _ in range(repeats):
-            t = time.perf_counter()
-            nm.render_camera(field, scaled(K, size / (2 * K[0, 2])), c2w, size, size, settings=settings)
-            best = min(best, time.perf_counter() - t)
-        out.append(best)
-    return out
+    return [timed(lambda: nm.render_camera(field, scaled(K, size / (2 * K[0, 2])), c2w, size, size,
+                                           settings=settings), repeats).best for K, c2w in cams]
 
 
 def profile_mode(field, cams, size: int, machine: dict) -> dict:
@@ -356,22 +339,18 @@ def viewport_figures(field, cams, viewport=(1280, 720), divisors=(8, 16)) -> dic
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", required=True)
-    ap.add_argument("--data", help="dataset whose val cameras are rendered (default: orbit cameras)")
+    add_options(ap, "field", "data", "threads", "name", "results_dir", field=dict(required=True),
+                data=dict(help="dataset whose val cameras are rendered (default: orbit cameras)"))
     ap.add_argument("--views", type=int, default=3)
     ap.add_argument("--sizes", type=int, nargs="+", default=[400, 800])
     ap.add_argument("--repeats", type=int, default=2, help="renders per view for frame times (best counts)")
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's own)")
     ap.add_argument("--modes", nargs="+", default=["early", "post"], choices=["early", "post"])
     ap.add_argument("--baseline-tree", help="checkout of earlier code to compare frame times and images with")
     ap.add_argument("--rounds", type=int, default=2, help="interleaved rounds of the baseline comparison")
-    ap.add_argument("--name", default=None)
-    ap.add_argument("--results-dir", default=None)
     args = ap.parse_args(argv)
     import neumesh_core as nm
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    use_threads(args.threads or None)
     field = nm.load_field(args.field)
     field.eval()
     name = args.name or os.path.splitext(os.path.basename(args.field))[0]

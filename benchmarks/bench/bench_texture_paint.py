@@ -2,7 +2,7 @@
 """Blender Texture Paint on a field's paint atlas (addon/edit/texture_paint.py), in bpy 5.0.1: from a
 stroke to the updated Rendered viewport, seconds.
 
-    OMP_NUM_THREADS=1 PYTHONPATH=. .venv/bin/python benchmarks/bench_texture_paint.py \\
+    OMP_NUM_THREADS=1 PYTHONPATH=. .venv/bin/python benchmarks/bench/bench_texture_paint.py \\
         --field /work/runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
 
 The field is loaded as a new object (its scaffold mesh), *Texture Paint* makes its paint layer (grid
@@ -21,18 +21,17 @@ the pixels of a horizontal line through the object in the camera's view look up,
   (0.1 s) after the stroke, so there stroke -> updated viewport = ~0.1 s + ``push_s`` +
   ``first_image_s``; the real-window test (blender_tests/real_blender_texture_paint.py, Blender 3.4)
   measures it with a real brush stroke on the test field.
-Writes benchmarks/results/texture_paint_<name>.json.
+Writes benchmarks/results/log/texture_paint_<name>.json.
 """
 from __future__ import annotations
 
 import argparse
 import os
-import platform
 import shutil
 import sys
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "blender_tests"))
 import user_dirs  # noqa: E402
@@ -42,25 +41,23 @@ _BASE = user_dirs.redirect("neumesh_bench_tp_")
 import numpy as np  # noqa: E402
 
 import build_addon  # noqa: E402
-from _results import write_results  # noqa: E402
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
 MODULE = "bl_ext.user_default.neumesh"
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", required=True)
-    ap.add_argument("--data", help="dataset whose val camera 0 is the view (default: a camera in front)")
+    add_options(ap, "field", "data", "threads", "name", "results_dir", field=dict(required=True),
+                data=dict(help="dataset whose val camera 0 is the view (default: a camera in front)"),
+                threads=dict(default=1, help="torch threads (default 1)"))
     ap.add_argument("--viewport", default="960x540")
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--name", default=None)
-    ap.add_argument("--results-dir", default=None)
     a = ap.parse_args(argv)
     import bpy
     import torch
 
-    torch.set_num_threads(a.threads)
+    use_threads(a.threads)
     zip_path = build_addon.build(os.path.join(_BASE, "neumesh.zip"))
     bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -163,9 +160,7 @@ def main(argv=None) -> int:
               "atlas": {"source": atlas.source, "resolution": [h, w]}, "viewport": [vw, vh],
               "load_field_s": load_s, "setup_s": setup_s, "stroke_dabs": int(len(txy)), "runs": runs,
               "median": med, "bpy": bpy.app.version_string,
-              "machine": {"cpu": platform.processor() or platform.machine(), "threads": a.threads,
-                          "loadavg_end": list(os.getloadavg()),
-                          "note": "2 cores shared by six developers' jobs: timings are upper bounds"}}
+              "machine": {"note": "2 cores shared by six developers' jobs: timings are upper bounds"}}
     print(f"median: push {med['push_s']:.2f} s, stroke -> first viewport image {med['stroke_to_first_image_s']:.2f} s "
           f"(+ up to {med['poll_period_s']:.2f} s poll wait), 1/4 level {med['preview_1_4_s']:.2f} s")
     write_results(result, f"texture_paint_{name}.json", a.results_dir)

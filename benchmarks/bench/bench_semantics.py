@@ -21,26 +21,27 @@
    shape alone (a field whose semantic features are the same everywhere; the click's surface point
    from the scaffold's z-buffer), --pictures showing each selection on the shaded scaffold.
 
-    nice -n 10 .venv/bin/python benchmarks/bench_semantics.py --field F --data DIR \\
+    nice -n 10 .venv/bin/python benchmarks/bench/bench_semantics.py --field F --data DIR \\
         [--click bucket:0:120:200 ...] [--pictures docs/semantics_lego.png] [--save F_sem.neumesh]
-    .venv/bin/python benchmarks/bench_semantics.py --make-multipart --same-colour --data /tmp/mp_same \\
+    .venv/bin/python benchmarks/bench/bench_semantics.py --make-multipart --same-colour --data /tmp/mp_same \\
         --field /tmp/mp_same.neumesh --steps 300 --rays-per-view 1024 --name semantics_multipart_same.json
-    .venv/bin/python benchmarks/bench_semantics.py --scaffold /work/runs/lego/scaffold.ply
+    .venv/bin/python benchmarks/bench/bench_semantics.py --scaffold /work/runs/lego/scaffold.ply
+
+Writes benchmarks/results/log/<--name> (default semantics_<field stem>.json).
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import os
-import platform
 import sys
 import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
 
 def parse_click(s: str):
@@ -315,8 +316,8 @@ def blender_clicks(field_path: str, cams, clicks, threshold: float):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", help="trained field (.neumesh); with --skip-distil, one with semantics")
-    ap.add_argument("--data", help="its dataset")
+    add_options(ap, "field", "data", field=dict(help="trained field (.neumesh); with --skip-distil, one with semantics"),
+                data=dict(help="its dataset"))
     ap.add_argument("--make-multipart", action="store_true",
                     help="write the small multi-part scene to --data and train --field on it when missing")
     ap.add_argument("--same-colour", action="store_true", help="with --make-multipart: one texture on every part")
@@ -339,20 +340,16 @@ def main(argv=None) -> int:
     ap.add_argument("--pictures", help="PNG with one row per click (view | selection)")
     ap.add_argument("--picture-size", type=int, default=256, help="tile size in the picture (default 256)")
     ap.add_argument("--blender", action="store_true", help="also time the clicks through the add-on in bpy")
-    ap.add_argument("--threads", type=int, default=None)
+    add_options(ap, "threads", "results_dir")
     ap.add_argument("--name", default=None, help="results file name (default semantics_<field stem>.json)")
     args = ap.parse_args(argv)
 
-    import torch
-
     import neumesh_core as nm
-    from _results import write_results
     from neumesh_core.semantics import (DistillConfig, SelectConfig, SelectionContext, distill_semantics,
                                         make_extractor, select_region)
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    result = {"load_average_at_start": list(os.getloadavg())}
+    use_threads(args.threads or None)
+    result = {}
     if args.scaffold:
         result["scaffold_features"] = scaffold_features(args.scaffold, args.subdivide)
     if not args.field:
@@ -361,7 +358,7 @@ def main(argv=None) -> int:
         if args.data and args.click:
             result["scaffold_clicks"] = scaffold_clicks(args.scaffold, args.data, args.split, args.click,
                                                         args.threshold, args.pictures, args.picture_size)
-        write_results(result, args.name or "semantics_geometry_scaffold.json")
+        write_results(result, args.name or "semantics_geometry_scaffold.json", args.results_dir)
         return 0
     if not args.data:
         ap.error("--field needs --data")
@@ -369,8 +366,7 @@ def main(argv=None) -> int:
         result["made"] = make_multipart(args.data, args.field, args.same_colour)
     field = nm.load_field(args.field)
     scene = nm.load_scene(args.data)
-    result.update({"field": args.field, "data": args.data, "vertices": field.num_vertices,
-              "machine": {"cpus": os.cpu_count(), "threads": torch.get_num_threads(), "platform": platform.platform()}})
+    result.update({"field": args.field, "data": args.data, "vertices": field.num_vertices})
     print(f"field {args.field}: {field.num_vertices} vertices")
     if not args.skip_distil:
         ex = make_extractor(args.extractor)
@@ -462,7 +458,7 @@ def main(argv=None) -> int:
                 nm.save_field(field, path)
         result["blender_clicks"] = blender_clicks(path, cams, clicks, args.threshold)
     name = args.name or "semantics_" + os.path.splitext(os.path.basename(args.field))[0] + ".json"
-    write_results(result, name)
+    write_results(result, name, args.results_dir)
     return 0
 
 

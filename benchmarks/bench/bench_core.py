@@ -1,26 +1,25 @@
 """Core speed benchmark: training step time, render time at 400^2 and 800^2, fraction of matmul peak.
 
-    python benchmarks/bench_core.py                       # built-in scene with its true mesh
-    python benchmarks/bench_core.py --data ../shared/data/nerf_synthetic/lego --mesh lego_scaffold.ply
+    python benchmarks/bench/bench_core.py                 # built-in scene with its true mesh
+    python benchmarks/bench/bench_core.py --data ../shared/data/nerf_synthetic/lego --mesh lego_scaffold.ply
 
-Prints figures and writes benchmarks/results/core_<scene>.json.  The matmul peak is measured in the
+Prints figures and writes benchmarks/results/log/core_<scene>.json.  The matmul peak is measured in the
 same run, so compare ratios across machines (they drift up to 2x), not seconds.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import sys
 import time
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, ROOT)
 import neumesh_core as nm  # noqa: E402
-from _results import RESULTS_DIR, write_results  # noqa: E402
+from benchmarks._results import add_options, machine_record, timed, use_threads, write_results  # noqa: E402
 
 
 def matmul_peak(seconds: float = 2.0) -> float:
@@ -62,9 +61,8 @@ def time_train_steps(field, scene, steps: int, rays: int, warmup: int) -> dict:
     field._checkpoint_meta = {"train_state": {"step": warmup}}
     cfg.resume = True
     counter = FlopCounter(field)
-    t0 = time.perf_counter()
-    res = nm.train(field, scene, cfg)
-    dt = (time.perf_counter() - t0) / steps
+    run = timed(lambda: nm.train(field, scene, cfg))
+    res, dt = run.result, run.best / steps
     for h in counter.handles:
         h.remove()
     field._checkpoint_meta = None
@@ -92,16 +90,16 @@ def time_render(field, cams: nm.Cameras, size: int, n_frames: int, background) -
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", help="dataset folder (default: the built-in scene)")
-    ap.add_argument("--mesh", help="scaffold mesh (default: the dataset's mesh.ply)")
+    add_options(ap, "data", "mesh", "threads", "results_dir", data=dict(help="dataset folder (default: the built-in scene)"),
+                mesh=dict(help="scaffold mesh (default: the dataset's mesh.ply)"),
+                threads=dict(default=0, help="torch threads (default 0: one per core)"))
     ap.add_argument("--downscale", type=float, default=1)
     ap.add_argument("--train-steps", type=int, default=800, help="training before timing renders")
     ap.add_argument("--timed-steps", type=int, default=20)
     ap.add_argument("--frames", type=int, default=2, help="frames timed per resolution")
     ap.add_argument("--interpolation", nargs="+", default=["post", "early"])
-    ap.add_argument("--out", default=RESULTS_DIR)
     args = ap.parse_args(argv)
-    torch.set_num_threads(os.cpu_count() or 1)
+    use_threads(args.threads)
 
     data = args.data or nm.default_scene_dir()
     scene = nm.load_scene(data, downscale=args.downscale)
@@ -112,7 +110,8 @@ def main(argv=None) -> int:
     mesh = nm.load_mesh(mesh_path)
     name = os.path.basename(os.path.normpath(data))
     peak = matmul_peak()
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+    machine = machine_record()
+    print(f"machine: {machine['cpu']}, {machine['cores']} cores, {machine['torch_threads']} torch threads, "
           f"fp32 matmul peak {peak:.1f} GFLOP/s")
     eval_split = "val" if "val" in scene.splits else "train"
     result = {"scene": name, "vertices": mesh.num_vertices, "matmul_peak_gflops": peak, "runs": {}}
@@ -138,7 +137,7 @@ def main(argv=None) -> int:
               f"({r400['mlp_gflops_achieved']:.1f} GFLOP/s = {run['fraction_of_peak_render400']:.0%} of peak); "
               f"800^2: {r800['seconds_per_frame']:.2f} s/frame")
         print(f"[{interp}] PSNR after {args.train_steps} steps ({train_s:.0f}s): {ev['mean']['psnr']:.2f} dB")
-    write_results(result, f"core_{name}.json", args.out)
+    write_results(result, f"core_{name}.json", args.results_dir)
     return 0
 
 

@@ -2,8 +2,8 @@
 decoder present but unused, with half of its vertices bound to a second decoder, and (optionally) the
 same field rendered by the code from before decoder binding existed.
 
-    python benchmarks/bench_decoders.py --field runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
-    python benchmarks/bench_decoders.py --field F --data D --old-tree /tmp/old   # + the pre-binding code
+    python benchmarks/bench/bench_decoders.py --field runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
+    python benchmarks/bench/bench_decoders.py --field F --data D --old-tree /tmp/old   # + the pre-binding code
 
 ``--old-tree`` is a checkout of the project before decoder binding (commit 15b1ad3, which reads field
 files of format 1 only): the field is written as format 1 and timed there in a subprocess, on the
@@ -11,7 +11,8 @@ same views, so "a field whose vertices all use decoder 0 costs what it costs tod
 assumed.  The variants are timed in ``--rounds`` interleaved rounds (one subprocess per variant and
 round), so a burst of other work on the machine hits every variant alike; a view's figure is its best
 over rounds and ``--repeats``, and each figure is the median of those over ``--views`` val views.
-Writes benchmarks/results/decoders_<name>.json.
+Writes benchmarks/results/log/decoders_<name>.json.  The timer runs in a process of the timed checkout
+(its own loop: that process imports the other checkout's modules, not this tree's helper).
 """
 from __future__ import annotations
 
@@ -26,8 +27,9 @@ import time
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-from _results import write_results  # noqa: E402
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, ROOT)
+from benchmarks._results import add_options, write_results  # noqa: E402
 
 _TIMER = r"""
 import json, sys, time, numpy as np, torch
@@ -90,16 +92,14 @@ def time_in(tree: str, field_path: str, data: str, views, repeats: int, python=s
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", required=True, help="trained field (one decoder)")
-    ap.add_argument("--data", required=True, help="dataset whose val cameras are rendered")
+    add_options(ap, "field", "data", "name", "results_dir", field=dict(required=True, help="trained field (one decoder)"),
+                data=dict(required=True, help="dataset whose val cameras are rendered"))
     ap.add_argument("--views", type=int, default=5, help="val views (evenly spread; default 5)")
     ap.add_argument("--repeats", type=int, default=2, help="renders per view, the best counts (default 2)")
     ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds over the variants (default 3)")
     ap.add_argument("--old-tree", help="checkout of the pre-binding code (commit 15b1ad3) to time too")
-    ap.add_argument("--name", default=None)
-    ap.add_argument("--results-dir", default=None)
     args = ap.parse_args(argv)
-    root = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+    root = ROOT
     import neumesh_core as nm
 
     field = nm.load_field(args.field)

@@ -1,8 +1,8 @@
 """Issue 47: the automatic swap alignment, measured (no point pairs anywhere).
 
-    python benchmarks/bench_swap_align.py --field /work/runs/lego/field.neumesh   # a trained field
-    python benchmarks/bench_swap_align.py --mesh /work/runs/lego/scaffold.ply     # untrained, on a mesh
-    python benchmarks/bench_swap_align.py                                          # the built-in blob
+    python benchmarks/bench/bench_swap_align.py --field /work/runs/lego/field.neumesh   # a trained field
+    python benchmarks/bench/bench_swap_align.py --mesh /work/runs/lego/scaffold.ply     # untrained, on a mesh
+    python benchmarks/bench/bench_swap_align.py                                          # the built-in blob
 
 1. **Similar copy.** A copy of the field moved by a known similarity (scale 1.7, a rotation of
    114 degrees, a shift of 5 scene units; texture frames so that it looks as before) gives its region
@@ -20,21 +20,20 @@
 
 Without ``--field`` the field is an untrained one on ``--mesh`` or on the built-in blob (subdivision
 ``--subdiv``) with random texture codes and per-vertex modification colours (the swap moves codes; they need not be
-trained for the figures).  Writes benchmarks/results/swap_align_<name>.json.
+trained for the figures).  Writes benchmarks/results/log/swap_align_<name>.json.
 """
 from __future__ import annotations
 
 import argparse
 import copy
 import os
-import platform
 import sys
 import time
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.cli import turntable_cameras  # noqa: E402
 from neumesh_core.data.synthetic import default_mesh  # noqa: E402
@@ -42,7 +41,7 @@ from neumesh_core.edit import SwapConfig, swap_alignment, swap_texture  # noqa: 
 from neumesh_core.edit.align import Similarity  # noqa: E402
 from neumesh_core.errors import EditError  # noqa: E402
 from neumesh_core.metrics import psnr  # noqa: E402
-from _results import write_results  # noqa: E402
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
 ISSUE_TRANSFORM = Similarity(0.67, np.eye(3), np.array([-9.95, -8.79, -5.73]))
 
@@ -191,18 +190,17 @@ def cross_field_figures() -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", help="trained field file (.neumesh); default: an untrained field on the blob")
-    ap.add_argument("--mesh", help="a mesh for an untrained field with random codes (instead of --field)")
+    add_options(ap, "field", "mesh", "threads", "name", "results_dir",
+                field=dict(help="trained field file (.neumesh); default: an untrained field on the blob"),
+                mesh=dict(help="a mesh for an untrained field with random codes (instead of --field)"),
+                threads=dict(default=1, help="torch threads (default 1)"))
     ap.add_argument("--subdiv", type=int, default=5, help="blob subdivision without --field (default 5)")
     ap.add_argument("--region-size", type=int, default=50_000, help="vertices in the swapped region")
     ap.add_argument("--views", type=int, default=2, help="turntable views rendered (default 2)")
     ap.add_argument("--resolution", type=int, default=160, help="render size (square, default 160)")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     ap.add_argument("--skip-cross", action="store_true", help="skip the cross-field figures")
-    ap.add_argument("--name", help="results name (default: from the input)")
-    ap.add_argument("--results-dir", default=None, help="folder for the JSON (default benchmarks/results)")
     args = ap.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    use_threads(args.threads)
     if args.field:
         field = nm.load_field(args.field)
         field.eval()
@@ -222,8 +220,7 @@ def main(argv=None) -> int:
               "vertices": field.num_vertices, "interpolation": field.config.interpolation,
               "similar_copy": similar_copy_figures(field, region, args.views, args.resolution),
               "targets": {"psnr_frame": 40.0, "centroid_offset_edges": 1.0},
-              "thresholds": vars(SwapConfig().fit),
-              "machine": {"cpu": platform.processor() or platform.machine(), "threads": torch.get_num_threads()}}
+              "thresholds": vars(SwapConfig().fit)}
     if not args.skip_cross:
         result["cross_field"] = cross_field_figures()
     write_results(result, f"swap_align_{name}.json", args.results_dir)

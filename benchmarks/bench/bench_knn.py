@@ -1,31 +1,30 @@
 """Neighbour search speed: the KD-tree (pykdtree on the CPU) against the torch hash grid.
 
-    python benchmarks/bench_knn.py                              # built-in blob, 163,842 vertices, CPU
-    python benchmarks/bench_knn.py --device cuda                # the same on a GPU
-    python benchmarks/bench_knn.py --mesh runs/lego/scaffold.ply --queries 1000000
+    python benchmarks/bench/bench_knn.py                        # built-in blob, 163,842 vertices, CPU
+    python benchmarks/bench/bench_knn.py --device cuda          # the same on a GPU
+    python benchmarks/bench/bench_knn.py --mesh runs/lego/scaffold.ply --queries 1000000
 
 Queries are the field's kind: points within about one edge of the scaffold, K=4, radius 2.5 x the mean
 edge.  On a GPU the KD-tree time includes the copies to the host and back (what the field pays).
-Prints figures and writes benchmarks/results/knn_<mesh>_<device>.json; every backend's answer is
+Prints figures and writes benchmarks/results/log/knn_<mesh>_<device>.json; every backend's answer is
 checked against the KD-tree's.
 """
 from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.data.synthetic import default_mesh  # noqa: E402
 from neumesh_core.device import resolve_device  # noqa: E402
 from neumesh_core.field.knn import KNN_BACKENDS, make_index  # noqa: E402
 from neumesh_core.mesh import mean_edge_length  # noqa: E402
-from _results import RESULTS_DIR, write_results  # noqa: E402
+from benchmarks._results import add_options, timed, write_results  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:
@@ -40,26 +39,21 @@ def time_backend(name, verts, pts, k, radius, repeats, device):
     _sync(device)
     build_s = time.perf_counter() - t0
     index.query(pts[:1000])  # warm-up
-    times = []
-    for _ in range(repeats):
-        _sync(device)
-        t0 = time.perf_counter()
-        idx, dist = index.query(pts)
-        _sync(device)
-        times.append(time.perf_counter() - t0)
-    return {"build_s": build_s, "query_s": min(times), "queries_per_s": len(pts) / min(times)}, idx
+    _sync(device)
+    run = timed(lambda: index.query(pts), repeats, sync=lambda: _sync(device))
+    idx, dist = run.result
+    return {"build_s": build_s, "query_s": run.best, "queries_per_s": len(pts) / run.best}, idx
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--mesh", help="scaffold mesh (.ply/.obj); default: the built-in blob at --subdiv")
+    add_options(ap, "mesh", "device", "results_dir",
+                mesh=dict(help="scaffold mesh (.ply/.obj); default: the built-in blob at --subdiv"))
     ap.add_argument("--subdiv", type=int, default=7, help="built-in blob subdivision (7: 163,842 vertices)")
     ap.add_argument("--queries", type=int, default=500_000)
     ap.add_argument("--k", type=int, default=4)
     ap.add_argument("--radius-scale", type=float, default=2.5, help="radius / mean edge length")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--device", default="cpu", help="cpu | cuda | auto")
-    ap.add_argument("--results-dir", default=RESULTS_DIR)
     args = ap.parse_args(argv)
 
     device = resolve_device(args.device)
@@ -73,9 +67,7 @@ def main(argv=None) -> int:
     v, pts = v.to(device), pts.to(device)
 
     result = {"mesh": name, "vertices": len(v), "queries": args.queries, "k": args.k, "radius": radius,
-              "device": str(device), "cpu_threads": torch.get_num_threads(), "machine": platform.machine(),
-              "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
-              "torch": torch.__version__, "backends": {}}
+              "device": str(device), "backends": {}}
     ref = None
     from neumesh_core.kernels.knn import triton_runs_on
 

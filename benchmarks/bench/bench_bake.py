@@ -1,7 +1,7 @@
 """Baking a field into a UV-textured mesh: how close the baked asset's render is to the field's own.
 
-    python benchmarks/bench_bake.py --field runs/blob.neumesh                      # the built-in scene
-    python benchmarks/bench_bake.py --field runs/lego_field.neumesh --data ../shared/data/nerf_synthetic/lego \
+    python benchmarks/bench/bench_bake.py --field runs/blob.neumesh                # the built-in scene
+    python benchmarks/bench/bench_bake.py --field runs/lego_field.neumesh --data ../shared/data/nerf_synthetic/lego \
         --split val --views 4 --resolutions 1024,2048 --directions 1 --decimate 0.05 --threads 1 --cycles
 
 For each texture size (``--resolutions``) and rays per texel (``--directions``: 1 = along -normal; 5 =
@@ -15,26 +15,26 @@ views`` takes the texel colours from the field's renders on virtual cameras (``-
 ``--proj-size`` pixels) instead of a ray along each texel's normal.  Two comparisons: ``psnr_vs_field``
 (the field's render with one ray per pixel centre against the raster's 2x2 supersampled one, as before)
 and ``psnr_vs_field_ss2`` (both 2x2 supersampled: the same anti-aliasing on both sides, as a photo and
-Cycles have; this is the headline figure since issue 50's attempt 2).  Writes bake_<name>.json to benchmarks/results (or ``--results-dir``) and, with
+Cycles have; this is the headline figure since issue 50's attempt 2).  Writes bake_<name>.json to benchmarks/results/log (or ``--results-dir``) and, with
 ``--figure``, field render | baked render pictures (``--figure-views`` views, one row each).
 """
 from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, ROOT)
 import neumesh_core as nm  # noqa: E402
 from neumesh_core.bake import ExtractConfig, ProjectConfig, SurfaceFitConfig, bake_texture  # noqa: E402
 from neumesh_core.metrics import psnr  # noqa: E402
 from neumesh_core.render.raster import render_textured_mesh  # noqa: E402
-from _results import write_results  # noqa: E402
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
 
 def cycles_renders(args, best, cams, views, refs, bg) -> dict:
@@ -46,7 +46,7 @@ def cycles_renders(args, best, cams, views, refs, bg) -> dict:
     from neumesh_core.imageio import read_image
 
     row, imgs, b = best
-    worker = os.path.join(os.path.dirname(os.path.abspath(__file__)), "bake_cycles_worker.py")
+    worker = os.path.join(ROOT, "benchmarks", "workers", "bake_cycles_worker.py")
     with tempfile.TemporaryDirectory(prefix="neumesh_cycles_") as tmp:
         tex = os.path.join(tmp, "texture.png")
         nm.save_image(tex, b.texture)
@@ -113,15 +113,15 @@ def depth_vs_field(b, cams, views, field_depths, radius) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--field", required=True)
-    ap.add_argument("--data", help="dataset (default: the built-in scene)")
-    ap.add_argument("--name", help="results name (default: blob, or the data folder's name)")
+    add_options(ap, "field", "data", "name", "mesh", "threads", "results_dir", field=dict(required=True),
+                data=dict(help="dataset (default: the built-in scene)"),
+                name=dict(help="results name (default: blob, or the data folder's name)"),
+                mesh=dict(help="bake onto this mesh instead of the scaffold (world space, near the surface)"))
     ap.add_argument("--split", default="test")
     ap.add_argument("--views", type=int, default=8, help="held-out views used (default 8)")
     ap.add_argument("--downscale", type=float, default=1)
     ap.add_argument("--resolutions", default="512,1024")
     ap.add_argument("--directions", default="1,5")
-    ap.add_argument("--mesh", help="bake onto this mesh instead of the scaffold (world space, near the surface)")
     ap.add_argument("--decimate", type=float, default=1.0,
                     help="bake onto a decimated copy with about this fraction of the faces (default 1: none)")
     ap.add_argument("--target", default="scaffold", choices=("scaffold", "field"),
@@ -139,22 +139,18 @@ def main(argv=None) -> int:
     ap.add_argument("--offset", type=float, default=None, help="texel ray start, field radii (default: the bake's)")
     ap.add_argument("--fit-search", type=float, default=1.5, help="fit: field radii searched each side (default 1.5)")
     ap.add_argument("--fit-smoothness", type=float, default=0.3, help="fit: edge smoothness weight (default 0.3)")
-    ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--results-dir", help="folder for the JSON (default benchmarks/results)")
     ap.add_argument("--figure", help="write field | baked pictures here (PNG)")
     ap.add_argument("--figure-views", type=int, default=2, help="views (rows) in the figure (default 2)")
     ap.add_argument("--cycles", action="store_true",
-                    help="also render the best bake with Cycles in `blender -b` (benchmarks/bake_cycles_worker.py) "
+                    help="also render the best bake with Cycles in `blender -b` (benchmarks/workers/bake_cycles_worker.py) "
                          "on the same views and compare it with the field's render")
     ap.add_argument("--cycles-samples", type=int, default=16)
     ap.add_argument("--blender", default="blender", help="Blender binary for --cycles (default: blender)")
     ap.add_argument("--blender-python-path", default=os.environ.get("NEUMESH_BLENDER_TORCH", os.path.join(
-        os.path.dirname(os.path.abspath(__file__)), "..", ".blender_torch")),
+        ROOT, ".blender_torch")),
                     help="folder with numpy for Blender's Python (default: .blender_torch, see setup_blender.sh)")
     args = ap.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    loadavg_start = list(os.getloadavg())
+    use_threads(args.threads or None)
     extract_info = None
     data = args.data or nm.default_scene_dir()
     name = args.name or ("blob" if not args.data else os.path.basename(os.path.normpath(args.data)))
@@ -258,9 +254,7 @@ def main(argv=None) -> int:
               "projection": {"views": args.proj_views, "size": args.proj_size} if args.colours == "views" else None,
               "best": {k: v for k, v in best[0].items() if k not in ("psnr_vs_field_views", "psnr_vs_field_ss2_views",
                                                                       "fit")},
-              "machine": {"cpu_threads": torch.get_num_threads(), "platform": platform.platform(),
-                          "loadavg_end": list(os.getloadavg()), "loadavg_start": loadavg_start,
-                          "note": "2 CPU cores shared with other developers' jobs: times are upper bounds"}}
+              "machine": {"note": "2 CPU cores shared with other developers' jobs: times are upper bounds"}}
     if args.cycles:
         result["cycles"] = cycles_renders(args, best, cams, views, refs, bg)
     write_results(result, f"bake_{name}.json", args.results_dir)

@@ -1,7 +1,7 @@
 """Real captures (issue 48): load time and memory of a transforms.json/COLMAP capture at several
 downscales, and poses recovered from its photos with pycolmap against the poses it ships.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_poses.py --data ../shared/data/real/fox \
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench/bench_poses.py --data ../shared/data/real/fox \
         [--downscales 1 2 4] [--threads 2] [--max-image-size 1600] [--max-features 8192] [--skip-poses]
 
 Load: each downscale in a fresh process (peak RSS is per process), first with an empty undistortion
@@ -12,7 +12,7 @@ place), then a similarity (Umeyama on camera centres) maps the recovered cameras
 rotation error = angle of R_given^T R_aligned per camera, centre error relative to the rig radius (mean
 distance of the given camera centres from their centroid). Goals (issue 48): all photos registered,
 median rotation error <= 1 deg, median centre error <= 1 % of the rig radius.
-Writes benchmarks/results/poses_<name>.json.
+Writes benchmarks/results/log/poses_<name>.json (``--results-dir``; a section skipped keeps the file's).
 """
 from __future__ import annotations
 
@@ -26,8 +26,9 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from benchmarks._results import write_results  # noqa: E402
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, REPO)
+from benchmarks._results import LOG_DIR, add_options, write_results  # noqa: E402
 
 _LOAD_CHILD = r"""
 import json, os, resource, sys, time
@@ -140,8 +141,9 @@ def bench_poses(data: str, args) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, help="capture folder (transforms.json or COLMAP) with its photos")
-    ap.add_argument("--name", default=None, help="results name (default: the folder's name)")
+    add_options(ap, "data", "name", "results_dir",
+                data=dict(required=True, help="capture folder (transforms.json or COLMAP) with its photos"),
+                name=dict(help="results name (default: the folder's name)"))
     ap.add_argument("--downscales", type=float, nargs="*", default=[1, 2, 4])
     ap.add_argument("--threads", type=int, default=2, help="pycolmap threads")
     ap.add_argument("--max-image-size", type=int, default=1600)
@@ -156,9 +158,9 @@ def main(argv=None) -> int:
     ap.add_argument("--before-repo", default=None,
                     help="also measure the loads with the code of this folder (an older checkout) as load_before")
     args = ap.parse_args(argv)
-    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    repo = REPO
     name = args.name or os.path.basename(os.path.normpath(args.data))
-    res = {"data": name, "cpu_count": os.cpu_count(), "loadavg_at_start": os.getloadavg()[0]}
+    res = {"data": name}
     if not args.skip_load:
         res["load"] = bench_load(os.path.abspath(args.data), args.downscales, repo)
         if args.before_repo:
@@ -169,16 +171,14 @@ def main(argv=None) -> int:
             res["load"]["loadavg_at_end"] = os.getloadavg()
     if not args.skip_poses:
         res["poses"] = bench_poses(os.path.abspath(args.data), args)
-    from benchmarks._results import RESULTS_DIR
-
-    old = os.path.join(RESULTS_DIR, f"poses_{name}.json")
+    old = os.path.join(args.results_dir or LOG_DIR, f"poses_{name}.json")
     if os.path.isfile(old):  # a section skipped in this run keeps its earlier figures
         with open(old) as fh:
             prev = json.load(fh)
         for key in ("load", "load_before", "poses"):
             if key not in res and key in prev:
                 res[key] = prev[key]
-    write_results(res, f"poses_{name}.json")
+    write_results(res, f"poses_{name}.json", args.results_dir)
     return 0
 
 

@@ -1,10 +1,10 @@
 """Recovered vs given poses (issue 48): train a real capture from the poses it ships and from the poses
 ``neumesh poses`` recovered from its photos, same budget, and compare held-out PSNR.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_poses_train.py --data /work/shared/data/real/fox \
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench/bench_poses_train.py --data /work/shared/data/real/fox \
         --recovered /work/runs/fox_poses --downscale 4 --minutes 15 --threads 1
 
-``--recovered``: a folder written by ``neumesh poses`` (or ``benchmarks/bench_poses.py --poses-out``).
+``--recovered``: a folder written by ``neumesh poses`` (or ``benchmarks/bench/bench_poses.py --poses-out``).
 Its model lives in COLMAP's own gauge (arbitrary position, rotation and scale), so it is first moved
 onto the given cameras with the similarity of ``bench_poses.pose_agreement`` (Umeyama on the camera
 centres of the photos both name) and written as a COLMAP model under ``<work>/recovered_aligned``
@@ -26,7 +26,7 @@ background model rendered on):
   * ``recovered_at_given``: the recovered field at the given held-out cameras and images: adds the
     disagreement between the two pose sets at the held-out views (about 0.7 deg on fox) to the cost.
 Goal: the recovered poses cost <= 0.5 dB (given - recovered_own). Writes
-benchmarks/results/poses_train_<name>.json. Timings are wall-clock on whatever machine runs it.
+benchmarks/results/log/poses_train_<name>.json. Timings are wall-clock on whatever machine runs it.
 """
 from __future__ import annotations
 
@@ -40,9 +40,9 @@ import time
 
 import numpy as np
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, REPO)
-from benchmarks._results import write_results  # noqa: E402
+from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
 
 def align_recovered(recovered: str, given: str, out_root: str, keep_points: bool = False) -> dict:
@@ -51,7 +51,7 @@ def align_recovered(recovered: str, given: str, out_root: str, keep_points: bool
     returns the similarity and the residual centre error."""
     import pycolmap
 
-    from benchmarks.bench_poses import pose_agreement
+    from benchmarks.bench.bench_poses import pose_agreement
     from neumesh_core.data.colmap import REPORT_NAME, find_model, read_colmap
     from neumesh_core.data.loader import read_capture
     from neumesh_core.edit.align import umeyama
@@ -100,7 +100,7 @@ def run_arm(args) -> int:
     from neumesh_core.render.renderer import RenderSettings
     from neumesh_core.train.trainer import TrainConfig
 
-    torch.set_num_threads(args.threads)
+    use_threads(args.threads)
     given = nm.load_scene(args.data, downscale=args.downscale, log=lambda m: None)
     box = object_box(given.split("train").cameras.c2w, None)
     data = args.data if args.arm == "given" else os.path.join(args.work, "recovered_aligned")
@@ -164,13 +164,13 @@ def run_arm(args) -> int:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default="/work/shared/data/real/fox", help="the capture with its given poses")
+    add_options(ap, "data", "threads", "name", "results_dir",
+                data=dict(default="/work/shared/data/real/fox", help="the capture with its given poses"),
+                threads=dict(default=1, help="torch threads of each run"))
     ap.add_argument("--recovered", default="/work/runs/fox_poses", help="folder written by `neumesh poses`")
     ap.add_argument("--downscale", type=float, default=4)
     ap.add_argument("--minutes", type=float, default=15.0, help="training budget of each run (wall minutes)")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads of each run")
     ap.add_argument("--work", default=None, help="working folder (default /work/runs/<name>_posecmp)")
-    ap.add_argument("--name", default=None)
     ap.add_argument("--arm", choices=("given", "recovered"), default=None, help=argparse.SUPPRESS)
     ap.add_argument("--collect", action="store_true", help="only merge the runs already in --work")
     ap.add_argument("--eval-only", action="store_true", help=argparse.SUPPRESS)
@@ -188,7 +188,6 @@ def main(argv=None) -> int:
            "downscale": args.downscale, "minutes_each": args.minutes, "threads_each": args.threads,
            "seed": args.seed, "scaffold": args.scaffold or ("built by the given run, copied to the recovered run"
                                                            if not args.own_scaffold else "each run its own"),
-           "cpu_count": os.cpu_count(), ("loadavg_at_collect" if args.collect else "loadavg_at_start"): os.getloadavg(),
            "machine": "shared machine, loaded by other jobs: step counts and times are upper bounds"}
     align_path = os.path.join(args.work, "alignment.json")
     if not args.collect:
@@ -219,8 +218,7 @@ def main(argv=None) -> int:
     res["psnr_cost_db"] = {"recovered_own": g - r_own, "recovered_at_given": g - r_at}
     res["psnr_recovered_minus_given_db"] = {"recovered_own": r_own - g, "recovered_at_given": r_at - g}
     res["goal_cost_le_0p5db"] = (g - r_own) <= 0.5
-    res["loadavg_at_end"] = os.getloadavg()
-    write_results(res, f"poses_train_{name}.json")
+    write_results(res, f"poses_train_{name}.json", args.results_dir)
     print(f"held-out PSNR: given {g:.2f} dB, recovered {r_own:.2f} dB (own held-out cameras; {r_at:.2f} dB at "
           f"the given ones); cost {g - r_own:+.2f} dB (goal <= 0.5)")
     return 0

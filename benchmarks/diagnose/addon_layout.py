@@ -1,8 +1,8 @@
 """Figures of the add-on's layout (issue 46): pairs of repeated code (`duplicates`), files over 400
 lines, import circles, modules per room, and back doors into the core. Prints them and writes
-benchmarks/results/addon_layout.json.
+benchmarks/results/log/addon_layout.json.
 
-Usage: .venv/bin/python benchmarks/addon_layout.py [--rev REV]   (REV: measure a commit instead of the
+Usage: .venv/bin/python benchmarks/diagnose/addon_layout.py [--rev REV]   (REV: measure a commit instead of the
 working tree, e.g. d28bebc for the flat add-on before issue 46)
 """
 from __future__ import annotations
@@ -15,10 +15,10 @@ import subprocess
 import sys
 import tempfile
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "blender_tests"))
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _results import write_results  # noqa: E402
+from benchmarks._results import add_options, write_results  # noqa: E402
 from test_layout import addon_modules, find_cycle, import_graph, private_core_uses  # noqa: E402
 
 
@@ -50,7 +50,7 @@ def measure(addon_dir: str) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rev", action="append", default=[], help="a commit to measure as well (repeatable)")
-    ap.add_argument("--out", default="addon_layout.json")
+    add_options(ap, "name", "results_dir", name=dict(default="addon_layout", help="results name (default addon_layout)"))
     a = ap.parse_args(argv)
     out = {"worktree": measure(os.path.join(ROOT, "addon"))}
     for rev in a.rev:
@@ -64,7 +64,7 @@ def main(argv=None):
         print(f"{k}: {r['modules']} modules, {r['lines']} lines; duplicate pairs {r['duplicate_pairs']}; "
               f"files over 400 lines {len(r['files_over_400_lines'])} {r['files_over_400_lines']}; "
               f"import circles {r['import_circles']}; private core imports {len(r['private_core_imports'])}")
-    write_results(out, a.out)
+    write_results(out, f"{a.name}.json", a.results_dir)
 
 
 if __name__ == "__main__":
