@@ -14,13 +14,13 @@ samples; its colour is decoded only when it is kept (weight above ``weight_thres
 transmittance is above ``early_stop_eps``), and a ray stops when its transmittance falls below
 ``early_stop_eps``.
 
-Variants are compile-time constants (``fused.kernel_constants``): the schedule (static blocks or
-refill: persistent programs whose lanes take the next ray from an atomic counter), early or post
-interpolation, at rest or deformed, the neighbour grid's cells per radius, the dot products' precision,
-and MARCH (the training's march: no colour; each kept sample's t, density and neighbour keys go to a
-slot of its ray, for ``fused.march_rays_fused``) with JITTER (per-ray step offsets, as training
-jitters).  The kernel is one loop over the parts below, each a ``@triton.jit`` function that the
-compiler inlines.
+Variants are compile-time constants (``fused.kernel_constants``): the schedule (static blocks or refill:
+persistent programs whose lanes take the next ray from an atomic counter), early or post interpolation,
+at rest or deformed, the neighbour grid's cells per radius, the dot products' precision, and MARCH (the
+training's march: no colour; each kept sample's t, density and neighbour keys go to a slot of its ray,
+``s_max`` slots a ray, for ``fused.march_rays_fused``) with JITTER (each ray's steps offset by (jit[ray]
+- 0.5) steps, as the torch marcher's ``jitter`` does in training).  The kernel is one loop over the
+parts below, each a ``@triton.jit`` function that the compiler inlines.
 """
 from __future__ import annotations
 
@@ -147,11 +147,11 @@ if triton is not None:
         idx = tl.where(valid, (keys & 0xFFFFFFFF).to(tl.int32), 0)
         inv = tl.where(valid, 1.0 / tl.maximum(dist, 1e-8), 0.0)
         w = inv / tl.maximum(tl.sum(inv, 1), 1e-12)[:, None]
-        vrow = idx.to(tl.int64) * 6
+        vrow = vtab + idx.to(tl.int64) * 6      # each neighbour's (position, normal) row
         vm = valid
-        pk = (tl.load(vtab + vrow, mask=vm, other=0.0) - px[:, None]) * tl.load(vtab + vrow + 3, mask=vm, other=0.0) + \
-            (tl.load(vtab + vrow + 1, mask=vm, other=0.0) - py[:, None]) * tl.load(vtab + vrow + 4, mask=vm, other=0.0) + \
-            (tl.load(vtab + vrow + 2, mask=vm, other=0.0) - pz[:, None]) * tl.load(vtab + vrow + 5, mask=vm, other=0.0)
+        pk = (tl.load(vrow, mask=vm, other=0.0) - px[:, None]) * tl.load(vrow + 3, mask=vm, other=0.0)
+        pk += (tl.load(vrow + 1, mask=vm, other=0.0) - py[:, None]) * tl.load(vrow + 4, mask=vm, other=0.0)
+        pk += (tl.load(vrow + 2, mask=vm, other=0.0) - pz[:, None]) * tl.load(vrow + 5, mask=vm, other=0.0)
         any_valid = tl.max(valid.to(tl.int32), 1) > 0
         return keys, idx, w, pk, any_valid
 
@@ -236,8 +236,6 @@ if triton is not None:
             GI: tl.constexpr, RI: tl.constexpr, H: tl.constexpr, PREC: tl.constexpr,
             C: tl.constexpr, NCP: tl.constexpr, SCAN: tl.constexpr, REFILL: tl.constexpr,
             KNN_EO: tl.constexpr, MARCH: tl.constexpr, JITTER: tl.constexpr):
-        # MARCH: no colour; the kept samples go to s_t / s_sig / s_keys (s_max slots a ray). JITTER: each
-        # ray's steps are offset by (jit[ray] - 0.5) steps, as the torch marcher's ``jitter`` does.
         # static schedule: this program's lanes hold rays pid*BLOCK.. to the end; refill: the lanes start
         # empty and a lane whose ray has finished stores it and takes the next ray of ray_counter
         if REFILL:
