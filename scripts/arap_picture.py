@@ -16,7 +16,6 @@ import sys
 import time
 
 import numpy as np
-import torch
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
@@ -37,7 +36,7 @@ def main(argv=None):
     use_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", "1"))))
     field = nm.load_field(args.field)
     v = field.rest_vertices.numpy().astype(np.float64)
-    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    y, z = v[:, 1], v[:, 2]
     handles = np.nonzero((y < -0.62) & (z > 0.42))[0]
     anchors = np.nonzero((y > -0.1) | (z < -0.3))[0]
     c = v[handles].mean(0)
@@ -65,7 +64,8 @@ def main(argv=None):
     print(f"wrote {args.out}")
     write_results({"field": args.field, "vertices": int(len(v)), "anchors": int(len(anchors)),
                    "handles": int(len(handles)), "lift": args.lift, "tilt_deg": args.tilt, "cage": args.cage,
-                   "iterations": int(res.iterations), "solve_and_set_vertices_s": round(solve_s, 2)}, "arap_picture_lego.json")
+                   "iterations": int(res.iterations), "solve_and_set_vertices_s": round(solve_s, 2)},
+                  "arap_picture_lego.json")
 
 
 if __name__ == "__main__":

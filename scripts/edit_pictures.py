@@ -162,7 +162,8 @@ def main(argv=None) -> int:
             bad.decoder_id.zero_()
         figures["swap"] = {k: srec.info[k] for k in ("residual_rigid", "residual", "scale", "align_s",
                                                        "nonrigid_s", "transfer_s", "seconds")}
-        figures["swap"].update(target_vertices=int(len(srec.vertices)), source=args.source, decoders=swapped.num_decoders)
+        figures["swap"].update(target_vertices=int(len(srec.vertices)), source=args.source,
+                               decoders=swapped.num_decoders)
         sheet([[render(lego, cams, i) for i in views], [render(swapped, cams, i) for i in views],
                [render(bad, cams, i) for i in views]],
               os.path.join(args.out, "edit_swap.png"),

@@ -186,7 +186,6 @@ STALE = {
     "core_default_scene_v1.json": "the built-in scene's speed (command 4)",
     "addon.json": "Blender preview latency (command 5)",
     "render_lego.json": "lego render speed, interleaved with an older checkout (command 11)",
-    "render_gpu_lego.json": "lego render speed on a GPU (command 12; a lent GPU)",
     "docs_images.json": "the documentation's pictures (command 7)",
     "edit_lego_scaffold.json": "swap speed on lego's scaffold (command 8)",
     "paint_lego.json": "painting on lego (command 9)",

@@ -140,7 +140,6 @@ def bench_preview(a) -> dict:
     from helpers import add_armature_bend, add_camera, manual_K_c2w
 
     nm = addon.runtime.core.get()
-    import torch
 
     V, F = sphere_grid(a.vertices)
     t = time.perf_counter()
@@ -243,7 +242,7 @@ def bench_preview(a) -> dict:
           f"{t_low*1e3:.0f} ms; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print(f"preview refresh median {res['preview']['median_total_s']:.3f}s (target <= 0.5 s: "
           f"{'met' if res['preview']['meets_target'] else 'NOT met'})")
-    print(f"F12 400x400: " + ", ".join(f"{s:.2f}s" for s in f12))
+    print("F12 400x400: " + ", ".join(f"{s:.2f}s" for s in f12))
     return res
 
 

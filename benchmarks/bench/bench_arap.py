@@ -96,7 +96,8 @@ def speed(args) -> dict:
         setup = time.perf_counter() - t0
         solver.solve(v[handles], iterations=1)           # the drag starts at rest
         start = (solver._x.copy(), solver._R.copy())
-        r = {"setup_s": round(setup, 3), "factorisation_s": round(getattr(solver.core, "factor_seconds", float("nan")), 3),
+        r = {"setup_s": round(setup, 3),
+             "factorisation_s": round(getattr(solver.core, "factor_seconds", float("nan")), 3),
              "unknowns": int(solver.num_unknowns), "load_average_at_start": round(os.getloadavg()[0], 2)}
         if cage:
             r["cage_vertices"] = int(len(solver.cage.samples))
@@ -226,11 +227,13 @@ def drop(args) -> dict:
                     "analytic_bend": (truth_bend, None)}
         if args.cage_ratio:
             cs = ArapSolver(rest, faces, anchors, handles,
-                            ArapConfig(iterations=args.solve_iterations, cage_vertices=max(64, len(rest) // args.cage_ratio)))
+                            ArapConfig(iterations=args.solve_iterations,
+                                       cage_vertices=max(64, len(rest) // args.cage_ratio)))
             rc = cs.solve(q, warm_start=False)
             variants["arap_cage"] = (rc.vertices, None)
             row["cage_vertices"] = int(len(cs.cage.samples))
-            row["cage_mean_distance_to_full"] = round(float(np.linalg.norm(rc.vertices - res.vertices, axis=1).mean()), 4)
+            row["cage_mean_distance_to_full"] = round(
+                float(np.linalg.norm(rc.vertices - res.vertices, axis=1).mean()), 4)
         row["frames_vs_arap_rotations"] = frame_angle(field, res.vertices, res.rotations)
         for name, (V, R) in variants.items():
             pics = []

@@ -2,12 +2,13 @@
 """ARAP deform in Blender (issue 52.1; bpy==5.0.1 in the venv): from a handle move to the first preview.
 
 A mesh object (the built-in scene's scaffold by default, or ``--mesh`` such as lego's scaffold.ply) gets
-an 'Anchor' group (bottom 15%) and a 'Handle' group (top 10%), *Add ARAP deform* (the Empty at rest:
-the rest shape is written without a solve; the preview cage is factorised in the background), then the handle Empty is dragged by ``--moves`` small steps through the
-viewport path (the drag thread on the ``--preview`` cage):
-per move, the seconds from the moved Empty to the live shape key written (*Add* starts factorising
-the cage in the background; the moves start once it is ready: ``preview_ready_after_add_s``).  Then a frame change (the
-solve from rest on the full mesh, *Frame iterations*).  Writes benchmarks/results/log/<name>.json.
+an 'Anchor' group (bottom 15%) and a 'Handle' group (top 10%), *Add ARAP deform* (the Empty at rest: the
+rest shape is written without a solve; the preview cage is factorised in the background), then the
+handle Empty is dragged by ``--moves`` small steps through the viewport path (the drag thread on the
+``--preview`` cage): per move, the seconds from the moved Empty to the live shape key written (*Add*
+starts factorising the cage in the background; the moves start once it is ready:
+``preview_ready_after_add_s``).  Then a frame change (the solve from rest on the full mesh, *Frame
+iterations*).  Writes benchmarks/results/log/<name>.json.
 
     .venv/bin/python benchmarks/bench/bench_arap_addon.py                   # built-in scene
     .venv/bin/python benchmarks/bench/bench_arap_addon.py --mesh /work/runs/lego/scaffold.ply --name arap_addon_lego
@@ -95,7 +96,8 @@ def main(argv=None) -> int:
     out = {"mesh": os.path.basename(a.mesh) if a.mesh else f"built-in scaffold (subdiv {a.subdiv})",
            "vertices": int(len(V)), "faces": int(len(F)), "anchors": int(len(anchors)),
            "handles": int(len(handles)), "preview_vertices": a.preview, "iterations": a.iterations,
-           "add_s": round(add_s, 3), "preview_ready_after_add_s": round(prepare_wait_s, 3), "setup_full_s_at_add": timings.get("setup_full_s"),
+           "add_s": round(add_s, 3), "preview_ready_after_add_s": round(prepare_wait_s, 3),
+           "setup_full_s_at_add": timings.get("setup_full_s"),
            "moves": moves, "first_move_s": moves[0]["move_to_preview_s"] if moves else None,
            "setup_preview_s": round(arap.TIMINGS[obj.name_full].get("setup_preview_s", 0.0), 3),
            "move_to_preview_median_s": round(float(np.median(steady)), 4),

@@ -6,16 +6,17 @@
 
 For each texture size (``--resolutions``) and rays per texel (``--directions``: 1 = along -normal; 5 =
 -normal and four rays tilted 30 degrees) the field is baked, and the baked mesh is rendered with the
-core's numpy rasteriser (z-buffer, bilinear texture, 2x2 supersampled) on held-out views (``--split``, default
-``test``) and compared with the field's render of the same views (PSNR), and both with the photos.  ``--mesh FILE``
-bakes onto that mesh, ``--decimate R`` onto a quadric-decimated copy (about R x the faces) of the
-scaffold (or of --mesh); ``--target field`` onto a mesh extracted from the field's own density
-(marching cubes at a calibrated level, decimated to --decimate x the scaffold's faces).  ``--colours
-views`` takes the texel colours from the field's renders on virtual cameras (``--proj-views`` of
-``--proj-size`` pixels) instead of a ray along each texel's normal.  Two comparisons: ``psnr_vs_field``
-(the field's render with one ray per pixel centre against the raster's 2x2 supersampled one, as before)
-and ``psnr_vs_field_ss2`` (both 2x2 supersampled: the same anti-aliasing on both sides, as a photo and
-Cycles have; this is the headline figure since issue 50's attempt 2).  Writes bake_<name>.json to benchmarks/results/log (or ``--results-dir``) and, with
+core's numpy rasteriser (z-buffer, bilinear texture, 2x2 supersampled) on held-out views (``--split``,
+default ``test``) and compared with the field's render of the same views (PSNR), and both with the
+photos.  ``--mesh FILE`` bakes onto that mesh, ``--decimate R`` onto a quadric-decimated copy (about R x
+the faces) of the scaffold (or of --mesh); ``--target field`` onto a mesh extracted from the field's own
+density (marching cubes at a calibrated level, decimated to --decimate x the scaffold's faces).
+``--colours views`` takes the texel colours from the field's renders on virtual cameras
+(``--proj-views`` of ``--proj-size`` pixels) instead of a ray along each texel's normal.  Two
+comparisons: ``psnr_vs_field`` (the field's render with one ray per pixel centre against the raster's
+2x2 supersampled one, as before) and ``psnr_vs_field_ss2`` (both 2x2 supersampled: the same
+anti-aliasing on both sides, as a photo and Cycles have; this is the headline figure since issue 50's
+attempt 2).  Writes bake_<name>.json to benchmarks/results/log (or ``--results-dir``) and, with
 ``--figure``, field render | baked render pictures (``--figure-views`` views, one row each).
 """
 from __future__ import annotations
@@ -26,7 +27,6 @@ import sys
 import time
 
 import numpy as np
-import torch
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
@@ -142,7 +142,8 @@ def main(argv=None) -> int:
     ap.add_argument("--figure", help="write field | baked pictures here (PNG)")
     ap.add_argument("--figure-views", type=int, default=2, help="views (rows) in the figure (default 2)")
     ap.add_argument("--cycles", action="store_true",
-                    help="also render the best bake with Cycles in `blender -b` (benchmarks/workers/bake_cycles_worker.py) "
+                    help="also render the best bake with Cycles in `blender -b` "
+                         "(benchmarks/workers/bake_cycles_worker.py) "
                          "on the same views and compare it with the field's render")
     ap.add_argument("--cycles-samples", type=int, default=16)
     ap.add_argument("--blender", default="blender", help="Blender binary for --cycles (default: blender)")

@@ -90,7 +90,8 @@ def time_render(field, cams: nm.Cameras, size: int, n_frames: int, background) -
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_options(ap, "data", "mesh", "threads", "results_dir", data=dict(help="dataset folder (default: the built-in scene)"),
+    add_options(ap, "data", "mesh", "threads", "results_dir",
+                data=dict(help="dataset folder (default: the built-in scene)"),
                 mesh=dict(help="scaffold mesh (default: the dataset's mesh.ply)"),
                 threads=dict(default=0, help="torch threads (default 0: one per core)"))
     ap.add_argument("--downscale", type=float, default=1)

@@ -22,7 +22,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 
 import numpy as np
 import torch
@@ -92,7 +91,8 @@ def time_in(tree: str, field_path: str, data: str, views, repeats: int, python=s
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_options(ap, "field", "data", "name", "results_dir", field=dict(required=True, help="trained field (one decoder)"),
+    add_options(ap, "field", "data", "name", "results_dir",
+                field=dict(required=True, help="trained field (one decoder)"),
                 data=dict(required=True, help="dataset whose val cameras are rendered"))
     ap.add_argument("--views", type=int, default=5, help="val views (evenly spread; default 5)")
     ap.add_argument("--repeats", type=int, default=2, help="renders per view, the best counts (default 2)")

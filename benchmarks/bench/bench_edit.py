@@ -4,14 +4,14 @@
     python benchmarks/bench/bench_edit.py --field runs/lego/field.neumesh     # a trained field
     python benchmarks/bench/bench_edit.py                                     # the built-in blob (subdiv 7)
 
-Regions: the target is the ``--region-size`` vertices nearest the scaffold's +x extreme, the source
-the same number nearest the -x extreme (two different shapes: the automatic alignment and the ARAP
-non-rigid step do real work; the swap's fit check is off, so the timings do not depend on whether two
-extremes of a scaffold fit each other, and ``fit_ok`` records whether the check would pass).  Times: the similarity (``align_s``), the non-rigid step
-(``nonrigid_s``), the transfer (``transfer_s``: IDW weights, decoder binding, row writes), the whole
-swap, and a fill through planar UVs.  Render: a 400^2 frame of the field as trained (one decoder),
-with a second decoder present but unused, and with half the vertices bound to the second decoder
-(median of ``--repeats``).  Writes benchmarks/results/log/edit_<name>.json.
+Regions: the target is the ``--region-size`` vertices nearest the scaffold's +x extreme, the source the
+same number nearest the -x extreme (two different shapes: the automatic alignment and the ARAP non-rigid
+step do real work; the swap's fit check is off, so the timings do not depend on whether two extremes of
+a scaffold fit each other, and ``fit_ok`` records whether the check would pass).  Times: the similarity
+(``align_s``), the non-rigid step (``nonrigid_s``), the transfer (``transfer_s``: IDW weights, decoder
+binding, row writes), the whole swap, and a fill through planar UVs.  Render: a 400^2 frame of the field
+as trained (one decoder), with a second decoder present but unused, and with half the vertices bound to
+the second decoder (median of ``--repeats``).  Writes benchmarks/results/log/edit_<name>.json.
 """
 from __future__ import annotations
 

@@ -15,7 +15,6 @@ benchmarks/results/log/fit_<scene>.json.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time

@@ -22,7 +22,6 @@ import sys
 import time
 
 import numpy as np
-import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 import neumesh_core as nm  # noqa: E402
@@ -115,7 +114,8 @@ def figure(args, field, edited, K, c2w, W, H, before, after, cams) -> dict:
         out[f"lettering_{target}_s"] = time.perf_counter() - t
         a = nm.render_camera(f, K, c2w, W, H).rgb
         m = layer[..., 3] > 0
-        out[f"lettering_{target}_psnr_db"] = float(psnr(np.clip(a[m], 0, 1), np.broadcast_to(colour, (int(m.sum()), 3))))
+        out[f"lettering_{target}_psnr_db"] = float(psnr(np.clip(a[m], 0, 1),
+                                                        np.broadcast_to(colour, (int(m.sum()), 3))))
         m_ys, m_xs = np.nonzero(m)
         cy, cx = int(np.median(m_ys)), int(np.median(m_xs))
         y0, x0 = max(0, min(H - H // 3, cy - H // 6)), max(0, min(W - W // 3, cx - W // 6))

@@ -7,11 +7,11 @@ downscales, and poses recovered from its photos with pycolmap against the poses 
 Load: each downscale in a fresh process (peak RSS is per process), first with an empty undistortion
 cache (cold) then again (warm, the cache reused). ``--before-repo DIR`` (a checkout of an older commit,
 e.g. ``git archive f2bf72a | tar -x -C /tmp/before``) measures the same loads with that code too
-(``load_before``: photos stored as float32 before the uint8 storage). Poses: ``estimate_poses`` on the photo folder (read in
-place), then a similarity (Umeyama on camera centres) maps the recovered cameras onto the given ones;
-rotation error = angle of R_given^T R_aligned per camera, centre error relative to the rig radius (mean
-distance of the given camera centres from their centroid). Goals (issue 48): all photos registered,
-median rotation error <= 1 deg, median centre error <= 1 % of the rig radius.
+(``load_before``: photos stored as float32 before the uint8 storage). Poses: ``estimate_poses`` on the
+photo folder (read in place), then a similarity (Umeyama on camera centres) maps the recovered cameras
+onto the given ones; rotation error = angle of R_given^T R_aligned per camera, centre error relative to
+the rig radius (mean distance of the given camera centres from their centroid). Goals (issue 48): all
+photos registered, median rotation error <= 1 deg, median centre error <= 1 % of the rig radius.
 Writes benchmarks/results/log/poses_<name>.json (``--results-dir``; a section skipped keeps the file's).
 """
 from __future__ import annotations

@@ -91,7 +91,6 @@ def align_recovered(recovered: str, given: str, out_root: str, keep_points: bool
 
 def run_arm(args) -> int:
     """One training run (a child process): fit with the given object box, then evaluate."""
-    import torch
 
     import neumesh_core as nm
     from neumesh_core.data.frame import object_box

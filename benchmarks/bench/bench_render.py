@@ -143,7 +143,7 @@ class Profiler:
         from neumesh_core.field import field as fmod
         from neumesh_core.field import knn, scaffold
         from neumesh_core.render import renderer
-        from neumesh_core.sampling import marcher, occupancy
+        from neumesh_core.sampling import occupancy
 
         prof = self
         self._wrap(knn.VertexIndex, "query", "neighbour_search", lambda a, k: len(a[1]))
@@ -383,7 +383,8 @@ def main(argv=None) -> int:
         if args.baseline_tree:
             b = baseline_comparison(field, args.field, args.baseline_tree, cams, 400, args.rounds)
             result["baseline"] = b
-            print(f"baseline {args.baseline_tree}: {b['baseline_median_s']:.3f} s, this code {b['this_code_median_s']:.3f} s "
+            print(f"baseline {args.baseline_tree}: {b['baseline_median_s']:.3f} s, "
+                  f"this code {b['this_code_median_s']:.3f} s "
                   f"(x{b['speed_up']:.2f}); PSNR of this code's images against the baseline's >= "
                   f"{b['min_psnr_vs_baseline_db']:.1f} dB")
     for d, v in result["viewport"]["levels"].items():

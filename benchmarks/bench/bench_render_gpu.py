@@ -3,7 +3,8 @@ interpolation modes, at rest and deformed, at 800² and 400², with kernel launc
 synchronisations per frame (torch.profiler) and the images compared (PSNR against the torch render).
 Needs a CUDA GPU; nothing else here does.
 
-    python benchmarks/bench/bench_render_gpu.py --field runs/lego/field.neumesh --data ../shared/data/nerf_synthetic/lego
+    python benchmarks/bench/bench_render_gpu.py --field runs/lego/field.neumesh \
+        --data ../shared/data/nerf_synthetic/lego
     python benchmarks/bench/bench_render_gpu.py                 # no data: a field made on the spot
     python benchmarks/bench/bench_render_gpu.py --field f.neumesh --cameras cams.json   # [{"K", "c2w", "width"}, ...]
 
@@ -12,15 +13,16 @@ around the surface, the scaffold's mesh mask as the occupancy grid) on the built
 163,842 vertices (``--subdiv``), seen by cameras on a circle around it.  Deformed: a bend of
 ``--bend`` degrees along z (``data/deformations.bend``) through ``field.set_vertices``.
 
-Each configuration renders ``--views`` views, each the best of ``--repeats`` frames of
-``render_camera`` (synchronised; the images copied to the host as the add-on receives them); the figure
-is the median over the views.  ``--sweep`` first times the kernel's launch options (rays per program,
-warps, the static or refill schedule and its programs per multiprocessor) on one early-interpolation
-800² view and keeps the fastest for the rest.  ``--breakdown`` last times the neighbour search and the
-decoders alone on one frame's samples.  Then the seconds from a new pose (``set_vertices`` of host positions) to its first 800² frame on the
-host.  ``--train-steps N`` first times N training steps (forward and
-backward of ``--train-rays`` random pixels) with the torch marcher and with the kernel's march.  ``--budget-s`` stops starting new configurations after that many seconds (the
-JSON then says which were skipped).  Writes benchmarks/results/log/render_gpu_<name>.json.
+Each configuration renders ``--views`` views, each the best of ``--repeats`` frames of ``render_camera``
+(synchronised; the images copied to the host as the add-on receives them); the figure is the median over
+the views.  ``--sweep`` first times the kernel's launch options (rays per program, warps, the static or
+refill schedule and its programs per multiprocessor) on one early-interpolation 800² view and keeps the
+fastest for the rest.  ``--breakdown`` last times the neighbour search and the decoders alone on one
+frame's samples.  Then the seconds from a new pose (``set_vertices`` of host positions) to its first
+800² frame on the host.  ``--train-steps N`` first times N training steps (forward and backward of
+``--train-rays`` random pixels) with the torch marcher and with the kernel's march.  ``--budget-s``
+stops starting new configurations after that many seconds (the JSON then says which were skipped).
+Writes benchmarks/results/log/render_gpu_<name>.json.
 """
 from __future__ import annotations
 
@@ -358,7 +360,8 @@ def train_steps(field, cams, device, steps: int, rays: int, repeats_warm: int = 
     if len(grads) == 2:
         (la, na, ga), (lb, nb, gb) = grads["torch"], grads["triton"]
         out["same_batch"] = {"loss_torch": la, "loss_triton": lb, "samples_torch": na, "samples_triton": nb,
-                             "grad_max_rel_diff": {k: float((gb[k] - ga[k]).abs().max() / ga[k].abs().max().clamp_min(1e-12))
+                             "grad_max_rel_diff": {k: float((gb[k] - ga[k]).abs().max()
+                                                            / ga[k].abs().max().clamp_min(1e-12))
                                                    for k in ga if k in gb}}
         out["speedup"] = out["torch"]["step_s"] / out["triton"]["step_s"]
         print(f"  training step: fused march {out['speedup']:.2f}x the torch marcher; same batch loss "
@@ -507,7 +510,8 @@ def main(argv=None) -> int:
             if "triton" in images and "torch" in images:
                 db = [psnr(a, b) for a, b in zip(images["triton"], images["torch"])]
                 for r in result["runs"]:
-                    if r["mode"] == mode and r["deformed"] == deformed and r["backend"] == "triton" and "error" not in r:
+                    if r["mode"] == mode and r["deformed"] == deformed and r["backend"] == "triton" \
+                            and "error" not in r:
                         r["psnr_vs_torch_db"] = db
                 print(f"  {mode} {'deformed' if deformed else 'rest'}: triton vs torch {max(args.sizes)}² "
                       f"PSNR min {min(db):.1f} dB", flush=True)
@@ -530,7 +534,8 @@ def main(argv=None) -> int:
     summary = {}
     for r in result["runs"]:
         if "error" in r:
-            summary[f"{r['mode']}_{'deformed' if r['deformed'] else 'rest'}_{r['backend']}"] = {"error": r["error"][:200]}
+            summary[f"{r['mode']}_{'deformed' if r['deformed'] else 'rest'}_{r['backend']}"] = \
+                {"error": r["error"][:200]}
             continue
         summary[f"{r['mode']}_{'deformed' if r['deformed'] else 'rest'}_{r['backend']}"] = {
             k: round(r[k], 2) for k in r if k.startswith("fps_")}

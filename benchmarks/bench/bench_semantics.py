@@ -316,7 +316,8 @@ def blender_clicks(field_path: str, cams, clicks, threshold: float):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_options(ap, "field", "data", field=dict(help="trained field (.neumesh); with --skip-distil, one with semantics"),
+    add_options(ap, "field", "data",
+                field=dict(help="trained field (.neumesh); with --skip-distil, one with semantics"),
                 data=dict(help="its dataset"))
     ap.add_argument("--make-multipart", action="store_true",
                     help="write the small multi-part scene to --data and train --field on it when missing")
@@ -440,7 +441,8 @@ def main(argv=None) -> int:
             tiles.append(np.concatenate([_mark(np.clip(base, 0, 1), xy), np.clip(tint, 0, 1)], 1))
     result["clicks"] = rows
     if rows:
-        result["click_seconds"] = {"first": rows[0]["seconds"], "max_later": max([r["seconds"] for r in rows[1:]] or [0]),
+        result["click_seconds"] = {"first": rows[0]["seconds"],
+                                   "max_later": max([r["seconds"] for r in rows[1:]] or [0]),
                                    "max_redo": max(r["redo_seconds"] for r in rows)}
     if tiles:
         from skimage.transform import resize

@@ -142,7 +142,8 @@ def main(argv=None) -> int:
         assert pv.wait(serial, divisor=4, timeout=900), pv.error
         t4 = time.perf_counter()
         changed = int((np.abs(pv.latest[2] - base).max(-1) > 1 / 255).sum())
-        runs.append({"push_s": t1 - t0, "push_split_s": split, "texels_pushed": int(texels), "poll_period_s": float(period),
+        runs.append({"push_s": t1 - t0, "push_split_s": split, "texels_pushed": int(texels),
+                     "poll_period_s": float(period),
                      "first_image_s": t2 - t1, "first_image_divisor": int(first_div), "preview_1_8_s": t3 - t1,
                      "preview_1_4_s": t4 - t1, "stroke_to_first_image_s": t2 - t0,
                      "viewport_pixels_changed_1_4": changed, "loadavg": list(load)})

@@ -93,7 +93,7 @@ def main(argv=None) -> int:
     bm.to_mesh(obj.data)
     bm.free()
     t = time.perf_counter()
-    remapped_first = _sync_frames(addon, arm, 0)
+    _sync_frames(addon, arm, 0)
     first_remap_s = time.perf_counter() - t
     remapped = _sync_frames(addon, arm, a.frames)
     med = {k: float(np.median(v)) for k, v in (("strict", strict), ("attributes_whole", whole),

@@ -50,7 +50,8 @@ def measure(addon_dir: str) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rev", action="append", default=[], help="a commit to measure as well (repeatable)")
-    add_options(ap, "name", "results_dir", name=dict(default="addon_layout", help="results name (default addon_layout)"))
+    add_options(ap, "name", "results_dir",
+                name=dict(default="addon_layout", help="results name (default addon_layout)"))
     a = ap.parse_args(argv)
     out = {"worktree": measure(os.path.join(ROOT, "addon"))}
     for rev in a.rev:

@@ -146,7 +146,8 @@ def main(argv=None) -> int:
         o2 = nm.render_camera(field, cams.K[i], cams.c2w[i], W, H, background=tuple(bg),
                               settings=nm.RenderSettings(supersample=2))
         per.append({"view": i, "bake": psnr(img, ref), "bake_ss1_vs_field_ss1": psnr(img1, ref),
-                    "bake_ss2_vs_field_ss2": psnr(img, np.clip(o2.rgb, 0, 1)), "hard_field": psnr(hard, ref), "mesh_oracle": psnr(orc, ref),
+                    "bake_ss2_vs_field_ss2": psnr(img, np.clip(o2.rgb, 0, 1)), "hard_field": psnr(hard, ref),
+                    "mesh_oracle": psnr(orc, ref),
                     "bake_interior_only": psnr(np.where(inter[..., None], img, ref), ref),
                     "bake_without_silhouette": psnr(np.where(sil[..., None], ref, img), ref)})
         print(per[-1], flush=True)
@@ -156,7 +157,8 @@ def main(argv=None) -> int:
     total = sum(tot.values())
     share = {k: v / max(total, 1e-12) for k, v in tot.items()}
     pix = {k: v / max(1, sum(counts.values())) for k, v in counts.items()}
-    keys = ("bake", "bake_ss1_vs_field_ss1", "bake_ss2_vs_field_ss2", "hard_field", "mesh_oracle", "bake_interior_only", "bake_without_silhouette")
+    keys = ("bake", "bake_ss1_vs_field_ss1", "bake_ss2_vs_field_ss2", "hard_field", "mesh_oracle", "bake_interior_only",
+            "bake_without_silhouette")
     result = {"field": args.field, "data": args.data, "split": args.split, "views": len(views),
               "image_size": [W, H], "resolution": args.resolution, "decimate": None if args.mesh else args.decimate,
               "mesh": args.mesh, "fit": not args.no_fit, "window_radii": args.window, "colours": args.colours,

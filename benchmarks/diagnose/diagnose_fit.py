@@ -1,6 +1,7 @@
 """Where does a trained field lose PSNR on held-out views?  Splits the foreground error by cause.
 
-    python benchmarks/diagnose/diagnose_fit.py --field runs/fit_scan24/field.neumesh --data ../shared/data/dtu/scan24 --downscale 4
+    python benchmarks/diagnose/diagnose_fit.py --field runs/fit_scan24/field.neumesh \
+        --data ../shared/data/dtu/scan24 --downscale 4
 
 Per view (foreground = mask > 0.5; needs masks or alpha):
   psnr_fg         the headline figure (as bench_fit reports it)

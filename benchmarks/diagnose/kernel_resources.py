@@ -96,7 +96,9 @@ def main(argv=None) -> int:
         use["programs_per_sm_by_registers"] = 65536 // (max(use["reg"], 1) * threads)
         use["compile_s"] = round(time.perf_counter() - t, 1)
         rows.append({**key, **use})
-        print(f"{sched:6s} {mode:5s} {pose:8s} {block:>3s} rays x {warps} warps, cells {cells}, {prec}, maxnreg {maxnreg}{', knn early out' if early_out else ''}{', march' if march else ''}: "
+        flags = (", knn early out" if early_out else "") + (", march" if march else "")
+        print(f"{sched:6s} {mode:5s} {pose:8s} {block:>3s} rays x {warps} warps, cells {cells}, {prec}, "
+              f"maxnreg {maxnreg}{flags}: "
               f"{use['reg']} registers, stack {use['stack']} B per thread, "
               f"{use['programs_per_sm_by_registers']} programs per SM", flush=True)
     import triton

@@ -7,15 +7,15 @@ K-merges of ``kernels/knn.knn_keys`` for the points a real frame evaluates, with
 
 The points: each pixel's ray at the depth the torch renderer gives it (pixels it finds opaque), in the
 kernel's blocks of ``--block`` consecutive rays of the list render_camera hands it (the pixels whose
-rays meet an occupied cell), ordered by rows or by 8 x (block / 8) tiles (``renderer.tile_order``).  The count replays the kernel's
-scan on the same tables (TritonHashGrid): per block, rounds = the largest vertex count of the cells the
-block's points read (the c-th vertex of each cell per round), and per round K merges (the default) or
-min(K, the largest number of a row's candidates nearer than its worst key) with ``knn_early_out``
-(cells read 32 at a time, nearest first: 27 cells one radius wide are one tile, 125 half a radius wide
-four, each with its own rounds, a tile's cells beyond a row's K-th nearest so far left out; "2_all":
-every cell, as the kernel did before).  Only the first surface point of each ray is counted.
-A merge is two row reductions of 64-bit keys and two selects over the (rays, 32) tile, the heaviest
-part of a round.  Writes benchmarks/results/log/knn_merges_<name>.json.
+rays meet an occupied cell), ordered by rows or by 8 x (block / 8) tiles (``renderer.tile_order``).  The
+count replays the kernel's scan on the same tables (TritonHashGrid): per block, rounds = the largest
+vertex count of the cells the block's points read (the c-th vertex of each cell per round), and per
+round K merges (the default) or min(K, the largest number of a row's candidates nearer than its worst
+key) with ``knn_early_out`` (cells read 32 at a time, nearest first: 27 cells one radius wide are one
+tile, 125 half a radius wide four, each with its own rounds, a tile's cells beyond a row's K-th nearest
+so far left out; "2_all": every cell, as the kernel did before).  Only the first surface point of each
+ray is counted. A merge is two row reductions of 64-bit keys and two selects over the (rays, 32) tile,
+the heaviest part of a round.  Writes benchmarks/results/log/knn_merges_<name>.json.
 """
 from __future__ import annotations
 
@@ -144,7 +144,8 @@ def main(argv=None) -> int:
     # the rays render_camera hands the kernel: pixels whose rays meet an occupied cell, in rows or tiles
     r_near, r_far = field.grid.camera_ranges(Ks, c2w, args.size, args.size, nm.RenderSettings().empty_tile)
     marched = (r_near <= r_far).nonzero().squeeze(1)
-    result = {"field": args.field or f"procedural blob, subdiv {args.subdiv}", "vertices": int(field.rest_vertices.shape[0]),
+    result = {"field": args.field or f"procedural blob, subdiv {args.subdiv}",
+              "vertices": int(field.rest_vertices.shape[0]),
               "radius": float(field.radius), "k": int(field.config.k), "size": args.size, "block": args.block,
               "torch_render_s": render_s, "opaque_pixels": int(live.sum()), "marched_pixels": len(marched),
               "cells": {}, "orders": {}}

@@ -1,8 +1,9 @@
 """Bake a field into a plain UV-textured mesh (docs/baking.md).
 
 ``texture``: the texels and their colours (:func:`bake_texture`, :func:`save_bake`, :func:`decimate`);
-``uv``: the UV atlas (:func:`unwrap`, :func:`texel_coverage`, :func:`dilate`); ``surface``: where the field's surface is seen from a mesh, and moving the mesh onto
-it before baking (:func:`fit_to_field`, :func:`surface_offsets`).
+``uv``: the UV atlas (:func:`unwrap`, :func:`texel_coverage`, :func:`dilate`); ``surface``: where the
+field's surface is seen from a mesh, and moving the mesh onto it before baking (:func:`fit_to_field`,
+:func:`surface_offsets`).
 """
 from .extract import ExtractConfig, density_grid, extract_surface
 from .project import ProjectConfig, projected_colours

@@ -100,7 +100,8 @@ def surface_colours(field, points, normals, offset: float = 1.0, directions: int
             # start outside the surface along the normal, looking along d (into the surface)
             o = (pc - d * (d0 / torch.clamp((-d * nc).sum(1, keepdim=True), min=0.2))).to(dev)
             dd = d.to(dev)
-            smp = march_rays(o, dd, field.grid, field.sigma_fn, step, near=0.0, far=2.0 * d0 / math.cos(math.radians(cone_deg)) if directions > 1 else 2.0 * d0,
+            far = 2.0 * d0 / math.cos(math.radians(cone_deg)) if directions > 1 else 2.0 * d0
+            smp = march_rays(o, dd, field.grid, field.sigma_fn, step, near=0.0, far=far,
                              window=settings.window, early_stop_eps=settings.early_stop_eps,
                              weight_threshold=settings.weight_threshold)
             if len(smp) == 0:

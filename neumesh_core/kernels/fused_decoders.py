@@ -110,7 +110,8 @@ if triton is not None:
             p = tl.sum(pk * w, 1)
             wi = tl.sum(w * w, 1)
             pe_x = p / radius
-            gin += _pe_cols(pe_x, GI, GEO_D, PE_F) + tl.where((tl.arange(0, GI) == GEO_D + PE)[None, :], (wi)[:, None], 0.0)
+            gin += _pe_cols(pe_x, GI, GEO_D, PE_F) + \
+                tl.where((tl.arange(0, GI) == GEO_D + PE)[None, :], (wi)[:, None], 0.0)
             y = _mlp3(gin, gw1, gb1, gw2, gb2, gw3, gb3, GI, H, 16, PREC)
             sigma = tl.exp(tl.minimum(_column(y, 0), 15.0))
             sigma = tl.where(any_valid, sigma, 0.0)
@@ -119,7 +120,8 @@ if triton is not None:
             for k in range(K):
                 wk = _slot(w, slot, k)
                 gin = _rows(geo, _slot(idx, slot, k), found, GEO_D, GI, 0)
-                gin += _pe_cols(_slot(pk, slot, k) / radius, GI, GEO_D, PE_F) + tl.where((tl.arange(0, GI) == GEO_D + PE)[None, :], (wk)[:, None], 0.0)
+                gin += _pe_cols(_slot(pk, slot, k) / radius, GI, GEO_D, PE_F) + \
+                    tl.where((tl.arange(0, GI) == GEO_D + PE)[None, :], (wk)[:, None], 0.0)
                 y = _mlp3(gin, gw1, gb1, gw2, gb2, gw3, gb3, GI, H, 16, PREC)
                 sigma += wk * tl.exp(tl.minimum(_column(y, 0), 15.0))
         return tl.where(found, sigma, 0.0)
@@ -189,10 +191,13 @@ if triton is not None:
         nz = nz / nn
         p = tl.sum(pk * w, 1)
         wi = tl.sum(w * w, 1)
-        tin += _pe_cols(p / radius, RI, TEX_D, PE_F) + tl.where((tl.arange(0, RI) == TEX_D + PE)[None, :], (wi)[:, None], 0.0)
+        tin += _pe_cols(p / radius, RI, TEX_D, PE_F) + \
+            tl.where((tl.arange(0, RI) == TEX_D + PE)[None, :], (wi)[:, None], 0.0)
         tin += _sh_cols(ex, ey, ez, RI, TEX_D + PE + 1, SH_DEG)
         NO: tl.constexpr = TEX_D + PE + 1 + SH
-        tin += tl.where((tl.arange(0, RI) == NO)[None, :], (nx)[:, None], 0.0) + tl.where((tl.arange(0, RI) == NO + 1)[None, :], (ny)[:, None], 0.0) + tl.where((tl.arange(0, RI) == NO + 2)[None, :], (nz)[:, None], 0.0)
+        tin += tl.where((tl.arange(0, RI) == NO)[None, :], (nx)[:, None], 0.0) + \
+            tl.where((tl.arange(0, RI) == NO + 1)[None, :], (ny)[:, None], 0.0) + \
+            tl.where((tl.arange(0, RI) == NO + 2)[None, :], (nz)[:, None], 0.0)
         y = _mlp3(tin, rw1, rb1, rw2, rb2, rw3, rb3, RI, H, 16, PREC)
         cr = (1.0 / (1.0 + tl.exp(-_column(y, 0)))) + mr
         cg = (1.0 / (1.0 + tl.exp(-_column(y, 1)))) + mg
@@ -234,11 +239,15 @@ if triton is not None:
                 ey = dy
                 ez = dz
             tin = _rows(tex, ik, keep, TEX_D, RI, 0)
-            tin += _pe_cols(_slot(pk, slot, k) / radius, RI, TEX_D, PE_F) + tl.where((tl.arange(0, RI) == TEX_D + PE)[None, :], (wk)[:, None], 0.0)
+            tin += _pe_cols(_slot(pk, slot, k) / radius, RI, TEX_D, PE_F) + \
+                tl.where((tl.arange(0, RI) == TEX_D + PE)[None, :], (wk)[:, None], 0.0)
             tin += _sh_cols(ex, ey, ez, RI, TEX_D + PE + 1, SH_DEG)
-            tin += tl.where((tl.arange(0, RI) == NO2)[None, :], (tl.load(rest_n + ik * 3, mask=keep, other=0.0))[:, None], 0.0)
-            tin += tl.where((tl.arange(0, RI) == NO2 + 1)[None, :], (tl.load(rest_n + ik * 3 + 1, mask=keep, other=0.0))[:, None], 0.0)
-            tin += tl.where((tl.arange(0, RI) == NO2 + 2)[None, :], (tl.load(rest_n + ik * 3 + 2, mask=keep, other=0.0))[:, None], 0.0)
+            tin += tl.where((tl.arange(0, RI) == NO2)[None, :],
+                            (tl.load(rest_n + ik * 3, mask=keep, other=0.0))[:, None], 0.0)
+            tin += tl.where((tl.arange(0, RI) == NO2 + 1)[None, :],
+                            (tl.load(rest_n + ik * 3 + 1, mask=keep, other=0.0))[:, None], 0.0)
+            tin += tl.where((tl.arange(0, RI) == NO2 + 2)[None, :],
+                            (tl.load(rest_n + ik * 3 + 2, mask=keep, other=0.0))[:, None], 0.0)
             y = _mlp3(tin, rw1, rb1, rw2, rb2, rw3, rb3, RI, H, 16, PREC)
             m0 = tl.load(modc + ik * 3, mask=keep, other=0.0)
             m1 = tl.load(modc + ik * 3 + 1, mask=keep, other=0.0)

@@ -89,7 +89,8 @@ def test_half_precision_products_stay_close_to_the_reference(monkeypatch):
 def test_the_kernel_builds_for_a_gpu_ahead_of_time(tmp_path):
     """Every schedule must compile for a real GPU, not only run in the interpreter: an sm_90 build (no
     GPU needed; Triton's own ptxas) of the default (static, early, fp32), of refill + post + bent +
-    fp16 and of the training's march (samples out, jitter).  Once a restructured loop ran in the interpreter and failed in Triton 3.6's layout passes."""
+    fp16 and of the training's march (samples out, jitter).  Once a restructured loop ran in the
+    interpreter and failed in Triton 3.6's layout passes."""
     pytest.importorskip("triton.backends.nvidia")
     code = ("import sys, neumesh_core as nm\n"
             "from neumesh_core.kernels import fused as ft\n"
@@ -210,7 +211,8 @@ def test_a_training_step_marches_with_the_kernel_and_decodes_with_torch():
         loss = (out["rgb"] - target).square().mean()
         loss.backward()
         grads.append((float(loss.detach()), out["n_samples"], out["vertex_ids"][0],
-                      {n: p.grad.detach().to_dense().clone() for n, p in field.named_parameters() if p.grad is not None}))
+                      {n: p.grad.detach().to_dense().clone() for n, p in field.named_parameters()
+                       if p.grad is not None}))
     (l_ref, n_ref, v_ref, g_ref), (l_out, n_out, v_out, g_out) = grads
     assert n_out == n_ref > 80 and torch.equal(v_out, v_ref)
     assert abs(l_out - l_ref) < 1e-6 * max(1.0, abs(l_ref))
