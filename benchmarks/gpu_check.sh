@@ -32,7 +32,11 @@
 #   .venv/bin/python -c "import neumesh_core as nm; nm.save_field(nm.load_field('/work/runs/lego/field.neumesh'), '.gpu/lego.neumesh')"
 #   run(carry=[".gpu"], command="FIELD=.gpu/lego.neumesh bash benchmarks/gpu_check.sh", timeout_s=560)
 # (with no DATA the lego views are cameras on a circle around the field; the JSON is then
-# render_gpu_lego.json, the name of the file the docs' 6.3 fps figure reads: update the docs with it).
+# render_gpu_lego.json, the name of the file the docs cite: move it to benchmarks/results/figures/ and update
+# the docs with it).
+# The results' machine record names the commit measured; the lent machine's copy of the tree has no git,
+# so pass it, as `git rev-parse HEAD` prints it here: run(command="NEUMESH_COMMIT=<sha> NEUMESH_DIRTY=0
+# bash benchmarks/gpu_check.sh") (NEUMESH_DIRTY=1 when the tree has uncommitted changes).
 set -uo pipefail
 OUT="${OUT:-benchmarks/results/log/gpu_check}"
 mkdir -p "$OUT"
