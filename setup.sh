@@ -6,6 +6,7 @@
 #     + pycolmap and opencv-python-headless (real captures: COLMAP models, poses from photos, undistortion;
 #       pulled by pyproject.toml, OpenCV kept below 4.12 whose wheels need numpy>=2)
 #     + triton (the fused GPU renderer; on the CPU its tests run through Triton's interpreter)
+#     + ruff (the linter tests/test_lint.py runs)
 #   * Debian's `blender` binary (3.4) and a torch folder for its Python (scripts/setup_blender.sh)
 # Idempotent: re-running only installs what is missing.
 set -euo pipefail
@@ -17,6 +18,6 @@ if [ ! -x .venv/bin/python ]; then
 fi
 VPIP=".venv/bin/python -m pip --disable-pip-version-check -q"
 $VPIP install "torch==2.13.0"
-$VPIP install "numpy<2" -e ".[test,blender,dino,gpu,shape-diameter,decimate]"   # gpu: triton (~290 MB wheel, no CUDA; its kernels' tests run in its interpreter); shape-diameter: libigl; decimate: fast-simplification (bake)
+$VPIP install "numpy<2" -e ".[test,lint,blender,dino,gpu,shape-diameter,decimate]"   # lint: ruff (tests/test_lint.py); gpu: triton (~290 MB wheel, no CUDA; its kernels' tests run in its interpreter); shape-diameter: libigl; decimate: fast-simplification (bake)
 bash scripts/setup_blender.sh
 .venv/bin/python -c "import torch, neumesh_core, bpy, pycolmap, cv2; print('setup ok: torch', torch.__version__, '| bpy', bpy.app.version_string, '| pycolmap', pycolmap.__version__, '| opencv', cv2.__version__)"

@@ -4,9 +4,9 @@
 #     bash benchmarks/gpu_check.sh                     # a field made on the spot (no data needed)
 #     FIELD=runs/lego/field.neumesh DATA=path/to/nerf_synthetic/lego bash benchmarks/gpu_check.sh
 #
-# 1. the CUDA tests: tests/render/test_fused_triton.py (the kernels compiled for the GPU, against the torch
+# 1. the CUDA tests: tests/kernels/ (the kernels compiled for the GPU, against the torch
 #    path on the same GPU) and tests/test_device.py (the CUDA path against the CPU path);
-# 2. benchmarks/bench_render_gpu.py: a short sweep of the kernel's launch options (static and refill
+# 2. benchmarks/bench/bench_render_gpu.py: a short sweep of the kernel's launch options (static and refill
 #    schedules, block sizes, a register cap, the neighbour search's early out), then both backends,
 #    both interpolation modes, at rest and deformed, 400² and 800², launches/syncs per frame, PSNR,
 #    the first frame after a new pose, training steps with each marcher, and a breakdown (the neighbour
@@ -14,7 +14,7 @@
 # 3. the precision sweep (--sweep-set precision: fp32, fp16 and tf32 products) in a process of its own,
 #    last: tf32 once poisoned the CUDA context on an H200 (triton 3.6.0), so nothing else may share it;
 # 4. a summary.  Logs and JSON go to $OUT (the device tool's folder that comes back), else to
-#    benchmarks/results/gpu_check/.  Meant to finish in about 5 minutes, at most 9.7 (the steps'
+#    benchmarks/results/log/gpu_check/.  Meant to finish in about 5 minutes, at most 9.7 (the steps'
 #    timeouts, under the device tool's 10 a call); the benchmark stops starting new configurations
 #    after BENCH_BUDGET_S seconds (default 200).
 #
@@ -32,9 +32,13 @@
 #   .venv/bin/python -c "import neumesh_core as nm; nm.save_field(nm.load_field('/work/runs/lego/field.neumesh'), '.gpu/lego.neumesh')"
 #   run(carry=[".gpu"], command="FIELD=.gpu/lego.neumesh bash benchmarks/gpu_check.sh", timeout_s=560)
 # (with no DATA the lego views are cameras on a circle around the field; the JSON is then
-# render_gpu_lego.json, the name of the file the docs' 6.3 fps figure reads: update the docs with it).
+# render_gpu_lego.json, the name of the file the docs cite: move it to benchmarks/results/figures/ and update
+# the docs with it).
+# The results' machine record names the commit measured; the lent machine's copy of the tree has no git,
+# so pass it, as `git rev-parse HEAD` prints it here: run(command="NEUMESH_COMMIT=<sha> NEUMESH_DIRTY=0
+# bash benchmarks/gpu_check.sh") (NEUMESH_DIRTY=1 when the tree has uncommitted changes).
 set -uo pipefail
-OUT="${OUT:-benchmarks/results/gpu_check}"
+OUT="${OUT:-benchmarks/results/log/gpu_check}"
 mkdir -p "$OUT"
 T0=$(date +%s)
 export PYTHONUNBUFFERED=1
@@ -54,7 +58,7 @@ export PYTHONPATH="$PWD:${PYTHONPATH:-}"
 
 echo "== tests (kernels compiled for the GPU; first calls include Triton's compilation)"
 timeout "${TEST_TIMEOUT_S:-120}" $PY -m pytest -q -p no:cacheprovider --durations=8 \
-    tests/render/test_fused_triton.py tests/test_device.py 2>&1 | tee "$OUT/tests.log"
+    tests/kernels tests/test_device.py 2>&1 | tee "$OUT/tests.log"
 TEST_RC=${PIPESTATUS[0]}
 echo "tests exit code: $TEST_RC (124: timed out)" | tee -a "$OUT/tests.log"
 
@@ -62,13 +66,13 @@ echo "== benchmark"
 ARGS=(--train-steps "${TRAIN_STEPS:-20}" --sweep --breakdown --budget-s "${BENCH_BUDGET_S:-200}" --results-dir "$OUT")
 [ -n "${FIELD:-}" ] && ARGS+=(--field "$FIELD")
 [ -n "${DATA:-}" ] && ARGS+=(--data "$DATA")
-timeout "${BENCH_TIMEOUT_S:-290}" $PY benchmarks/bench_render_gpu.py "${ARGS[@]}" 2>&1 | tee "$OUT/bench.log"
+timeout "${BENCH_TIMEOUT_S:-290}" $PY benchmarks/bench/bench_render_gpu.py "${ARGS[@]}" 2>&1 | tee "$OUT/bench.log"
 BENCH_RC=${PIPESTATUS[0]}
 
 echo "== precision sweep (own process; tf32 may crash the CUDA context, which only ends this step)"
 PARGS=(--sweep --sweep-set precision --sweep-only --results-dir "$OUT")
 [ -n "${FIELD:-}" ] && PARGS+=(--field "$FIELD")
-timeout "${PREC_TIMEOUT_S:-170}" $PY benchmarks/bench_render_gpu.py "${PARGS[@]}" 2>&1 | tee "$OUT/bench_precision.log"
+timeout "${PREC_TIMEOUT_S:-170}" $PY benchmarks/bench/bench_render_gpu.py "${PARGS[@]}" 2>&1 | tee "$OUT/bench_precision.log"
 PREC_RC=${PIPESTATUS[0]}
 
 echo "== summary ($(( $(date +%s) - T0 )) s)" | tee "$OUT/summary.txt"

@@ -11,8 +11,9 @@
 # (leave the lego field out of .gpu for this run: both exceed the carry limit.)  One command may run
 # 10 minutes, so the budget is MINUTES (default 8) of training plus ~1 minute of loading and evaluation;
 # the snapshot at SNAPSHOT minutes (default 4) gives the early figure.  JSON and log go to $OUT.
+# The machine record's commit: pass NEUMESH_COMMIT (and NEUMESH_DIRTY) as for gpu_check.sh.
 set -uo pipefail
-OUT="${OUT:-benchmarks/results/gpu_check}"
+OUT="${OUT:-benchmarks/results/log/gpu_check}"
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD:${PYTHONPATH:-}" NEUMESH_CACHE="${NEUMESH_CACHE:-/tmp/neumesh_cache}"
 PY="${PYTHON:-python3}"

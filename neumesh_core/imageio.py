@@ -24,8 +24,8 @@ def read_image(path: str, reduce: int = 1) -> np.ndarray:
     Greyscale images come back as (H,W,1), grey+alpha as (H,W,2); alpha is kept. Palette images are
     expanded to RGB(A). ``reduce`` n > 1 area-downscales by n while reading, colour weighted by
     alpha (same as ``resize_image(img, 1/n, premultiplied_alpha=True)`` up to 8-bit rounding; PIL's
-    box reduce on the stored data when the size is divisible by n, ~3x faster). Raises :class:`DataError` naming the file when it is
-    missing or unreadable.
+    box reduce on the stored data when the size is divisible by n, ~3x faster). Raises :class:`DataError`
+    naming the file when it is missing or unreadable.
     """
     path = os.fspath(path)
     reduce = int(reduce)

@@ -259,7 +259,8 @@ class LPIPS(torch.nn.Module):
                             if k in backbone), None)
                 if key is None:
                     raise WeightsUnavailableError(
-                        f"backbone weights {source} lack features.{i}.{part}; expected a torchvision {self.net} state dict"
+                        f"backbone weights {source} lack features.{i}.{part}; expected a torchvision {self.net} "
+                        "state dict"
                     )
                 sd[f"convs.{i}.{part}"] = backbone[key]
         for j in range(len(_TAP_CHANNELS[self.net])):

@@ -6,7 +6,7 @@ The bucket is picked by a box in lego's scaffold coordinates (the NeRF-synthetic
 towards -y, the bucket is its high end), the anchors are the body (y > -0.1) and the base plate
 (z < -0.3); the arm between them bends.  The handle is lifted by ``--lift`` and tilted by ``--tilt``
 degrees about its centre; ``nm.deform.arap`` solves from rest.  The field at rest (left) and deformed
-(right) from one camera; the solve's figures go to benchmarks/results/arap_picture_lego.json.
+(right) from one camera; the solve's figures go to benchmarks/results/log/arap_picture_lego.json.
 """
 from __future__ import annotations
 
@@ -16,14 +16,12 @@ import sys
 import time
 
 import numpy as np
-import torch
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 import neumesh_core as nm  # noqa: E402
+from benchmarks._results import use_threads, write_results  # noqa: E402
 from neumesh_core.data.synthetic import look_at_opencv  # noqa: E402
-from _results import write_results  # noqa: E402
 
 
 def main(argv=None):
@@ -35,10 +33,10 @@ def main(argv=None):
     ap.add_argument("--tilt", type=float, default=-20.0)
     ap.add_argument("--cage", type=int, default=0, help="solve on a cage of this many vertices (0: full)")
     args = ap.parse_args(argv)
-    torch.set_num_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", "1"))))
+    use_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", "1"))))
     field = nm.load_field(args.field)
     v = field.rest_vertices.numpy().astype(np.float64)
-    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    y, z = v[:, 1], v[:, 2]
     handles = np.nonzero((y < -0.62) & (z > 0.42))[0]
     anchors = np.nonzero((y > -0.1) | (z < -0.3))[0]
     c = v[handles].mean(0)
@@ -66,7 +64,8 @@ def main(argv=None):
     print(f"wrote {args.out}")
     write_results({"field": args.field, "vertices": int(len(v)), "anchors": int(len(anchors)),
                    "handles": int(len(handles)), "lift": args.lift, "tilt_deg": args.tilt, "cage": args.cage,
-                   "iterations": int(res.iterations), "solve_and_set_vertices_s": round(solve_s, 2)}, "arap_picture_lego.json")
+                   "iterations": int(res.iterations), "solve_and_set_vertices_s": round(solve_s, 2)},
+                  "arap_picture_lego.json")
 
 
 if __name__ == "__main__":

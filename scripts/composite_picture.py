@@ -12,7 +12,7 @@ down at it. The field hides part of the column and the plane, the ball hides par
 
 Also measures how the field's Depth pass agrees with Cycles' Z of the field's own scaffold mesh at a
 quarter of the size (pixels where the field is opaque, > 0.9, and the scaffold is hit), and writes the
-figures and timings to benchmarks/results/composite.json.
+figures and timings to benchmarks/results/figures/composite.json.
 """
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "blender_tests"))
 import user_dirs  # noqa: E402
+from benchmarks._results import FIGURES_DIR, write_results  # noqa: E402
 
 _BASE = user_dirs.redirect("neumesh_composite_")
 
@@ -142,7 +143,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--field", default="/work/runs/lego_field.neumesh")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "images", "composite_cycles.png"))
-    ap.add_argument("--results", default=os.path.join(ROOT, "benchmarks", "results", "composite.json"))
+    ap.add_argument("--results", default=os.path.join(FIGURES_DIR, "composite.json"))
     ap.add_argument("--size", type=int, nargs=2, default=(480, 360))
     ap.add_argument("--samples", type=int, default=24)
     a = ap.parse_args()
@@ -165,9 +166,8 @@ def main():
              "cycles_samples": a.samples, "depth_vs_cycles_scaffold": agree,
              "seconds": {"depth_check": round(t1 - t0, 1), "composite_render": round(t3 - t2, 1)},
              "threads": int(os.environ.get("OMP_NUM_THREADS", "0") or 0)}
-    os.makedirs(os.path.dirname(a.results), exist_ok=True)
-    with open(a.results, "w") as fh:
-        json.dump(facts, fh, indent=2)
+    path = os.path.abspath(a.results)
+    write_results(facts, os.path.basename(path), os.path.dirname(path))
     print(json.dumps(facts, indent=2))
 
 

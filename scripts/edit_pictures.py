@@ -27,6 +27,7 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import neumesh_core as nm  # noqa: E402
+from benchmarks._results import LOG_DIR, write_results  # noqa: E402
 from neumesh_core.edit.fill import planar_uvs  # noqa: E402
 
 
@@ -120,8 +121,8 @@ def main(argv=None) -> int:
     ap.add_argument("--source-fraction", type=float, default=0.15,
                     help="size of the source cap as a fraction of the source's vertices (default 0.15: a patch "
                          "whose pattern stays legible on the bucket; the built-in scene has only 10k vertices)")
-    ap.add_argument("--results", default="benchmarks/results/edit_pictures.json",
-                    help="figures of each edit (default benchmarks/results/edit_pictures.json)")
+    ap.add_argument("--results", default=os.path.join(LOG_DIR, "edit_pictures.json"),
+                    help="figures of each edit (default benchmarks/results/log/edit_pictures.json)")
     ap.add_argument("--out", default="docs/images", help="output folder (default docs/images)")
     args = ap.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
@@ -161,7 +162,8 @@ def main(argv=None) -> int:
             bad.decoder_id.zero_()
         figures["swap"] = {k: srec.info[k] for k in ("residual_rigid", "residual", "scale", "align_s",
                                                        "nonrigid_s", "transfer_s", "seconds")}
-        figures["swap"].update(target_vertices=int(len(srec.vertices)), source=args.source, decoders=swapped.num_decoders)
+        figures["swap"].update(target_vertices=int(len(srec.vertices)), source=args.source,
+                               decoders=swapped.num_decoders)
         sheet([[render(lego, cams, i) for i in views], [render(swapped, cams, i) for i in views],
                [render(bad, cams, i) for i in views]],
               os.path.join(args.out, "edit_swap.png"),
@@ -185,9 +187,8 @@ def main(argv=None) -> int:
           os.path.join(args.out, "edit_paint.png"),
           ["the painted layer (left) and two other views, before", "after: the field, in all three views"])
     figures["lego_field"] = args.lego
-    os.makedirs(os.path.dirname(args.results) or ".", exist_ok=True)
-    with open(args.results, "w") as fh:
-        json.dump(figures, fh, indent=1, default=float)
+    path = os.path.abspath(args.results)
+    write_results(figures, os.path.basename(path), os.path.dirname(path), default=float)
     print(json.dumps(figures, indent=1, default=float))
     return 0
 

@@ -16,7 +16,7 @@ add-on's real panels.  Every picture shows our own built-in scene (the procedura
      ``field.set_vertices`` with the same camera; no retraining.
 
    Their figures (test PSNR/SSIM, training time, the paint edit's size) go to ``--results``
-   (benchmarks/results/docs_images.json).
+   (benchmarks/results/figures/docs_images.json, the file the docs cite).
 
 2. Screenshots of the add-on in Debian's ``blender`` (3.4) in a virtual X display (Xvfb), taken by the
    machinery of ``blender_tests/test_real_blender_ui.py``: ``real_blender_ui.py setup`` installs the
@@ -45,6 +45,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 import neumesh_core as nm  # noqa: E402
+from benchmarks._results import FIGURES_DIR, use_threads, write_results  # noqa: E402
 
 SIZE = 160          # side of the renders in hero.png / deform.png (the field was trained at 128 px)
 WINDOW = (1280, 1000)  # taller than the test's 900: the open Edit field panels fit
@@ -295,8 +296,8 @@ def blender_pictures(field_path, dataset, out_dir, keep=None):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "images"), help="picture folder")
-    ap.add_argument("--results", default=os.path.join(ROOT, "benchmarks", "results", "docs_images.json"),
-                    help="JSON with the pictures' figures")
+    ap.add_argument("--results", default=os.path.join(FIGURES_DIR, "docs_images.json"),
+                    help="JSON with the pictures' figures (default: the one the docs cite)")
     ap.add_argument("--field", default=os.path.join(ROOT, "runs", "docs_images", "blob.neumesh"),
                     help="field of the built-in scene: trained and saved here, or reused when it exists")
     ap.add_argument("--steps", type=int, default=600, help="training steps when the field is trained (default 600)")
@@ -305,10 +306,7 @@ def main(argv=None):
     ap.add_argument("--skip-blender", action="store_true", help="only the renders")
     ap.add_argument("--keep-screenshots", help="also copy Blender's full-window screenshots to this folder")
     args = ap.parse_args(argv)
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
+    use_threads(args.threads or None)
     os.makedirs(args.out, exist_ok=True)
     t0 = time.time()
     data = nm.default_scene_dir()
@@ -325,9 +323,8 @@ def main(argv=None):
         facts["blender_pictures"] = blender_pictures(os.path.abspath(args.field), data, args.out,
                                                      args.keep_screenshots)
     facts["seconds"] = round(time.time() - t0, 1)
-    os.makedirs(os.path.dirname(os.path.abspath(args.results)), exist_ok=True)
-    with open(args.results, "w") as fh:
-        json.dump(facts, fh, indent=1)
+    path = os.path.abspath(args.results)
+    write_results(facts, os.path.basename(path), os.path.dirname(path))
     print(json.dumps(facts, indent=1))
     return 0
 

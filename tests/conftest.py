@@ -8,7 +8,7 @@ import torch
 
 torch.set_num_threads(max(1, os.cpu_count() or 1))
 
-# the Triton kernels' tests (tests/render/test_fused_triton.py) run in Triton's interpreter where torch sees
+# the Triton kernels' tests (tests/kernels/) run in Triton's interpreter where torch sees
 # no GPU; the variable must be set before triton is first imported by any test module
 if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")

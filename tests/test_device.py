@@ -52,7 +52,7 @@ def test_cuda_render_matches_cpu(blob_mesh, small_scene_dir):
     # the CPU's KD-tree becomes the Triton index on the GPU (the hash grid without triton; no host round
     # trip per query), and back
     from neumesh_core.field.knn import HashGridIndex, VertexIndex
-    from neumesh_core.field.knn_triton import TritonKNNIndex, triton_available
+    from neumesh_core.kernels.knn import TritonKNNIndex, triton_available
     gpu_index = TritonKNNIndex if triton_available() else HashGridIndex
     assert isinstance(f_gpu.scaffold.index, gpu_index) and f_gpu.scaffold.index.n == f_gpu.num_vertices
     assert isinstance(textured_field(blob_mesh).to("cuda").to("cpu").scaffold.index, VertexIndex)

@@ -1,6 +1,8 @@
 """The layout's rules (issue 46), checked on the source with `ast` (nothing is imported):
 
 * no `bpy` anywhere in neumesh_core;
+* the files over 400 lines and the functions over 100 lines are the ones scripts/layout_figures.py
+  declares (LONG_FILES, LONG_FUNCTIONS: split candidates), computed from the code;
 * imports run down the layers only (DEVELOPERS.md, "Layout"): a room (top-level module or subpackage)
   never imports a room of a higher layer;
 * no import circle between rooms, nor between modules;
@@ -76,6 +78,31 @@ def test_the_checker_sees_upward_arrows_and_circles(tmp_path):
     assert ["data", "field"] in lf.room_cycles(edges)
     assert ["data.scene", "field.field"] in lf.module_cycles(edges)
     assert sum(1 for outs in edges.values() for t in outs if t[2] == "bpy") == 1
+
+
+def test_long_files_and_functions_are_the_declared_ones():
+    """A new file over 400 lines or function over 100 fails: split it, or declare it with the reason it
+    stays long; a declared one that got short leaves the list."""
+    files, functions = lf.long_files(PKG_DIR), lf.long_functions(PKG_DIR)
+    assert not set(files) - set(lf.LONG_FILES), (
+        f"files over 400 lines: {sorted(set(files) - set(lf.LONG_FILES))}; split them, or list them in "
+        "scripts/layout_figures.py LONG_FILES with the reason")
+    assert not set(functions) - set(lf.LONG_FUNCTIONS), (
+        f"functions over 100 lines: { {k: functions[k] for k in sorted(set(functions) - set(lf.LONG_FUNCTIONS))} }; "
+        "split them, or list them in scripts/layout_figures.py LONG_FUNCTIONS with the reason")
+    gone = sorted(set(lf.LONG_FILES) - set(files)) + sorted(set(lf.LONG_FUNCTIONS) - set(functions))
+    assert not gone, f"no longer long (or gone): take them off scripts/layout_figures.py's lists: {gone}"
+
+
+def test_the_length_checker_sees_long_files_and_functions(tmp_path):
+    pkg = tmp_path / "neumesh_core"
+    (pkg / "render").mkdir(parents=True)
+    body = "".join(f"    x{i} = {i}\n" for i in range(100))
+    (pkg / "render" / "big.py").write_text("class A:\n    @staticmethod\n    def f():\n" + "    " + body.replace(
+        "\n    ", "\n        ") + "\n" * 300)
+    (pkg / "small.py").write_text("def g():\n" + "".join(f"    y{i} = {i}\n" for i in range(98)))
+    assert lf.long_files(str(pkg)) == {"neumesh_core/render/big.py": 403}
+    assert lf.long_functions(str(pkg)) == {"neumesh_core/render/big.py:A.f": 102}
 
 
 # --- the add-on ------------------------------------------------------------------------------------------

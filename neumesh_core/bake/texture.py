@@ -24,8 +24,8 @@ import numpy as np
 import torch
 
 from ..errors import NeuMeshError
-from ..render.raster import raster_triangles
 from .simplify import decimate  # noqa: F401  (kept importable from here)
+from .uv import dilate, texel_coverage, unwrap
 
 
 @dataclass
@@ -53,85 +53,6 @@ def _cancel(progress, fraction):
         from ..render.renderer import Cancelled
 
         raise Cancelled("baking cancelled; nothing was written")
-
-
-def unwrap(vertices: np.ndarray, faces: np.ndarray, resolution: int, padding: int = 4):
-    """xatlas UV atlas of a triangle mesh packed into a ``resolution`` square.
-
-    Returns (vertex_index (M,), faces (F,3) into the atlas vertices, uvs (M,2) with v up, info)."""
-    try:
-        import xatlas
-    except ImportError as exc:  # pragma: no cover - depends on the install
-        raise NeuMeshError("baking needs the 'xatlas' package: pip install xatlas (or the add-on's "
-                           "Install dependencies)") from exc
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.uint32))
-    pack = xatlas.PackOptions()
-    pack.resolution = int(resolution)
-    pack.padding = int(padding)
-    pack.bilinear = True
-    pack.blockAlign = True
-    atlas.generate(pack_options=pack)
-    vmap, idx, uv = atlas[0]
-    # xatlas treats the resolution as a target, not a cap (the atlas can come out a little larger and
-    # not square): scale the atlas uniformly into the resolution square (padding shrinks by that factor)
-    scale = max(atlas.width, atlas.height) / float(resolution)
-    uv = np.asarray(uv, np.float64)
-    uv[:, 0] *= atlas.width / (scale * resolution)
-    uv[:, 1] *= atlas.height / (scale * resolution)
-    uv[:, 1] = 1.0 - uv[:, 1]   # xatlas: v down from the image's first row; OBJ/Blender: v up
-    info = {"charts": int(atlas.chart_count), "atlas_width": int(atlas.width),
-            "atlas_height": int(atlas.height), "utilization": float(np.mean(atlas.utilization)),
-            "padding_texels": float(padding) / max(scale, 1.0)}
-    if atlas.atlas_count != 1:
-        raise NeuMeshError(f"xatlas made {atlas.atlas_count} atlases; expected one (report this mesh)")
-    return np.asarray(vmap, np.int64), np.asarray(idx, np.int32), uv.astype(np.float32), info
-
-
-def uv_pixels(uvs: np.ndarray, resolution: int) -> np.ndarray:
-    """UVs (n,2) (v up) -> texel-space coordinates (x right, y down) of a resolution x resolution image."""
-    return np.stack([uvs[:, 0] * resolution, (1.0 - uvs[:, 1]) * resolution], 1)
-
-
-def texel_coverage(uvs: np.ndarray, faces: np.ndarray, resolution: int, eps: float = 1e-7):
-    """Texels whose centre lies in a triangle of the atlas: (texel (n,), face (n,), bary (n,3)), the
-    first triangle winning where two touch (shared edges)."""
-    tri = uv_pixels(uvs, resolution)[faces]
-    ids, px, bary = [], [], []
-    for i, p, b in raster_triangles(tri, resolution, resolution, eps=eps):
-        ids.append(i)
-        px.append(p)
-        bary.append(b)
-    if not ids:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
-    ids, px, bary = np.concatenate(ids), np.concatenate(px), np.concatenate(bary)
-    _, first = np.unique(px, return_index=True)
-    return px[first], ids[first], bary[first]
-
-
-def dilate(image: np.ndarray, mask: np.ndarray, iterations: int) -> tuple:
-    """Grow ``image``'s valid texels (``mask``) outwards by ``iterations`` texels: each new texel is the
-    mean of its valid 8-neighbours.  Returns (image, grown mask)."""
-    img = image.astype(np.float32).copy()
-    m = mask.astype(bool).copy()
-    h, w = m.shape
-    for _ in range(int(iterations)):
-        if m.all():
-            break
-        acc = np.zeros_like(img)
-        cnt = np.zeros((h, w), np.float32)
-        pi = np.pad(img * m[..., None], ((1, 1), (1, 1), (0, 0)))
-        pm = np.pad(m.astype(np.float32), 1)
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                if dy == 0 and dx == 0:
-                    continue
-                acc += pi[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
-                cnt += pm[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
-        new = (~m) & (cnt > 0)
-        img[new] = acc[new] / cnt[new][:, None]
-        m |= new
-    return img, m
 
 
 def _tangent_dirs(n: torch.Tensor, count: int, cone_deg: float) -> list:
@@ -179,7 +100,8 @@ def surface_colours(field, points, normals, offset: float = 1.0, directions: int
             # start outside the surface along the normal, looking along d (into the surface)
             o = (pc - d * (d0 / torch.clamp((-d * nc).sum(1, keepdim=True), min=0.2))).to(dev)
             dd = d.to(dev)
-            smp = march_rays(o, dd, field.grid, field.sigma_fn, step, near=0.0, far=2.0 * d0 / math.cos(math.radians(cone_deg)) if directions > 1 else 2.0 * d0,
+            far = 2.0 * d0 / math.cos(math.radians(cone_deg)) if directions > 1 else 2.0 * d0
+            smp = march_rays(o, dd, field.grid, field.sigma_fn, step, near=0.0, far=far,
                              window=settings.window, early_stop_eps=settings.early_stop_eps,
                              weight_threshold=settings.weight_threshold)
             if len(smp) == 0:
@@ -282,7 +204,7 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
     surface at the fit's opacity level, else 0.5).
     ``progress(fraction) -> False`` cancels (raises ``nm.Cancelled``).  Nothing in the field changes.
     """
-    from .surface import SurfaceFitConfig, fit_to_field, offset_stats, surface_offsets
+    from .surface import offset_stats, surface_offsets
 
     t0 = time.perf_counter()
     resolution = int(resolution)
@@ -291,6 +213,56 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
     if colours not in ("rays", "views"):
         raise ValueError(f"colours must be 'rays' or 'views', got {colours!r}")
     _cancel(progress, 0.0)
+    V, F, N, label, fit_info, extract_info = _bake_mesh(field, mesh, fit, extract, progress)
+    if offset is None:
+        offset = 0.5 if fit_info is not None else 1.0
+    t_unwrap = time.perf_counter()
+    vmap, faces, uvs, info = unwrap(V, F, resolution, padding)
+    info["unwrap_s"] = time.perf_counter() - t_unwrap
+    if fit_info is not None:
+        info["fit"] = fit_info
+        info["fit_s"] = fit_info["seconds"]
+    if extract_info is not None:
+        info["extract"] = extract_info
+        info["extract_s"] = extract_info["seconds"]
+    info["mesh"] = label
+    info["mesh_vertices"] = int(len(V))
+    info["mesh_faces"] = int(len(F))
+    _cancel(progress, 0.1)
+    texel, pts, nrm = _texel_points(V, N, vmap, faces, uvs, resolution)
+    info["texels"] = int(len(texel))
+    if measure_texels and len(texel):
+        pick = np.random.default_rng(0).permutation(len(texel))[:int(measure_texels)]
+        level = fit_info["level"] if fit_info is not None else 0.5
+        off = surface_offsets(field, pts[pick], nrm[pick], search=max(1.5, 1.5 * float(offset)), level=level)
+        info["surface_offset"] = offset_stats(off, float(field.radius))
+    _cancel(progress, 0.15)
+    vspan = 0.1 if vertex_colors else 0.0
+    rays = dict(offset=offset, directions=directions, cone_deg=cone_deg, chunk=chunk, progress=progress)
+    cols, found = _texel_colours(field, V, F, pts, nrm, colours, project, rays, vspan, info)
+    info["missed_texels"] = int((~found).sum())
+    padded, mask, mean = _texture_image(texel, cols, found, resolution, padding)
+    vc = None
+    if vertex_colors:
+        vc, vfound = surface_colours(field, V, N, offset, directions, cone_deg, chunk, progress,
+                                     span=(0.85, 0.95), return_found=True)
+        vc[~vfound] = mean
+    res = BakeResult(vertices=V[vmap], faces=faces.astype(np.int32), uvs=uvs, vertex_index=vmap,
+                     texture=padded, mask=mask, vertex_colors=vc, info=info)
+    res.seconds = time.perf_counter() - t0
+    res.info.update({"resolution": resolution, "padding": int(padding), "offset": float(offset),
+                     "directions": int(directions), "cone_deg": float(cone_deg), "seconds": res.seconds})
+    if progress is not None:
+        progress(1.0)
+    return res
+
+
+def _bake_mesh(field, mesh, fit, extract, progress):
+    """The mesh :func:`bake_texture` bakes onto, in world space: extracted from the field's density
+    (``mesh="field"``), given, or the scaffold; moved onto the field's surface when ``fit`` says so.
+    Returns (vertices, faces, normals, label, fit info or None, extract info or None)."""
+    from .surface import SurfaceFitConfig, fit_to_field
+
     extract_info = None
     if isinstance(mesh, str):
         if mesh != "field":
@@ -316,21 +288,12 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
         from ..mesh import vertex_normals
 
         N = np.asarray(vertex_normals(V, F), np.float32)
-    if offset is None:
-        offset = 0.5 if fit_info is not None else 1.0
-    t_unwrap = time.perf_counter()
-    vmap, faces, uvs, info = unwrap(V, F, resolution, padding)
-    info["unwrap_s"] = time.perf_counter() - t_unwrap
-    if fit_info is not None:
-        info["fit"] = fit_info
-        info["fit_s"] = fit_info["seconds"]
-    if extract_info is not None:
-        info["extract"] = extract_info
-        info["extract_s"] = extract_info["seconds"]
-    info["mesh"] = label
-    info["mesh_vertices"] = int(len(V))
-    info["mesh_faces"] = int(len(F))
-    _cancel(progress, 0.1)
+    return V, F, N, label, fit_info, extract_info
+
+
+def _texel_points(V, N, vmap, faces, uvs, resolution: int):
+    """The texels inside the atlas's triangles (flat ids), their surface points and interpolated
+    normals (a face's own normal where the corners' normals cancel)."""
     texel, face, bary = texel_coverage(uvs, faces, resolution)
     corner = vmap[faces[face]]                      # (n,3) mesh vertex of each corner
     pts = (bary[..., None] * V[corner]).sum(1)
@@ -339,14 +302,14 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
     if bad.any():
         fv = V[corner[bad]]
         nrm[bad] = np.cross(fv[:, 1] - fv[:, 0], fv[:, 2] - fv[:, 0])
-    info["texels"] = int(len(texel))
-    if measure_texels and len(texel):
-        pick = np.random.default_rng(0).permutation(len(texel))[:int(measure_texels)]
-        level = fit_info["level"] if fit_info is not None else 0.5
-        off = surface_offsets(field, pts[pick], nrm[pick], search=max(1.5, 1.5 * float(offset)), level=level)
-        info["surface_offset"] = offset_stats(off, float(field.radius))
-    _cancel(progress, 0.15)
-    vspan = 0.1 if vertex_colors else 0.0
+    return texel, pts, nrm
+
+
+def _texel_colours(field, V, F, pts, nrm, colours: str, project, rays: dict, vspan: float, info: dict):
+    """The texels' colours and whether the field was found there: from the field's renders projected
+    onto them ("views"; the texels no view sees from their rays) or from their rays ("rays")."""
+    progress = rays["progress"]
+    ray_args = (rays["offset"], rays["directions"], rays["cone_deg"], rays["chunk"], progress)
     if colours == "views":
         from .project import projected_colours
 
@@ -355,16 +318,20 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
         unseen = wsum <= 0
         found = np.ones(len(pts), bool)
         if unseen.any():
-            rc, rf = surface_colours(field, pts[unseen], nrm[unseen], offset, directions, cone_deg, chunk,
-                                     progress, span=(0.75, 0.95 - vspan), return_found=True)
+            rc, rf = surface_colours(field, pts[unseen], nrm[unseen], *ray_args,
+                                     span=(0.75, 0.95 - vspan), return_found=True)
             cols[unseen] = rc
             found[unseen] = rf
         info["texels_unseen"] = int(unseen.sum())
         info["project_s"] = time.perf_counter() - t_proj
-    else:
-        cols, found = surface_colours(field, pts, nrm, offset, directions, cone_deg, chunk, progress,
-                                      span=(0.15, 0.95 - vspan), return_found=True)
-    info["missed_texels"] = int((~found).sum())
+        return cols, found
+    return surface_colours(field, pts, nrm, *ray_args, span=(0.15, 0.95 - vspan), return_found=True)
+
+
+def _texture_image(texel, cols, found, resolution: int, padding: int):
+    """The texture: the texels' colours, chart borders dilated by ``padding`` texels, missed texels
+    inside charts grown from their baked neighbours, the rest the mean colour.  Returns (image, mask of
+    the texels inside charts, the mean colour)."""
     image = np.zeros((resolution * resolution, 3), np.float32)
     mask = np.zeros(resolution * resolution, bool)
     image[texel] = cols
@@ -382,19 +349,7 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
     mean = cols[found].mean(0) if found.any() else 0.0
     if (~grown).any():   # the rest of the image: the mean colour (keeps mip-maps from greying to black)
         padded[~grown] = mean
-    vc = None
-    if vertex_colors:
-        vc, vfound = surface_colours(field, V, N, offset, directions, cone_deg, chunk, progress,
-                                     span=(0.85, 0.95), return_found=True)
-        vc[~vfound] = mean
-    res = BakeResult(vertices=V[vmap], faces=faces.astype(np.int32), uvs=uvs, vertex_index=vmap,
-                     texture=padded, mask=mask, vertex_colors=vc, info=info)
-    res.seconds = time.perf_counter() - t0
-    res.info.update({"resolution": resolution, "padding": int(padding), "offset": float(offset),
-                     "directions": int(directions), "cone_deg": float(cone_deg), "seconds": res.seconds})
-    if progress is not None:
-        progress(1.0)
-    return res
+    return padded, mask, mean
 
 
 def _replace(tmp: str, path: str) -> None:

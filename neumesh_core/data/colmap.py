@@ -142,7 +142,8 @@ def read_colmap(root: str, images_dir: str | None = None, log=None) -> Capture:
             missing.append(n)
     notes = []
     if missing:
-        msg = f"{root}: {len(missing)} of {len(imgs)} registered photos are missing and were skipped (e.g. {missing[0]})"
+        msg = (f"{root}: {len(missing)} of {len(imgs)} registered photos are missing and were skipped "
+               f"(e.g. {missing[0]})")
         if log is not None:
             log(msg)
         else:

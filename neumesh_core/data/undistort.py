@@ -9,9 +9,10 @@ Distortion is removed once: :func:`undistort_image` remaps an image to a pinhole
 size whose field of view keeps only valid pixels (OpenCV ``getOptimalNewCameraMatrix`` with alpha 0;
 ``estimateNewCameraMatrixForUndistortRectify`` with balance 0 for fisheye lenses).
 :func:`undistorted_file` does that for an image file and keeps the result (a .npy, or a PNG for
-other programs, and the new K in a JSON) in a cache folder keyed by the file, its size/mtime, the lens and the downscale, so the next run
-reads it back. The cache is ``$NEUMESH_CACHE`` or ``$XDG_CACHE_HOME/neumesh`` or ``~/.cache/neumesh``
-(``undistorted/`` inside), never the dataset folder unless asked.
+other programs, and the new K in a JSON) in a cache folder keyed by the file, its size/mtime, the lens
+and the downscale, so the next run reads it back. The cache is ``$NEUMESH_CACHE`` or
+``$XDG_CACHE_HOME/neumesh`` or ``~/.cache/neumesh`` (``undistorted/`` inside), never the dataset folder
+unless asked.
 """
 from __future__ import annotations
 
@@ -77,7 +78,8 @@ class Lens:
             cls(model, width, height, 1, 1, 0, 0)  # raises the unsupported-model error
         params = [float(p) for p in params]
         if len(params) != len(names):
-            raise DataError(f"COLMAP camera {model} needs {len(names)} parameters ({', '.join(names)}), got {len(params)}")
+            raise DataError(f"COLMAP camera {model} needs {len(names)} parameters ({', '.join(names)}), "
+                            f"got {len(params)}")
         v = dict(zip(names, params))
         fx = v.pop("fx", v.get("f"))
         fy = v.pop("fy", v.pop("f", fx))
@@ -183,8 +185,8 @@ def default_cache_dir() -> str:
 
 def _cache_key(path: str, lens: Lens, reduce: float, kind: str) -> str:
     st = os.stat(path)
-    blob = json.dumps([_CACHE_VERSION, os.path.abspath(path), st.st_size, st.st_mtime_ns, lens.to_dict(), float(reduce), kind],
-                      sort_keys=True)
+    blob = json.dumps([_CACHE_VERSION, os.path.abspath(path), st.st_size, st.st_mtime_ns, lens.to_dict(),
+                       float(reduce), kind], sort_keys=True)
     return hashlib.sha1(blob.encode()).hexdigest()
 
 

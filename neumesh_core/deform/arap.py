@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field as dc_field, replace
-from typing import Optional, Sequence
+from typing import Optional
 
 import numpy as np
 
@@ -377,10 +377,10 @@ class ConstrainedArap:
 
 @dataclass
 class ArapResult:
-    """One solve: ``vertices`` (N,3) (float64; float32 in cage mode, carried for the viewport), ``rotations`` (N,3,3) per-vertex rest -> deformed
-    rotations (computed on first use in cage mode), ``energies`` after each iteration (of the system
-    solved: the cage's in cage mode; with ``ArapConfig.energies``, else empty), ``iterations`` run,
-    ``seconds`` taken."""
+    """One solve: ``vertices`` (N,3) (float64; float32 in cage mode, carried for the viewport),
+    ``rotations`` (N,3,3) per-vertex rest -> deformed rotations (computed on first use in cage mode),
+    ``energies`` after each iteration (of the system solved: the cage's in cage mode; with
+    ``ArapConfig.energies``, else empty), ``iterations`` run, ``seconds`` taken."""
 
     vertices: np.ndarray
     energies: list

@@ -21,7 +21,9 @@ from .fit_check import FitFigures, FitThresholds
 from .swap import SwapAlignment, SwapConfig, swap_alignment, swap_texture
 from .transfer import idw_neighbours
 
-__all__ = ["AtlasRecord", "create_paint_atlas", "paint_atlas_from_view", "paint_image_record", "CornerUVs", "EditRecord", "FillConfig", "FitFigures", "FitThresholds", "PaintConfig", "Similarity", "SwapConfig", "arap_icp",
-           "as_vertex_ids", "edit_info", "fill_texture", "idw_neighbours", "initial_alignment", "next_edit_path",
-           "paint_fields", "paint_layer", "paint_texture", "parent_of", "planar_uvs", "rigid_icp", "root_of", "save_edited",
+__all__ = ["AtlasRecord", "create_paint_atlas", "paint_atlas_from_view", "paint_image_record", "CornerUVs",
+           "EditRecord", "FillConfig", "FitFigures", "FitThresholds", "PaintConfig", "Similarity", "SwapConfig",
+           "arap_icp", "as_vertex_ids", "edit_info", "fill_texture", "idw_neighbours", "initial_alignment",
+           "next_edit_path", "paint_fields", "paint_layer", "paint_texture", "parent_of", "planar_uvs", "rigid_icp",
+           "root_of", "save_edited",
            "SwapAlignment", "swap_alignment", "swap_texture", "umeyama"]

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 
 import numpy as np
 import torch
 
 from ..errors import EditError, NeuMeshError
-from .paint_view import PaintConfig, _cancel, _checked_layer, _rays
+from .paint_view import PaintConfig, _cancel, _checked_layer, _checked_surface, _rays, _render_pixels
 from .record import EditRecord
 
 
@@ -52,7 +52,7 @@ def create_paint_atlas(field, resolution: int = 2048, uvs=None, padding: int = 4
             raise EditError(str(exc)) from exc
         source = "grid"
     elif uvs is None:
-        from ..bake.texture import unwrap
+        from ..bake.uv import unwrap
 
         vmap, faces, uv, _ = unwrap(field.rest_vertices.cpu().numpy(), F, resolution, padding)
         corner = uv[faces]
@@ -158,54 +158,6 @@ def _lookup_texels(atlas, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
     return np.stack(out, 1)
 
 
-def _checked_surface(surface, width: int, height: int):
-    """(opacity, depth) flat float arrays of the render a layer was painted on, or an EditError."""
-    try:
-        if isinstance(surface, (tuple, list)):
-            op, depth = surface
-        else:
-            op, depth = surface.opacity, surface.depth
-        op, depth = np.asarray(op, np.float32), np.asarray(depth, np.float32)
-    except (TypeError, ValueError, AttributeError) as exc:
-        raise EditError("surface must be the render the layer was painted on (render_camera's result, or "
-                        "(opacity, depth) arrays)") from exc
-    if op.shape != (height, width) or depth.shape != (height, width):
-        raise EditError(f"the render painted on is {op.shape[::-1]} / {depth.shape[::-1]}, not this {width}x{height} "
-                        "view; pass the render of this view, or none (the painted pixels are rendered again)")
-    return op.reshape(-1), depth.reshape(-1)
-
-
-def _render_pixels(field, K, c2w, width: int, height: int, pixels: np.ndarray, settings, chunk: int):
-    """(opacity, depth) of some pixels of a view, rendered as :func:`render_camera` renders them (the
-    same per-pixel ray ranges, so the same samples and the same expected depths)."""
-    K32, c2w32 = K.astype(np.float32), c2w.astype(np.float32)
-    device = field.rest_vertices.device
-    op = np.zeros(len(pixels), np.float32)
-    depth = np.full(len(pixels), np.inf, np.float32)
-    ranges = field.grid.camera_ranges(K32, c2w32, width, height, settings.empty_tile) if settings.skip_empty \
-        else None
-    rows = np.arange(len(pixels))
-    if ranges is not None:
-        pt = torch.as_tensor(pixels, device=ranges[0].device)
-        near, far = ranges[0][pt], ranges[1][pt]
-        live = (near <= far).cpu().numpy()
-        rows = rows[live]
-        near, far = near[torch.as_tensor(live, device=near.device)], far[torch.as_tensor(live, device=near.device)]
-    if len(rows) == 0:
-        return op, depth
-    o, d = _rays(K32, c2w32, width, height, pixels[rows], device)
-    from ..render.renderer import render_rays
-
-    with torch.no_grad():
-        for s in range(0, len(rows), chunk):
-            e = min(len(rows), s + chunk)
-            r = render_rays([field], o[s:e], d[s:e], None, settings, train=False,
-                            ranges=None if ranges is None else [(near[s:e], far[s:e])])
-            op[rows[s:e]] = r["opacity"].cpu().numpy()
-            depth[rows[s:e]] = r["depth"].cpu().numpy()
-    return op, depth
-
-
 def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np.ndarray,
                           config: Optional[PaintConfig] = None, settings=None,
                           progress: Optional[Callable[[float], bool]] = None, surface=None) -> AtlasRecord:
@@ -230,14 +182,52 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     Raises :class:`EditError` (nothing changed) when nothing is painted or the paint covers only
     background.
     """
-    from scipy.ndimage import binary_dilation
-    from scipy.spatial import cKDTree
-
-    from ..bake.texture import texel_coverage
     from ..render.renderer import RenderSettings
 
     cfg = config or PaintConfig()
     settings = settings or RenderSettings()
+    atlas = _checked_atlas(field)
+    t0 = time.perf_counter()
+    layer = np.clip(_checked_layer(paint_rgba, width, height), 0, 1)
+    given = None if surface is None else _checked_surface(surface, width, height)
+    ys, xs = np.nonzero(layer[..., 3] > 0)
+    if len(ys) == 0:
+        raise EditError("nothing is painted: paint on the image first (alpha > 0 marks painted pixels)")
+    view = (np.asarray(K, np.float64), np.asarray(c2w, np.float64), width, height)
+    timing = {}
+    _cancel(progress, 0.0)
+
+    # 1. the box around the paint: expected surface points and their lookups
+    t = time.perf_counter()
+    box, op, depth = _box_surface(field, view, xs, ys, given, settings, cfg.chunk_rays)
+    timing["render_s"] = time.perf_counter() - t
+    _cancel(progress, 0.3)
+    t = time.perf_counter()
+    look = _lookups(field, atlas, view, layer, box, op, depth, given, cfg.hit_opacity)
+    timing["surface_s"] = time.perf_counter() - t
+    _cancel(progress, 0.5)
+
+    # 2.-4. the texels the paint goes to
+    t = time.perf_counter()
+    idx, rgba, protected, touched = _paint_texels(field, atlas, view[0], layer, look)
+    timing["texels_s"] = time.perf_counter() - t
+    _cancel(progress, 0.8)
+
+    # 5. write: the paint over the atlas's paint
+    t = time.perf_counter()
+    rec = _write_paint(field, atlas, idx, rgba)
+    timing["write_s"] = time.perf_counter() - t
+    rec.info.update(painted_pixels=int(len(ys)), hit_pixels=int(look.painted.sum()), painted_texels=int(len(idx)),
+                    protected_texels=int(len(protected)), candidate_faces=int(len(touched)),
+                    box_pixels=int(len(box)), lookup_pixels=int(len(look.pix)), atlas_resolution=int(atlas.size[0]),
+                    surface_given=given is not None, seconds=time.perf_counter() - t0, **timing)
+    if progress is not None:
+        progress(1.0)
+    return rec
+
+
+def _checked_atlas(field):
+    """The field's paint atlas, checked against the field; an EditError when there is none."""
     atlas = getattr(field, "paint_atlas", None)
     if atlas is None:
         raise EditError("the field has no paint atlas; make one first (create_paint_atlas)")
@@ -245,40 +235,52 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     h_img, w_img = atlas.size
     if h_img != w_img:
         raise EditError("the paint atlas image must be square")
-    t0 = time.perf_counter()
-    layer = np.clip(_checked_layer(paint_rgba, width, height), 0, 1)
-    given = None if surface is None else _checked_surface(surface, width, height)
-    alpha = layer[..., 3]
-    ys, xs = np.nonzero(alpha > 0)
-    if len(ys) == 0:
-        raise EditError("nothing is painted: paint on the image first (alpha > 0 marks painted pixels)")
-    K = np.asarray(K, np.float64)
-    c2w = np.asarray(c2w, np.float64)
-    device = field.rest_vertices.device
-    timing = {}
-    _cancel(progress, 0.0)
-    lim = 2.5 * float(field.radius)          # the render paints surface points this near the scaffold
+    return atlas
 
-    # 1. the box around the paint: expected surface points and their lookups
+
+def _box_surface(field, view, xs, ys, given, settings, chunk: int):
+    """The pixels of the paint's box with a margin of 6 (flat ids) and their opacity and expected depth:
+    rendered, or read from the render painted on (``given``)."""
+    K, c2w, width, height = view
     m = 6
     x0, x1 = max(0, xs.min() - m), min(width, xs.max() + m + 1)
     y0, y1 = max(0, ys.min() - m), min(height, ys.max() + m + 1)
     gy, gx = np.mgrid[y0:y1, x0:x1]
     box = (gy * width + gx).reshape(-1)
-    t = time.perf_counter()
     if given is None:
-        op, depth = _render_pixels(field, K, c2w, width, height, box, settings, cfg.chunk_rays)
+        op, depth = _render_pixels(field, K, c2w, width, height, box, settings, chunk)
     else:
         op, depth = given[0][box], given[1][box]
-    timing["render_s"] = time.perf_counter() - t
-    _cancel(progress, 0.3)
-    t = time.perf_counter()
+    return box, op, depth
+
+
+class _Lookups(NamedTuple):
+    """The pixels whose surface point looks the paint atlas up, and where: flat pixel ids, nearest scaffold
+    face and barycentrics, depth; which of them are painted, which lie farther than 2 px from the paint."""
+
+    pix: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    z: np.ndarray
+    painted: np.ndarray
+    far: np.ndarray
+
+
+def _lookups(field, atlas, view, layer, box, op, depth, given, hit_opacity: float) -> _Lookups:
+    """Step 1's second half: the box's pixels on the surface (with ``given``, also every other pixel of
+    the view whose surface point lies near the paint's), each one's nearest scaffold point within the
+    distance the render paints at; an EditError when the paint covers only background."""
+    from scipy.ndimage import binary_dilation
+
+    K, c2w, width, height = view
+    alpha = layer[..., 3]
+    lim = 2.5 * float(field.radius)          # the render paints surface points this near the scaffold
     stroke = alpha > 0
     near_stroke = binary_dilation(stroke, iterations=2)       # "within 2 px" as the figures count it
-    hit = (op >= cfg.hit_opacity) & np.isfinite(depth)
+    hit = (op >= hit_opacity) & np.isfinite(depth)
     if not (hit & stroke.reshape(-1)[box]).any():
-        raise EditError(f"the paint covers only background ({len(ys)} painted pixels, none on the field); "
-                        "paint over the object")
+        raise EditError(f"the paint covers only background ({int(stroke.sum())} painted pixels, none on the "
+                        "field); paint over the object")
     pix = box[hit]
     zpix = depth[hit].astype(np.float32)
     if given is not None:
@@ -289,7 +291,7 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
         lo, hi = p_box.min(0) - 2 * lim, p_box.max(0) + 2 * lim
         rest = np.ones(width * height, bool)
         rest[box] = False
-        rest &= (g_op >= cfg.hit_opacity) & np.isfinite(g_depth)
+        rest &= (g_op >= hit_opacity) & np.isfinite(g_depth)
         cand = np.nonzero(rest)[0]
         if len(cand):
             o_c, d_c = _rays(K.astype(np.float32), c2w.astype(np.float32), width, height, cand, "cpu")
@@ -297,23 +299,29 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
             inside = ((p_c >= lo) & (p_c <= hi)).all(1)
             pix = np.concatenate([pix, cand[inside]])
             zpix = np.concatenate([zpix, g_depth[cand[inside]]])
-    o, d = _rays(K.astype(np.float32), c2w.astype(np.float32), width, height, pix, device)
+    o, d = _rays(K.astype(np.float32), c2w.astype(np.float32), width, height, pix, field.rest_vertices.device)
     pts = (o + d * torch.as_tensor(zpix, device=o.device)[:, None]).cpu().numpy().astype(np.float64)
     face, bary, dist = atlas.closest_faces(field, pts)
     near = dist <= lim
     pix, face, bary, z = pix[near], face[near], bary[near], zpix[near].astype(np.float64)
-    painted = stroke.reshape(-1)[pix]
-    far = ~near_stroke.reshape(-1)[pix]
-    timing["surface_s"] = time.perf_counter() - t
-    _cancel(progress, 0.5)
+    return _Lookups(pix, face, bary, z, stroke.reshape(-1)[pix], ~near_stroke.reshape(-1)[pix])
 
+
+def _paint_texels(field, atlas, K, layer, look: _Lookups):
+    """Steps 2-4: the texels the paint goes to and their paint (flat ids sorted, RGBA), the texels that
+    pixels far from the paint read (never written), and the faces the painted pixels look up."""
+    from scipy.spatial import cKDTree
+
+    from ..bake.uv import texel_coverage
+
+    h_img = atlas.size[0]
+    face, bary, painted = look.face, look.bary, look.painted
     # 2. forward: what the painted pixels read; 4. what pixels far from the paint read
-    t = time.perf_counter()
     reads = _lookup_texels(atlas, face, bary)
-    col = layer.reshape(-1, 4)[pix]
+    col = layer.reshape(-1, 4)[look.pix]
     fwd_idx = reads[painted].reshape(-1)
     fwd_rgba = np.repeat(col[painted], 4, 0)
-    protected = np.unique(reads[far].reshape(-1))
+    protected = np.unique(reads[look.far].reshape(-1))
 
     # 3. backward: texels of the faces the painted pixels look up take the paint of the nearest lookup
     V = atlas.lookup_vertices(field)
@@ -325,7 +333,7 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     ps = (tb[:, :, None] * V[F[tf]]).sum(1)
     cpt = (bary[:, :, None] * V[F[face]]).sum(1)                   # each pixel's lookup point
     dj, j = cKDTree(cpt).query(ps, k=1)
-    foot = z[j] / max(float(K[0, 0]), 1e-9)                         # a pixel's footprint at its depth
+    foot = look.z[j] / max(float(K[0, 0]), 1e-9)                    # a pixel's footprint at its depth
     back = painted[j] & (dj <= 1.5 * foot)
     idx = np.concatenate([fwd_idx, texel[back]])
     rgba = np.concatenate([fwd_rgba, col[j[back]]]).astype(np.float32)
@@ -338,11 +346,11 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
     idx, rgba = idx[keep], rgba[keep]
     if len(idx) == 0:
         raise EditError("no texel of the paint atlas lies under the paint; paint over the object")
-    timing["texels_s"] = time.perf_counter() - t
-    _cancel(progress, 0.8)
+    return idx, rgba, protected, touched
 
-    # 5. write: the paint over the atlas's paint
-    t = time.perf_counter()
+
+def _write_paint(field, atlas, idx: np.ndarray, rgba: np.ndarray) -> AtlasRecord:
+    """Step 5: the paint ``rgba`` composited over the atlas's paint at texels ``idx``; the record."""
     img = atlas.image.view(-1, 4)
     tid = torch.as_tensor(idx)
     old = img[tid].numpy().copy()
@@ -355,13 +363,6 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
                       decoders_after=field.num_decoders)
     img[tid] = torch.as_tensor(new)
     atlas.changed(idx)
-    timing["write_s"] = time.perf_counter() - t
-    rec.info.update(painted_pixels=int(len(ys)), hit_pixels=int(painted.sum()), painted_texels=int(len(idx)),
-                    protected_texels=int(len(protected)), candidate_faces=int(len(touched)),
-                    box_pixels=int(len(box)), lookup_pixels=int(len(pix)), atlas_resolution=int(h_img),
-                    surface_given=given is not None, seconds=time.perf_counter() - t0, **timing)
-    if progress is not None:
-        progress(1.0)
     return rec
 
 

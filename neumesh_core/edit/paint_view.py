@@ -1,6 +1,6 @@
 """The painted view, shared by the two kinds of paint (edit/paint.py: modification colours at the vertex
 spacing; edit/paint_atlas.py: texels of the paint atlas): its configuration, the layer a painter made,
-the rays of its painted pixels and their render."""
+the rays of its painted pixels and their render, the render it was painted on."""
 
 from __future__ import annotations
 
@@ -80,6 +80,54 @@ def _render(fields, o, d, settings, chunk):
         z = torch.zeros(0)
         return torch.zeros(0, 3), z, z
     return tuple(torch.cat(x) for x in zip(*outs))
+
+
+def _checked_surface(surface, width: int, height: int):
+    """(opacity, depth) flat float arrays of the render a layer was painted on, or an EditError."""
+    try:
+        if isinstance(surface, (tuple, list)):
+            op, depth = surface
+        else:
+            op, depth = surface.opacity, surface.depth
+        op, depth = np.asarray(op, np.float32), np.asarray(depth, np.float32)
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise EditError("surface must be the render the layer was painted on (render_camera's result, or "
+                        "(opacity, depth) arrays)") from exc
+    if op.shape != (height, width) or depth.shape != (height, width):
+        raise EditError(f"the render painted on is {op.shape[::-1]} / {depth.shape[::-1]}, not this {width}x{height} "
+                        "view; pass the render of this view, or none (the painted pixels are rendered again)")
+    return op.reshape(-1), depth.reshape(-1)
+
+
+def _render_pixels(field, K, c2w, width: int, height: int, pixels: np.ndarray, settings, chunk: int):
+    """(opacity, depth) of some pixels of a view, rendered as :func:`render_camera` renders them (the
+    same per-pixel ray ranges, so the same samples and the same expected depths)."""
+    K32, c2w32 = K.astype(np.float32), c2w.astype(np.float32)
+    device = field.rest_vertices.device
+    op = np.zeros(len(pixels), np.float32)
+    depth = np.full(len(pixels), np.inf, np.float32)
+    ranges = field.grid.camera_ranges(K32, c2w32, width, height, settings.empty_tile) if settings.skip_empty \
+        else None
+    rows = np.arange(len(pixels))
+    if ranges is not None:
+        pt = torch.as_tensor(pixels, device=ranges[0].device)
+        near, far = ranges[0][pt], ranges[1][pt]
+        live = (near <= far).cpu().numpy()
+        rows = rows[live]
+        near, far = near[torch.as_tensor(live, device=near.device)], far[torch.as_tensor(live, device=near.device)]
+    if len(rows) == 0:
+        return op, depth
+    o, d = _rays(K32, c2w32, width, height, pixels[rows], device)
+    from ..render.renderer import render_rays
+
+    with torch.no_grad():
+        for s in range(0, len(rows), chunk):
+            e = min(len(rows), s + chunk)
+            r = render_rays([field], o[s:e], d[s:e], None, settings, train=False,
+                            ranges=None if ranges is None else [(near[s:e], far[s:e])])
+            op[rows[s:e]] = r["opacity"].cpu().numpy()
+            depth[rows[s:e]] = r["depth"].cpu().numpy()
+    return op, depth
 
 
 __all__ = ["PaintConfig", "paint_layer"]

@@ -27,7 +27,7 @@ def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
 
 # rows per decoder call when no gradient is needed: the hidden activations of ~16k rows stay in the
 # CPU's cache, where one call on 600k rows streams them through memory (2-3x slower on this machine;
-# benchmarks/bench_render.py)
+# benchmarks/bench/bench_render.py)
 _INFERENCE_ROWS = 16384
 
 

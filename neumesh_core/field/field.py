@@ -37,9 +37,10 @@ then w-weighted means).  A field without texture frames (every trained field) sk
 wide) and a small semantic decoder (``sem_decoder``: sem_dim -> ``sem_features``), filled by
 distillation from 2D image features (:mod:`neumesh_core.semantics`).  As in NeuMesh++ the codes are
 interpolated first (the same normalised inverse-distance weights w_k as everything else) and decoded
-once per sample (:meth:`NeuMeshField.decode_semantics`; an MLP with one hidden layer); the renderer composites the decoded features
-with the colour's compositing weights.  ``sem_dim = 0`` (the default) means no semantic branch: no
-decoder exists and nothing is decoded, so such a field renders and costs exactly as before.
+once per sample (:meth:`NeuMeshField.decode_semantics`; an MLP with one hidden layer); the renderer
+composites the decoded features with the colour's compositing weights.  ``sem_dim = 0`` (the default)
+means no semantic branch: no decoder exists and nothing is decoded, so such a field renders and costs
+exactly as before.
 """
 from __future__ import annotations
 

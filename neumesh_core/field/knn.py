@@ -2,7 +2,7 @@
 
 Fast paths: :class:`VertexIndex` (pykdtree, multi-threaded C, on the CPU), :class:`HashGridIndex`
 (a uniform grid in plain torch, so it runs where the vertices are, a GPU included) and, on a GPU,
-:class:`~neumesh_core.field.knn_triton.TritonKNNIndex` (the same grid searched by one Triton kernel).
+:class:`~neumesh_core.kernels.knn.TritonKNNIndex` (the same grid searched by one Triton kernel).
 Reference: :func:`knn_radius_reference` (brute force in torch).  All return ``(idx, dist)`` of shape
 (M,K), sorted by distance, with ``idx == -1`` and ``dist == inf`` where fewer than K vertices lie within
 the radius.  :func:`make_index` picks one by name.
@@ -188,7 +188,7 @@ KNN_BACKENDS = ("kdtree", "hashgrid", "triton")
 def make_index(vertices, k: int, radius: float, backend: str = "kdtree"):
     """The neighbour index for ``backend``: "kdtree" (:class:`VertexIndex`, CPU), "hashgrid"
     (:class:`HashGridIndex`, plain torch on the vertices' device; needs a finite radius) or "triton"
-    (:class:`~neumesh_core.field.knn_triton.TritonKNNIndex`, one kernel launch a query and no host
+    (:class:`~neumesh_core.kernels.knn.TritonKNNIndex`, one kernel launch a query and no host
     synchronisation; CUDA, or Triton's interpreter; elsewhere, e.g. a field saved so and loaded on a
     CPU, what "kdtree" gives).  "kdtree" is the CPU's choice: for vertices on a
     GPU with a finite radius it gives the Triton index where triton imports, else the hash grid; both
@@ -197,7 +197,7 @@ def make_index(vertices, k: int, radius: float, backend: str = "kdtree"):
     if backend == "kdtree":
         on_gpu = torch.is_tensor(vertices) and vertices.device.type != "cpu"
         if on_gpu and np.isfinite(float(radius)) and float(radius) > 0:
-            from .knn_triton import TritonKNNIndex, triton_runs_on
+            from ..kernels.knn import TritonKNNIndex, triton_runs_on
 
             if triton_runs_on(vertices.device):
                 return TritonKNNIndex(vertices, k, radius)
@@ -206,7 +206,7 @@ def make_index(vertices, k: int, radius: float, backend: str = "kdtree"):
     if backend == "hashgrid":
         return HashGridIndex(vertices, k, radius)
     if backend == "triton":
-        from .knn_triton import TritonKNNIndex, triton_runs_on
+        from ..kernels.knn import TritonKNNIndex, triton_runs_on
 
         v = vertices if torch.is_tensor(vertices) else torch.as_tensor(np.asarray(vertices))
         if triton_runs_on(v.device) and np.isfinite(float(radius)) and float(radius) > 0:

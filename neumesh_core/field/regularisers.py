@@ -11,7 +11,8 @@ from ..device import draw_device
 
 def tv_loss(field, n_samples: int = 16384, generator: Optional[torch.Generator] = None,
             vertices: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """Total variation of ``field``'s geometry and texture codes: between each (sampled) vertex's codes and its k_tv nearest vertices.
+    """Total variation of ``field``'s geometry and texture codes: between each (sampled) vertex's codes
+    and its k_tv nearest vertices.
 
     ``vertices`` (1-D indices) restricts the term to those vertices, e.g. the ones a training batch
     looked up, so that a vertex is smoothed on the steps its photometric gradient arrives.  Without

@@ -245,7 +245,7 @@ class Scaffold(nn.Module):
     def neighbourhood_from(self, x: torch.Tensor, idx: torch.Tensor, dist: torch.Tensor) -> Neighbourhood:
         """The indicators of points x (M,3) whose K nearest vertices are already known: ``idx`` (M,K)
         (-1 where missing) and ``dist`` (M,K), as an index's ``query`` returns them (e.g. from the
-        fused marcher, render/fused_triton.march_rays_fused)."""
+        fused marcher, kernels/fused.march_rays_fused)."""
         valid = idx >= 0
         idx = idx.clamp_min(0)
         inv = torch.where(valid, 1.0 / dist.clamp_min(1e-8), torch.zeros_like(dist))

@@ -13,7 +13,6 @@ space carves the hull and unobserved regions keep it.
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional

@@ -77,7 +77,8 @@ def frames_from_video(video: str, out_dir: str, fps: float = 2.0, min_sharpness:
         for _, p in kept:
             os.remove(p)
         if len(kept) < 3:
-            raise PosesError(f"{video} gives only {len(kept)} frames at {fps:g} fps; use a longer clip or a higher --fps")
+            raise PosesError(f"{video} gives only {len(kept)} frames at {fps:g} fps; use a longer clip or a "
+                             "higher --fps")
         raise PosesError(f"the video {video} is too blurry to recover poses (median sharpness {np.median(scores):.1f} "
                          f"< {min_sharpness:g}): film more slowly, with more light, or take photos instead")
     paths = []

@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence, Union
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
 
 from ..data.cameras import pixel_rays
 from ..errors import Cancelled, NeuMeshError  # noqa: F401  (Cancelled: nm.Cancelled, lives in errors)
+from ..kernels.path import BACKENDS, render_path
 from ..sampling.marcher import march_rays
 from .volume import composite, render_weights
 
@@ -31,15 +32,15 @@ class RenderSettings:
     skip_empty: bool = True
     empty_tile: int = 8
     # which renderer marches and decodes: "auto" (the fused Triton kernel on CUDA when triton imports and
-    # the field is covered, render/fused_triton.py; the torch path otherwise, the CPU included),
-    # "torch" (the reference) or "triton" (the kernel, an error where it cannot run)
+    # the field is covered; the torch path otherwise, the CPU included), "torch" (the reference) or
+    # "triton" (the kernel, an error where it cannot run); kernels/path.render_path decides
     backend: str = "auto"
     # render_camera: a field's background model (real captures, field/background.py) composited behind
     # the field by its transmittance: on, the photo-like frame; off, the object alone with a true alpha
     background_model: bool = True
 
     def __post_init__(self):
-        if self.backend not in ("auto", "torch", "triton"):
+        if self.backend not in BACKENDS:
             raise ValueError(f"backend must be 'auto', 'torch' or 'triton', not {self.backend!r}")
         if int(self.supersample) != self.supersample or self.supersample < 1:
             raise ValueError(f"supersample must be a whole number >= 1, got {self.supersample}")
@@ -94,7 +95,9 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
     settings = settings or RenderSettings()
     fl = _as_list(fields)
     n = origins.shape[0]
-    if settings.backend != "torch" and _fused(settings, fl, origins.device, train, jitter, vertex_ids, semantics):
+    path = render_path(settings, fl, origins.device, train=train, jitter=jitter, vertex_ids=vertex_ids,
+                       semantics=semantics)
+    if path.fused:
         out = _render_fused(fl[0], origins, dirs, settings, far, None if ranges is None else ranges[0])
         return _over_and_behind(out, fl, origins, dirs, background, background_model, train, jitter, far)
     t_far = float("inf") if far is None else far.to(origins.device, torch.float32)
@@ -107,7 +110,7 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
             r_near, r_far = (x.to(origins.device) for x in ranges[fi])
             near_f = r_near.clamp_min(settings.near)
             far_f = torch.minimum(r_far, far_f) if torch.is_tensor(far_f) else r_far.clamp_max(far_f)
-        s = _march(f, origins, dirs, settings, near_f, far_f, jitter)
+        s = _march(f, origins, dirs, settings, near_f, far_f, jitter, path.march[fi])
         if vertex_ids:
             touched.append(torch.unique(s.aux.idx[s.aux.valid]) if len(s) else
                            torch.zeros(0, dtype=torch.long, device=origins.device))
@@ -178,34 +181,24 @@ def _over_and_behind(out: dict, fl, origins, dirs, background, background_model,
     return out
 
 
-def _fused(settings, fl, device, train, jitter, vertex_ids, semantics) -> bool:
-    if settings.backend == "auto" and torch.device(device).type != "cuda":
-        return False   # the CPU's default: the torch path (triton is not even imported)
-    from .fused_triton import use_triton
-
-    return use_triton(settings, fl, device, train=train, jitter=jitter, vertex_ids=vertex_ids,
-                      semantics=semantics)
-
-
-def _march(f, origins, dirs, settings, near, far, jitter):
+def _march(f, origins, dirs, settings, near, far, jitter, fused: bool):
     """A field's samples for the torch path (sorted by ray and t, ``aux`` their neighbourhoods): the fused
-    kernel's march (render/fused_triton.march_rays_fused: one launch, one synchronisation) where it
-    covers the field on this device (``settings.backend``), the torch marcher otherwise."""
+    kernel's march (kernels/fused.march_rays_fused: one launch, one synchronisation) when ``fused``
+    (``render_path(...).march``), the torch marcher otherwise."""
     step = default_step(f, settings)
     kw = dict(near=near, far=far, window=settings.window, early_stop_eps=settings.early_stop_eps,
               weight_threshold=settings.weight_threshold, jitter=jitter)
-    if settings.backend != "torch" and (settings.backend != "auto" or torch.device(origins.device).type == "cuda"):
-        from .fused_triton import march_rays_fused, use_fused_march
+    if fused:
+        from ..kernels.fused import march_rays_fused
 
-        if use_fused_march(settings, f, origins.device):
-            return march_rays_fused(f, origins, dirs, step, **kw)
+        return march_rays_fused(f, origins, dirs, step, **kw)
     return march_rays(origins, dirs, f.grid, f.sigma_fn, step, **kw)
 
 
 def _render_fused(field, origins, dirs, settings, far, ranges) -> dict:
     """The fields' own part of :func:`render_rays` through the fused Triton kernel
-    (render/fused_triton.py): the same near/far limits as the torch path, the same outputs."""
-    from .fused_triton import render_rays_fused
+    (kernels/fused.py): the same near/far limits as the torch path, the same outputs."""
+    from ..kernels.fused import render_rays_fused
 
     near_f = settings.near
     far_f = float("inf") if far is None else far.to(origins.device, torch.float32)
@@ -236,8 +229,9 @@ def mod_colour_weights(fields, origins: torch.Tensor, dirs: torch.Tensor,
     fl = _as_list(fields)
     n = origins.shape[0]
     parts = []
+    path = render_path(settings, fl, origins.device, march_only=True)
     for fi, f in enumerate(fl):
-        s = _march(f, origins, dirs, settings, settings.near, float("inf"), None)
+        s = _march(f, origins, dirs, settings, settings.near, float("inf"), None, path.march[fi])
         if len(s):
             parts.append((fi, s))
     out = [sp.csr_matrix((n, f.num_vertices), dtype=np.float64) for f in fl]
@@ -361,8 +355,8 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
             if far_t is not None:
                 live &= far_t > 0
             pixels = live.nonzero().squeeze(1)
-            if _fused(settings, fl, device, False, None, False, semantics):
-                from .fused_triton import KERNEL_OPTIONS
+            if render_path(settings, fl, device, semantics=semantics).fused:
+                from ..kernels.fused import KERNEL_OPTIONS
 
                 if KERNEL_OPTIONS["ray_order"] == "tiles":   # a block of 32 rays: an 8 x 4 patch, not a line
                     pixels = tile_order(pixels, width)

@@ -340,7 +340,6 @@ def crease_embedding(positions: np.ndarray, faces: np.ndarray, normals: np.ndarr
 def compute_geometric_features(vertices: np.ndarray, faces: np.ndarray, config: Optional[GeometryConfig] = None,
                                progress: Optional[Callable[[str], None]] = None) -> GeometricFeatures:
     """Geometric features of a scaffold (rest positions (N,3), faces (F,3)); see the module doc."""
-    from scipy.sparse.csgraph import connected_components
 
     cfg = config or GeometryConfig()
     v = np.asarray(vertices, np.float32)
@@ -403,7 +402,8 @@ def save_geometric_features(feats: GeometricFeatures, path: str) -> str:
     """Write ``feats`` to ``path`` (.npz, atomic: a temporary file renamed over it; no pickle)."""
     path = os.fspath(path)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    arrays = {"normals": feats.normals, "concavity": feats.concavity, "embedding": feats.embedding, "cluster": feats.cluster.astype(np.int32),
+    arrays = {"normals": feats.normals, "concavity": feats.concavity, "embedding": feats.embedding,
+              "cluster": feats.cluster.astype(np.int32),
               "meta": np.frombuffer(json.dumps({"key": feats.key, "config": asdict(feats.config),
                                                 "timings": feats.timings, "version": CACHE_VERSION}).encode(),
                                     np.uint8)}

@@ -39,7 +39,7 @@ class FeatureSegmenter:
         self.min_opacity = float(min_opacity)
 
     def __call__(self, field, camera, pixel) -> np.ndarray:
-        from scipy.ndimage import label, zoom
+        from scipy.ndimage import label
 
         from ..render.renderer import render_camera
 
@@ -80,7 +80,8 @@ def find_sam_weights(name: str = "sam-vit-base", weights: Optional[str] = None) 
             cands += sorted(glob.glob(os.path.join(hub, "models--" + repo.replace("/", "--"), "snapshots", "*")))
     for c in cands:
         if os.path.isfile(os.path.join(c, "config.json")) and (
-                os.path.isfile(os.path.join(c, "model.safetensors")) or os.path.isfile(os.path.join(c, "pytorch_model.bin"))):
+                os.path.isfile(os.path.join(c, "model.safetensors"))
+                or os.path.isfile(os.path.join(c, "pytorch_model.bin"))):
             return c
     raise WeightsUnavailableError(
         f"no local weights for the SAM segmenter {name}: expected a folder {cands[0]} holding config.json and "

@@ -49,7 +49,8 @@ def test_analytic_normals_match_finite_differences():
     eps = 1e-6
     x = torch.as_tensor(p)
     grad = np.stack([
-        ((S.implicit(x + eps * torch.eye(3, dtype=torch.float64)[k]) - S.implicit(x - eps * torch.eye(3, dtype=torch.float64)[k])) / (2 * eps)).numpy()
+        ((S.implicit(x + eps * torch.eye(3, dtype=torch.float64)[k])
+          - S.implicit(x - eps * torch.eye(3, dtype=torch.float64)[k])) / (2 * eps)).numpy()
         for k in range(3)
     ], 1)
     grad /= np.linalg.norm(grad, axis=1, keepdims=True)

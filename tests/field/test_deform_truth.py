@@ -1,5 +1,5 @@
 """Deformation fidelity: a briefly trained field of the small built-in scene, bent, against ground truth
-(neumesh_core/data/mesh_truth.py; the full measurement is benchmarks/bench_deform.py)."""
+(neumesh_core/data/mesh_truth.py; the full measurement is benchmarks/bench/bench_deform.py)."""
 import math
 
 import numpy as np

@@ -292,7 +292,8 @@ def test_post_decode_without_autograd_matches_the_per_row_reference(blob_mesh, s
     g = torch.Generator().manual_seed(8)
     v = f.rest_vertices
     spread = 0.95 if sparse else 0.2    # far points leave neighbour slots empty: the sparse layout
-    x = v[torch.randint(0, f.num_vertices, (2000,), generator=g)] + spread * f.radius * torch.randn(2000, 3, generator=g)
+    x = v[torch.randint(0, f.num_vertices, (2000,), generator=g)] + \
+        spread * f.radius * torch.randn(2000, 3, generator=g)
     d = torch.nn.functional.normalize(torch.randn(2000, 3, generator=g), dim=-1)
     nb = f.neighbourhood(x)
     dense = int(nb.valid.sum()) >= 0.85 * nb.valid.numel()

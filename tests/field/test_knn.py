@@ -89,7 +89,7 @@ def test_vertex_neighbours_excludes_self():
 def test_a_triton_index_asked_for_where_triton_cannot_run_is_the_devices_default(monkeypatch):
     """FieldConfig(knn="triton") saved with a field trained on a GPU: on a CPU without Triton's
     interpreter the field still loads and searches with the KD-tree."""
-    from neumesh_core.field import knn_triton
+    from neumesh_core.kernels import knn as knn_triton
 
     monkeypatch.setattr(knn_triton, "triton_runs_on", lambda device: False)
     v = torch.rand(50, 3)

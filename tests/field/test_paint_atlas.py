@@ -154,7 +154,7 @@ def test_bad_atlases_are_refused(blob3):
 
 
 def test_grid_atlas_lays_faces_out_without_overlap(blob3):
-    from neumesh_core.bake.texture import uv_pixels
+    from neumesh_core.bake.uv import uv_pixels
     from neumesh_core.field.paint_atlas import grid_atlas
     from neumesh_core.render.raster import raster_triangles
 

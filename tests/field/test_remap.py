@@ -1,6 +1,5 @@
 """A field carried onto another mesh through vertex ids (what topology edits in a modeller need):
 identity, subsets, duplicates, new vertices, and ids that must be rejected."""
-import copy
 
 import numpy as np
 import pytest

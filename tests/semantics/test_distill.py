@@ -7,7 +7,7 @@ import torch
 
 import neumesh_core as nm
 from neumesh_core.data.multipart import PART_NAMES
-from neumesh_core.semantics import DistillConfig, SelectConfig, distill_semantics, select_region
+from neumesh_core.semantics import DistillConfig, distill_semantics, select_region
 
 from .conftest import one_thread, part_clicks
 

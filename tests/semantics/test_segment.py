@@ -1,6 +1,5 @@
 """2D segmenters for selection: the weight-free feature segmenter and SAM (tiny random model; the
 weights lookup and its error)."""
-import numpy as np
 import pytest
 import torch
 

@@ -2,7 +2,6 @@
 growing fixed point, thresholds and the 3D-point variant."""
 import numpy as np
 import pytest
-import torch
 
 import neumesh_core as nm
 from neumesh_core.semantics import SelectConfig, SelectionContext, select_at_point, select_region
