@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import os
 
-from .common import Progress, _add_data_options, _add_device_option, _add_render_options, _device, _print_eval, _render_settings
+from .common import (Progress, _add_data_options, _add_device_option, _add_render_options, _device, _print_eval,
+                     _render_settings)
 
 
 def cmd_eval(args) -> int:

@@ -12,7 +12,7 @@ from .scaffold import add_scaffold_options
 
 
 def cmd_fit(args) -> int:
-    from ..reconstruct.poses import colmap_log
+    from ..reconstruct.colmap_run import colmap_log
 
     # pycolmap's own log lines stay hidden through every stage (poses, and any stage that calls it)
     with colmap_log(args.colmap_log):

@@ -21,7 +21,8 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..data.capture import Capture
-from .poses import PosesError, _is_cancelled, _pycolmap, _run_stage, colmap_log
+from .colmap_run import _is_cancelled, _run_stage, colmap_log, import_pycolmap
+from .poses import PosesError
 
 _CACHE_VERSION = 1
 
@@ -117,7 +118,7 @@ def triangulate_capture(capture: Capture, config: Optional[PointsConfig] = None,
         if progress is not None:
             progress(1.0)
         return pts
-    pycolmap = _pycolmap()
+    pycolmap = import_pycolmap()
     t0 = time.perf_counter()
     folder = os.path.commonpath([os.path.dirname(os.path.abspath(p)) for p in capture.image_paths])
     names = [os.path.relpath(os.path.abspath(p), folder) for p in capture.image_paths]

@@ -15,12 +15,10 @@ while it works unless ``PosesConfig.colmap_log``; errors still show (:func:`colm
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import shutil
 import tempfile
-import threading
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Callable, Optional
@@ -28,6 +26,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..errors import NeuMeshError
+from .colmap_run import _is_cancelled, _run_stage, colmap_log, import_pycolmap
 
 REPORT_NAME = "poses_report.json"
 _STAGES = ("extract", "match", "map")
@@ -91,70 +90,6 @@ class PosesReport:
         return d
 
 
-def _pycolmap():
-    try:
-        import pycolmap
-    except ImportError as exc:  # pragma: no cover - a declared dependency
-        raise PosesError("recovering poses needs pycolmap: pip install pycolmap") from exc
-    return pycolmap
-
-
-@contextlib.contextmanager
-def colmap_log(show: bool = False):
-    """Inside the block pycolmap logs (glog, from C++ to fd 2) only errors, or everything with ``show``;
-    the level before is restored after. glog's level is one for the whole process. Without pycolmap
-    installed there is nothing to hide."""
-    try:
-        import pycolmap
-    except ImportError:
-        yield
-        return
-    logging = pycolmap.logging
-    before = logging.minloglevel
-    logging.minloglevel = min(before, int(logging.INFO)) if show else max(before, int(logging.ERROR))
-    try:
-        yield
-    finally:
-        logging.minloglevel = before
-
-
-def _is_cancelled(token) -> bool:
-    v = token.is_cancelled
-    return bool(v() if callable(v) else v)
-
-
-def _run_stage(fn, token, report: Callable[[], Optional[bool]]):
-    """Run ``fn()`` in a helper thread; call ``report()`` here ~4x/s; False cancels through ``token``."""
-    from ..errors import Cancelled
-
-    box = {}
-
-    def work():
-        try:
-            box["out"] = fn()
-        except BaseException as exc:  # handed to the caller
-            box["exc"] = exc
-
-    t = threading.Thread(target=work, name="neumesh-poses", daemon=True)
-    t.start()
-    cancelled = False
-    try:
-        while t.is_alive():
-            t.join(0.25)
-            if not cancelled and report() is False:
-                token.cancel()
-                cancelled = True
-    except BaseException:  # Ctrl-C (or a failing callback): stop pycolmap before leaving
-        token.cancel()
-        t.join(30)
-        raise
-    if cancelled or _is_cancelled(token):
-        raise Cancelled("pose recovery cancelled; nothing usable was written")
-    if "exc" in box:
-        raise box["exc"]
-    return box.get("out")
-
-
 def _list_photos(images_dir: str) -> list:
     from ..data.capture import list_images
 
@@ -182,7 +117,7 @@ def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = N
 
 
 def _estimate_poses(images_dir: str, out_dir: str, cfg: PosesConfig, callback, sequential: bool) -> PosesReport:
-    pycolmap = _pycolmap()
+    pycolmap = import_pycolmap()
     if cfg.matcher not in ("auto", "exhaustive", "sequential"):
         raise ValueError(f"matcher must be 'auto', 'exhaustive' or 'sequential', got {cfg.matcher!r}")
     images_dir = os.path.abspath(os.fspath(images_dir))
@@ -338,7 +273,7 @@ def map_database(database: str, images_dir: str, out_dir: str, config: PosesConf
                  callback: Callable[[PosesProgress], Optional[bool]] | None = None) -> PosesReport:
     """Stage 3 alone: incremental mapping of a COLMAP database whose features and matches exist
     (e.g. made by COLMAP's GUI), written like :func:`estimate_poses` writes it."""
-    pycolmap = _pycolmap()
+    pycolmap = import_pycolmap()
     cfg = config or PosesConfig()
     with colmap_log(cfg.colmap_log):
         db = pycolmap.Database.open(database)
@@ -355,7 +290,7 @@ def map_database(database: str, images_dir: str, out_dir: str, config: PosesConf
 
 
 def _map(db: str, images_dir: str, out_dir: str, names: list, cfg: PosesConfig, run: _Run) -> PosesReport:
-    pycolmap = _pycolmap()
+    pycolmap = import_pycolmap()
     n = len(names)
     popt = pycolmap.IncrementalPipelineOptions()
     popt.num_threads = int(cfg.num_threads)
