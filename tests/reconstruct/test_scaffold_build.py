@@ -177,7 +177,7 @@ def test_missing_masks():
     s = _imageset(eyes, [(0, 0, 0)] * 8, masks=False)
     with pytest.raises(ScaffoldError, match="needs masks"):
         build_scaffold(s, ScaffoldConfig(method="hull"))
-    with pytest.raises(ScaffoldError, match="no masks and no bounding box"):
+    with pytest.raises(ScaffoldError, match="no masks and no object box"):
         build_scaffold(s, ScaffoldConfig(method="auto"))
     assert issubclass(ScaffoldError, DataError)
 
