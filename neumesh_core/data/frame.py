@@ -258,7 +258,8 @@ def find_object(c2w: np.ndarray, points: Optional[np.ndarray] = None, margin: fl
 
     1. The points within the median camera distance of the cameras' focus point (:func:`focus_point`).
     2. The support: the dominant plane of those points that has every camera on one side
-       (:func:`support_plane`), if there is one; the points more than ``clearance`` sigmas in front of
+       (:func:`support_plane`) and fewer points behind it than in front (else it is a face of the
+       object itself), if there is one; the points more than ``clearance`` sigmas in front of
        it are the candidates (without a support, all of them).
     3. The candidates clustered by their own density (DBSCAN); the object is the cluster the cameras
        look at (large and near the focus point) grown by the clusters and lone points next to it, so
@@ -290,6 +291,9 @@ def find_object(c2w: np.ndarray, points: Optional[np.ndarray] = None, margin: fl
     notes = []
     if plane is not None:
         h = plane.height(P[idx])
+        if (h < -clearance * plane.sigma).sum() > (h > clearance * plane.sigma).sum():
+            plane = None   # most points lie behind it: a face of the object (a box, a book), not its support
+    if plane is not None:
         cand_idx = idx[h > clearance * plane.sigma]
         notes.append(f"support plane (a wall or table: left to the background model) holds {plane.inliers} "
                      f"of {len(idx)} points near the focus, spread {plane.sigma:.3g}")
