@@ -1,4 +1,4 @@
-"""Background model of real captures (issue 49): frame and box, compositing, training without masks,
+"""Background model of real captures: frame and box, compositing, training without masks, no seam at the box,
 save/load.  The scene is the built-in blob in a textured room, rendered without masks."""
 import numpy as np
 import pytest
@@ -283,3 +283,59 @@ def test_plane_tv_is_the_mean_squared_neighbour_difference():
     bg.tv_loss().backward()
     assert float(bg.plane_params[1].grad[0, 0, 2, 2]) > 0     # the gradient pulls the texel back
     assert float(BackgroundModel([0, 0, 0], 1.0, resolution=4).tv_loss()) == 0.0   # dense grid: none
+
+
+def _seam_row(version, seed=0):
+    """The background alone along a row of rays that crosses the object box's outline: colours (N,3) and
+    the index of the first ray that misses the box."""
+    from neumesh_core.data.frame import ObjectBox
+
+    box = ObjectBox([0.0, 0.0, 0.0], [0.5, 0.5, 0.5])
+    torch.manual_seed(seed)   # the colour MLP's initial weights
+    bg = BackgroundModel(box.centre, 1.0, box, planes=(16, 32), samples=32, version=version)
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in bg.plane_params:   # a dense room of varied colour all around the box
+            p.copy_(torch.rand(p.shape, generator=gen) + 0.5)
+        for layer in (bg.density_mlp[-1], bg.mlp[-1], bg.mlp[0]):
+            layer.weight.mul_(3.0)
+    o = torch.tensor([[0.0, -3.0, 0.0]]).repeat(2001, 1)
+    x = torch.linspace(-0.3, 0.3, 2001)   # the box's outline seen from o lies at x = +-0.5 * 3 / 2.5 = 0.2
+    d = torch.nn.functional.normalize(torch.stack([x, torch.ones_like(x), torch.zeros_like(x)], 1), dim=-1)
+    with torch.no_grad():
+        rgb, op = bg(o, d)
+    t_in, t_out = bg._box_range(o, d)
+    misses = ~((t_in <= t_out) & (t_out > 0))
+    return rgb, op, int(torch.nonzero(misses & (x > 0))[0])
+
+
+def test_the_box_outline_leaves_no_seam_in_the_background():
+    rgb, op, edge = _seam_row(version=2)
+    assert torch.allclose(op, torch.ones_like(op))   # opaque: a photo has no holes
+    steps = (rgb[1:] - rgb[:-1]).abs().max(1).values
+    beside = torch.cat([steps[edge - 40:edge - 2], steps[edge + 1:edge + 40]]).max()
+    assert float(steps[edge - 1]) <= 3.0 * float(beside)   # the step across the outline is like those beside it
+    old, _, edge_v1 = _seam_row(version=1)   # the first version starts each ray at the box exit: a seam
+    steps_v1 = (old[1:] - old[:-1]).abs().max(1).values
+    beside_v1 = torch.cat([steps_v1[edge_v1 - 40:edge_v1 - 2], steps_v1[edge_v1 + 1:edge_v1 + 40]]).max()
+    assert float(steps_v1[edge_v1 - 1]) > 5.0 * float(beside_v1)
+
+
+def test_the_object_box_holds_nothing_of_the_room():
+    from neumesh_core.data.frame import ObjectBox
+
+    box = ObjectBox([0.0, 0.0, 0.0], [0.5, 0.5, 0.5])
+    bg = BackgroundModel(box.centre, 1.0, box, planes=(8,), samples=32, version=2)
+    with torch.no_grad():
+        for p in bg.plane_params:
+            p.fill_(2.0)
+        bg.density_mlp[-1].bias.fill_(5.0)   # dense everywhere
+    o = torch.zeros(6, 3)   # rays from the box's centre, cut where they leave the box
+    d = torch.tensor([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0.6, 0.6, 0.53]])
+    d = torch.nn.functional.normalize(d, dim=-1)
+    _, t_out = bg._box_range(o, d)
+    with torch.no_grad():
+        _, inside = bg(o, d, far=t_out - 1e-4)
+        _, beyond = bg(o, d, far=t_out + 0.3)
+    assert torch.allclose(inside, torch.zeros(6))
+    assert bool((beyond > 0.05).all())   # and the room right behind the box's faces is there
