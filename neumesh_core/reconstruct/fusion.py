@@ -35,13 +35,16 @@ class FusionConfig:
     """resolution: TSDF cells on the box's longest side. truncation: in cells. min_views: views that
     must observe a cell (surface, or free space through it) before it counts. surface_opacity /
     free_opacity: a pixel's grid opacity at least the first gives a surface depth, below the second
-    says its ray crossed the box empty (between them the pixel says nothing)."""
+    says its ray crossed the box empty (between them the pixel says nothing). max_slope: a pixel's depth
+    counts where the depths of its 3x3 neighbours differ by less than this many pixel footprints per
+    pixel (about 76 degrees from facing the camera; beyond: an outline or a grazing view)."""
 
     resolution: int = 256
     truncation: float = 3.0
     min_views: int = 3
     surface_opacity: float = 0.5
     free_opacity: float = 0.05
+    max_slope: float = 4.0
 
 
 @dataclass
@@ -79,6 +82,14 @@ def fuse_depths(depths: np.ndarray, opacities: np.ndarray, cameras: Cameras, lo,
     c2w = torch.as_tensor(cameras.c2w, dtype=torch.float32)
     dep = torch.as_tensor(depths, dtype=torch.float32).reshape(N, -1)
     opa = torch.as_tensor(opacities, dtype=torch.float32).reshape(N, -1)
+    # a pixel says "empty" only when its neighbours do too: a cell near the object's outline can
+    # project into a pixel whose centre ray just misses the object, and must not be carved from inside
+    opa_near = torch.nn.functional.max_pool2d(opa.reshape(N, 1, H, W), 3, stride=1, padding=1).reshape(N, -1)
+    # and its depth counts only where it is smooth: across an outline or at a grazing angle one pixel
+    # spans depths far apart, and the cells behind its centre ray would get the wrong side
+    finite = torch.where(torch.isfinite(dep), dep, torch.full_like(dep, 1e30)).reshape(N, 1, H, W)
+    spread = (torch.nn.functional.max_pool2d(finite, 3, stride=1, padding=1)
+              + torch.nn.functional.max_pool2d(-finite, 3, stride=1, padding=1)).reshape(N, -1)
     for v in range(N):
         R, t = c2w[v, :3, :3], c2w[v, :3, 3]
         xc = (X - t) @ R                                   # camera frame (OpenCV: +z forward)
@@ -87,11 +98,12 @@ def fuse_depths(depths: np.ndarray, opacities: np.ndarray, cameras: Cameras, lo,
         w_ = K[v, 1, 1] * xc[:, 1] / z.clamp_min(1e-9) + K[v, 1, 2]
         seen = (z > 1e-6) & (u >= 0) & (u < W) & (w_ >= 0) & (w_ < H)
         pix = (w_.clamp(0, H - 1).long() * W + u.clamp(0, W - 1).long())
-        d_pix, o_pix = dep[v, pix], opa[v, pix]
+        d_pix, o_pix, o_near = dep[v, pix], opa[v, pix], opa_near[v, pix]
+        smooth = spread[v, pix] < torch.clamp(2.0 * config.max_slope * d_pix / K[v, 0, 0], min=trunc)
         r = (X - t).norm(dim=-1)
         sdf = d_pix - r
-        surface = seen & (o_pix >= config.surface_opacity) & torch.isfinite(d_pix) & (sdf >= -trunc)
-        free = seen & (o_pix < config.free_opacity)
+        surface = seen & smooth & (o_pix >= config.surface_opacity) & torch.isfinite(d_pix) & (sdf >= -trunc)
+        free = seen & (o_near < config.free_opacity)
         total += torch.where(surface, (sdf / trunc).clamp(-1, 1), torch.zeros_like(sdf))
         total += free.float()
         weight += (surface | free).float()

@@ -26,7 +26,7 @@ def marching_cubes(values: np.ndarray, level: float, lo, voxel: float, mask: np.
         if not (mask.any() and v[mask].max() > level and v[mask].min() < level):
             return Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64))
         verts, faces, _, _ = _mc(v, level=level, spacing=(voxel, voxel, voxel), allow_degenerate=False,
-                                 mask=np.asarray(mask, bool))
+                                 mask=_cube_mask(mask))
         return Mesh((verts + np.asarray(lo, np.float32)[None]).astype(np.float32), faces.astype(np.int64))
     outside = np.float32(min(float(v.min()), level) - 1.0)
     v = np.pad(v, 1, mode="constant", constant_values=outside)
@@ -38,6 +38,16 @@ def marching_cubes(values: np.ndarray, level: float, lo, voxel: float, mask: np.
     if len(mesh.faces) and _signed_volume(mesh) < 0:
         mesh = Mesh(mesh.vertices, mesh.faces[:, ::-1].copy())
     return mesh
+
+
+def _cube_mask(mask: np.ndarray) -> np.ndarray:
+    """scikit-image's mask tests one node per cube (its last corner, the one at +1 on every axis): the
+    cubes whose eight nodes are all in ``mask``, marked at that corner."""
+    m = np.asarray(mask, bool)
+    out = np.zeros_like(m)
+    out[1:, 1:, 1:] = np.logical_and.reduce([m[i:m.shape[0] - 1 + i, j:m.shape[1] - 1 + j, k:m.shape[2] - 1 + k]
+                                             for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    return out
 
 
 def _signed_volume(mesh: Mesh) -> float:
