@@ -94,10 +94,11 @@ def add_commands(sub) -> None:
                        description="Build the scaffold (skipped when OUT/scaffold.ply exists), train the "
                                    "field (resumes OUT/field.neumesh), evaluate on 'val'. Progress per stage. "
                                    "Photos without masks (a phone capture: transforms.json or COLMAP): the "
-                                   "object box is found from what the cameras look at (or --box), the scaffold "
-                                   "is built inside it from the photos alone (photometric density grid fitted "
-                                   "by volume rendering in the box), and a background model learns the room "
-                                   "outside it; held-out every 8th photo, evaluated full frame.")
+                                   "object box is found from the sparse points of what the cameras look at, "
+                                   "its support (a wall, a table) left out (or --box); the scaffold is one "
+                                   "surface fused from the depths of a density grid fitted in the box with a "
+                                   "background model behind it, and the field's background model learns the "
+                                   "room outside the box; held-out every 8th photo, evaluated full frame.")
     _add_data_options(p, required=False)
     g = p.add_argument_group("photos without poses (instead of --data)")
     g.add_argument("--images", default=None, help="a folder of plain photos: poses are recovered first "

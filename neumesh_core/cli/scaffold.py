@@ -10,6 +10,7 @@ import sys
 import time
 
 from ..reconstruct.build import ScaffoldConfig
+from ..reconstruct.config import METHODS
 from .common import Progress
 
 
@@ -33,9 +34,11 @@ def _int_list(s: str) -> tuple:
 def add_scaffold_options(p: argparse.ArgumentParser) -> None:
     """Options shared by `scaffold` (and usable by `fit`)."""
     g = p.add_argument_group("scaffold")
-    g.add_argument("--method", choices=["auto", "hull", "hull+mvs", "hull+density", "density"], default="auto",
-                   help="auto (default): hull+mvs when the data has masks/alpha, photometric density fitting "
-                        "when it has none; hull: visual hull only (fastest, no concavities, needs masks); "
+    g.add_argument("--method", choices=list(METHODS), default="auto",
+                   help="auto (default): hull+mvs when the data has masks/alpha, fusion when it has none; "
+                        "fusion: a density grid fitted with a background model inside the object box, its "
+                        "per-view depths fused into one surface (photos without masks); "
+                        "hull: visual hull only (fastest, no concavities, needs masks); "
                         "hull+mvs: hull, then plane-sweep stereo carves concavities and one-sided depth "
                         "(textureless parts keep the hull); "
                         "hull+density: hull then a volume-rendered density grid (slower); density: "
@@ -94,7 +97,9 @@ def report_path_for(mesh_path: str) -> str:
 
 def run_scaffold(args) -> int:
     """Entry point of `neumesh scaffold` (args from the parser built by :func:`add_commands`)."""
+    from ..data.frame import parse_box
     from ..data.loader import load_scene
+    from ..fit import capture_box
     from ..mesh import save_mesh
     from ..reconstruct.build import build_scaffold
 
@@ -106,8 +111,10 @@ def run_scaffold(args) -> int:
     progress.say(f"  {len(tr)} training views {tr.cameras.width}x{tr.cameras.height}, "
                  f"masks: {'yes' if tr.masks is not None else 'no'} ({time.perf_counter() - t0:.1f}s)")
     verbose = getattr(args, "verbose", False)
+    box = capture_box(scene, parse_box(args.box) if getattr(args, "box", None) else None,
+                      log=lambda s: progress.say("  " + s))
     mesh, rep = build_scaffold(scene, config_from_args(args), progress=progress.scaffold,
-                               log=(lambda s: progress.say("  " + s)) if verbose else None)
+                               log=(lambda s: progress.say("  " + s)) if verbose else None, box=box)
     progress.end()
     rep.timings["load"] = time.perf_counter() - t0 - rep.timings.get("total", 0.0)
     save_mesh(mesh, args.out)
@@ -138,6 +145,9 @@ def add_commands(subparsers) -> None:
                    help="background colour Blender images are composited on")
     p.add_argument("--report", default=None,
                    help="JSON report path (default: <out without extension>.scaffold.json)")
+    p.add_argument("--box", default=None, metavar="CX,CY,CZ,SX,SY,SZ",
+                   help="object box: centre and half-sizes in world units (default: automatic for photos "
+                        "without masks, found from their sparse points, as `neumesh fit` does)")
     p.add_argument("--verbose", action="store_true", help="print details of every stage")
     add_scaffold_options(p)
     p.set_defaults(func=run_scaffold)

@@ -266,7 +266,8 @@ def find_object(c2w: np.ndarray, points: Optional[np.ndarray] = None, margin: fl
        thin parts split off by the features (ear tips, handles, spouts) belong to it: no percentile cut.
     4. The box: along the support's normal (else the cameras' up) and the object's principal
        directions about it, the object points' full extent plus ``margin`` of it on each side (at
-       least two clustering radii, up to ``margin`` of the largest extent), its face towards the support ``clearance`` sigmas in front of it.
+       least two clustering radii, up to ``margin`` of the largest extent), its face towards the
+       support ``clearance`` sigmas in front of it.
 
     Without enough points (fewer than ``min_points`` near the focus): a cube of half-size 0.3 x the
     median camera distance around the focus point, said in ``notes``."""
