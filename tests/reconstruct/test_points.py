@@ -106,3 +106,28 @@ def test_capture_points_prefers_the_captures_own_points(tmp_path):
     own = np.random.default_rng(0).uniform(-1, 1, (50, 3)).astype(np.float32)
     capture.points = own
     np.testing.assert_array_equal(capture_points(capture), own)
+
+
+def test_the_scaffold_command_finds_the_box_of_photos_without_masks(tmp_path, capsys, monkeypatch):
+    """`neumesh scaffold` on photos without masks builds inside the box `neumesh fit` finds (the
+    fused scaffold itself: test_fusion.py)."""
+    import neumesh_core.reconstruct.build as build
+    from neumesh_core.cli import main
+
+    class Built(Exception):
+        pass
+
+    def build_scaffold(scene, config, progress=None, log=None, box=None):
+        raise Built(scene, config, box)
+
+    monkeypatch.setattr(build, "build_scaffold", build_scaffold)
+    root = str(tmp_path / "capture")
+    _write_transforms(root)
+    with pytest.raises(Built) as built:
+        main(["scaffold", "--data", root, "--out", str(tmp_path / "scaffold.ply"), "--downscale", "2"])
+    scene, config, box = built.value.args
+    assert config.method == "auto" and box is not None
+    assert box.source.startswith("the sparse points of the object")
+    np.testing.assert_allclose(scene.bbox, box.aabb())   # the scaffold is bounded by the box
+    assert np.all(box.half_extents < 2.0) and np.linalg.norm(box.centre) < 1.0   # the cube, not the room
+    assert "object box (automatic, from the sparse points of the object" in capsys.readouterr().err
