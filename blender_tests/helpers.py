@@ -228,9 +228,9 @@ def combine_expected(cyc, zc, fld, zf):
 
 
 class Recorder:
-    """A stand-in for a panel's ``layout``: records every label's text and every operator's idname
-    (rows, columns, boxes and splits record into the same lists), so a test can read what a panel
-    draws without a window.  ``draw_panel(cls, context)`` runs ``cls.draw`` on one."""
+    """A stand-in for a panel's ``layout``: records every label's text, every operator's idname and the
+    context pointers set (rows, columns, boxes and splits record into the same lists), so a test can
+    read what a panel draws without a window.  ``draw_panel(cls, context)`` runs ``cls.draw`` on one."""
 
     def __init__(self, labels=None, operators=None):
         self.labels = [] if labels is None else labels
@@ -241,9 +241,15 @@ class Recorder:
         self.active = True
         self.use_property_split = False
         self.use_property_decorate = False
+        self.pointers = {}
 
     def _child(self, *a, **k):
-        return Recorder(self.labels, self.operators)
+        child = Recorder(self.labels, self.operators)
+        child.pointers = self.pointers
+        return child
+
+    def context_pointer_set(self, name, value):
+        self.pointers[name] = value
 
     column = row = box = split = column_flow = grid_flow = _child
 
@@ -265,11 +271,12 @@ class Recorder:
         return " ".join(self.labels)
 
 
-def draw_panel(cls, context):
-    """(labels, operator idnames) that panel class ``cls`` draws in ``context``."""
+def draw_panel(cls, context, rec=None):
+    """(labels, operator idnames) that panel class ``cls`` draws in ``context`` (into ``rec``, a
+    :class:`Recorder`, when given: its ``pointers`` are the context pointers the panel set)."""
     import types
 
-    rec = Recorder()
+    rec = Recorder() if rec is None else rec
 
     class _Panel:   # the panel's methods bound to a stand-in with a recording layout
         layout = rec

@@ -6,8 +6,10 @@ test_real_blender_ui.py in two steps:
    deform*, makes the handle Empty the only selected, active object and saves OUT_DIR/arap_ui.blend.
 2. ``blender OUT_DIR/arap_ui.blend --enable-event-simulate --python real_blender_arap_ui.py -- gui OUT``:
    over the 3D View, real key presses: G, a mouse move, a click (the Empty moves; the viewport path
-   solves in the drag thread and a timer writes the shape key), then Ctrl+Z (the move is undone and the
-   bar goes back). Prints NEUMESH_FACTS with the handle and anchor displacements after each step.
+   solves in the drag thread and a timer writes the shape key), then Ctrl+Z (the move is undone: the
+   Empty and the 'NeuMesh ARAP' shape key exactly as before the drag), then Ctrl+Shift+Z (the move is
+   back, the shape key solved for it). Prints NEUMESH_FACTS with the handle and anchor displacements
+   after each step and the shape key's difference from before the drag.
 """
 import os
 import sys
@@ -57,6 +59,24 @@ def _displacements():
     return float(d[R[:, 0] > 0.6].min()), float(d[R[:, 0] < -0.6].max())
 
 
+def _live_key():
+    """(N,3) the 'NeuMesh ARAP' shape key as the mesh holds it."""
+    import numpy as np
+
+    kb = bpy.data.objects["bar"].data.shape_keys.key_blocks[addon_module().edit.arap.LIVE_KEY]
+    arr = np.empty(len(kb.data) * 3, np.float32)
+    kb.data.foreach_get("co", arr)
+    return arr.reshape(-1, 3)
+
+
+def _residue(a, b):
+    """(vertices that differ, largest displacement) between two (N,3) shape keys."""
+    import numpy as np
+
+    d = np.linalg.norm(a.astype(np.float64) - b, axis=1)
+    return int((d > 0).sum()), float(d.max())
+
+
 class Driver:
     def __init__(self):
         self.state, self.t = "start", time.time()
@@ -79,6 +99,7 @@ class Driver:
             self.out["errors"].append(f"timed out in {self.state}")
             return self.finish()
         if self.state == "start":
+            self.key_before = _live_key()
             win.event_simulate(type="MOUSEMOVE", value="NOTHING", x=cx, y=cy)
             win.event_simulate(type="G", value="PRESS", x=cx, y=cy)
             win.event_simulate(type="G", value="RELEASE", x=cx, y=cy)
@@ -100,6 +121,8 @@ class Driver:
             arap.wait_for_drags()
             self.out["timings_after_move"] = dict(arap.TIMINGS.get("bar", {}))
             self.out["moved"] = _displacements()
+            self.key_moved = _live_key()
+            self.out["key_moved"] = _residue(self.key_moved, self.key_before)
             self.out["empty_moved"] = list(bpy.data.objects[ARGS_EMPTY].matrix_world.translation)
             win.event_simulate(type="Z", value="PRESS", ctrl=True, x=cx, y=cy)
             win.event_simulate(type="Z", value="RELEASE", ctrl=True, x=cx, y=cy)
@@ -108,7 +131,22 @@ class Driver:
         if self.state == "undone":
             arap.wait_for_drags()
             self.out["undone"] = _displacements()
+            self.out["key_residue"] = _residue(_live_key(), self.key_before)
+            self.out["mode_after_undo"] = arap.TIMINGS.get("bar", {}).get("mode")
             self.out["empty_undone"] = list(bpy.data.objects[ARGS_EMPTY].matrix_world.translation)
+            win.event_simulate(type="Z", value="PRESS", ctrl=True, shift=True, x=cx, y=cy)
+            win.event_simulate(type="Z", value="RELEASE", ctrl=True, shift=True, x=cx, y=cy)
+            self.state = "redone"
+            return 2.0
+        if self.state == "redone":
+            arap.wait_for_drags()
+            self.out["redone"] = _displacements()
+            self.out["redone_key_vs_moved"] = _residue(_live_key(), self.key_moved)
+            self.out["empty_redone"] = list(bpy.data.objects[ARGS_EMPTY].matrix_world.translation)
+            obj = bpy.data.objects["bar"]
+            s = obj.neumesh_arap
+            moved = arap.handle_transforms(obj, s).round(7).tobytes()
+            self.out["redone_key_solved_for_empty"] = obj.data.shape_keys.get(arap.SOLVED_FOR) == arap._digest(moved)
             return self.finish()
         return None
 

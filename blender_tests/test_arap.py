@@ -199,3 +199,88 @@ def test_drag_solves_in_a_thread_on_the_preview_cage(addon):
     assert 0.02 < (W[middle, 2] - V[middle, 2]).mean() < 0.18
     t = arap.TIMINGS[obj.name_full]
     assert t["mode"] == "drag" and t["cage"] and t["move_to_preview_s"] >= t["solve_s"] > 0
+
+
+def _live(obj):
+    kb = obj.data.shape_keys.key_blocks["NeuMesh ARAP"]
+    arr = np.empty(len(kb.data) * 3, np.float32)
+    kb.data.foreach_get("co", arr)
+    return arr.reshape(-1, 3)
+
+
+def test_undo_drops_a_late_drag_solve_and_gives_back_the_shape_from_before_the_drag_exactly(addon):
+    """What Ctrl+Z does to a drag (test_real_blender_ui.py presses the keys): a drag solve that ends
+    after the undo began writes nothing; after the undo the key, which still holds the dragged shape
+    (Blender's undo step was pushed before the drag's solve arrived, and keeps the key as it is),
+    gets the shape shown before the drag back exactly, and a redo the dragged one."""
+    import mathutils
+
+    obj, V, anchors, handles = _bar(addon)
+    bpy.ops.neumesh.arap_add()
+    e = _empty(obj)
+    arap, undo = addon.edit.arap, addon.edit.arap_undo
+    before = _live(obj)
+    rest = e.matrix_world.copy()
+    e.matrix_world = mathutils.Matrix.Translation((0, 0, 0.3)) @ rest
+    assert arap.drag(obj) is True
+    arap.wait_for_drags()
+    dragged = _live(obj)
+    assert np.abs(dragged - before).max() > 0.25
+    e.matrix_world = mathutils.Matrix.Translation((0, 0, 0.5)) @ rest   # a move still solving ...
+    assert arap.drag(obj) is True
+    undo.on_undo_pre()                                                   # ... when Ctrl+Z begins
+    e.matrix_world = rest                  # the undo puts the Empty back; the key stays as in memory
+    arap.wait_for_drags()
+    np.testing.assert_array_equal(_live(obj), dragged)                   # the late solve wrote nothing
+    undo.on_undo_post()
+    np.testing.assert_array_equal(_live(obj), before)
+    assert arap.drag(obj) is False                                       # counted as solved
+    undo.on_undo_pre()                                                   # Ctrl+Shift+Z
+    e.matrix_world = mathutils.Matrix.Translation((0, 0, 0.3)) @ rest
+    undo.on_undo_post()
+    np.testing.assert_array_equal(_live(obj), dragged)
+    # Empties at transforms never shown (no shape kept for them): solved again from rest
+    e.matrix_world = mathutils.Matrix.Translation((0, 0, 0.2)) @ rest
+    undo.on_undo_pre()
+    undo.on_undo_post()
+    W = _live(obj)
+    np.testing.assert_allclose(W[handles], V[handles] + [0, 0, 0.2], atol=1e-4)
+    np.testing.assert_allclose(W[anchors], V[anchors], atol=1e-5)
+
+
+def test_the_edit_field_panels_follow_the_handle_empty_to_the_object_it_deforms(addon, trained_field, tmp_path):
+    """Selecting the handle Empty (to move it with G, as the docs say) keeps the Edit field panels on
+    the field object the Empty deforms: the ARAP panel with its buttons, which act on that object;
+    an Empty that is no handle shows 'Select an object with a field' as before."""
+    import shutil
+
+    from helpers import Recorder, draw_panel
+
+    path = str(tmp_path / "blob.neumesh")
+    shutil.copy(trained_field, path)
+    assert bpy.ops.neumesh.load_field(filepath=path, new_object=True) == {"FINISHED"}
+    obj = bpy.context.active_object
+    V = np.array([tuple(v.co) for v in obj.data.vertices])
+    _group(obj, "Anchor", np.nonzero(V[:, 2] < -0.4)[0])
+    _group(obj, "Handle", np.nonzero(V[:, 2] > 0.4)[0])
+    assert bpy.ops.neumesh.arap_add() == {"FINISHED"}
+    e = _empty(obj)
+    obj.select_set(False)
+    e.select_set(True)
+    bpy.context.view_layer.objects.active = e
+    assert addon.edit.base.shown_object(e) == obj
+    labels, ops = draw_panel(bpy.types.NEUMESH_PT_edit, bpy.context)
+    assert not any("Select an object" in t for t in labels)
+    assert any(f"'{obj.name}'" in t and "handle" in t for t in labels), labels
+    rec = Recorder()
+    labels, ops = draw_panel(bpy.types.NEUMESH_PT_arap, bpy.context, rec)
+    assert {"neumesh.arap_refresh", "neumesh.arap_remove", "neumesh.arap_apply"} <= set(ops)
+    assert not any("Select an object" in t for t in labels)
+    assert rec.pointers == {"active_object": obj}              # the buttons act on the field object
+    assert bpy.ops.neumesh.arap_refresh() == {"FINISHED"}     # with the Empty active
+    assert obj.neumesh_arap.enabled and _empty(obj).name == e.name
+    other = bpy.data.objects.new("plain empty", None)
+    bpy.context.scene.collection.objects.link(other)
+    bpy.context.view_layer.objects.active = other
+    labels, _ops = draw_panel(bpy.types.NEUMESH_PT_arap, bpy.context)
+    assert any("Select an object with a field" in t for t in labels)

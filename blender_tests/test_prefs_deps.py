@@ -111,3 +111,42 @@ def test_core_unavailable_message_says_what_to_do(addon, monkeypatch):
     monkeypatch.setattr(addon.runtime.core, "_nm", None)
     with pytest.raises(addon.runtime.core.CoreUnavailable, match="Install dependencies"):
         addon.runtime.core.get()
+
+
+def test_the_measured_matrix_multiply_rate_is_judged_against_the_docs_machine(addon):
+    """Check dependencies' GFLOP/s figure says what it means: about the 2-core machine of
+    docs/benchmarks.md (180 GFLOP/s) or faster is fast; a few times below it, renders and training that
+    much slower; far below it (13 GFLOP/s on a loaded machine), slow, with what to do."""
+    prefs = addon.runtime.prefs
+
+    def message(gflops):
+        return prefs.speed_message({"own": True, "gflops": gflops, "rebind": {}, "sgemm": "", "remedy": ""})
+
+    fast, moderate, slow = message(300.0), message(60.0), message(13.0)
+    assert fast.startswith("matrix multiply 300 GFLOP/s with torch's own BLAS: fast")
+    assert "moderate: 3x below the 180 GFLOP/s" in moderate and "~2 s instead of ~0.7 s" in moderate
+    assert slow.startswith("matrix multiply 13 GFLOP/s with torch's own BLAS: slow: 14x below")
+    assert "up to ~10 s" in slow and "CPU threads" in slow and "CUDA" in slow
+    assert [prefs.speed_level(g) for g in (None, 13.0, 60.0, 300.0)] == ["", "slow", "moderate", "fast"]
+    assert "(rebound from" not in slow and message(None) == "matrix multiply with torch's own BLAS"
+
+
+def test_existing_environment_marks_the_preferences_unsaved_and_a_background_run_saves_nothing(addon, tmp_path):
+    """Setting Existing environment marks the preferences unsaved (so Blender's auto-save, or the
+    add-on at once, keeps it); in a background run (bpy, `blender -b`) the add-on writes nothing."""
+    persist = addon.runtime.persist
+    p = addon.runtime.prefs.get_prefs()
+    saved = os.path.join(bpy.utils.resource_path("USER"), "config", "userpref.blend")
+
+    def stamp():
+        return os.stat(saved).st_mtime_ns if os.path.exists(saved) else None
+
+    before = stamp()
+    bpy.context.preferences.is_dirty = False
+    p.env_path = str(tmp_path)
+    try:
+        assert bpy.context.preferences.is_dirty
+        assert persist.persist() == "skipped" and persist.unsaved_note() == ""
+        assert stamp() == before
+    finally:
+        p.env_path = ""

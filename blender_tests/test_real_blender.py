@@ -333,3 +333,48 @@ def test_real_blender_arap_deform_renders_keyed_handle(addon_zip, trained_field,
     f1 = np.asarray(Image.open(out / "arap_0001.png").convert("RGB"), np.float32) / 255
     f2 = np.asarray(Image.open(out / "arap_0002.png").convert("RGB"), np.float32) / 255
     assert f1.std() > 0.02 and np.abs(f1 - f2).max() > 0.2
+
+
+@pytest.mark.parametrize("auto_save", [True, False], ids=["auto_save", "manual_save"])
+def test_batch_render_right_after_the_install_steps_with_the_window_still_open(addon_zip, trained_field, tmp_path,
+                                                                                auto_save):
+    """README steps 1-2 in a real window (Install…, the tick, Existing environment) with the artist's
+    own preferences, then `blender -b file.blend -E NEUMESH -o OUT -f 1` while that Blender is still
+    open: with Auto-Save Preferences on (Blender's default) the add-on saved them at once and the
+    frame renders (torch from the saved Existing environment); with it off nothing is saved behind
+    the artist's back, the preferences say that they must be saved, and the batch render has no
+    NeuMesh engine."""
+    import shutil as _shutil
+
+    if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
+        pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
+    xvfb = _shutil.which("xvfb-run")
+    if xvfb is None:
+        pytest.skip("no xvfb-run (apt-get install xvfb); run scripts/setup_blender.sh")
+    scene_dir = tmp_path / "scene"
+    _run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_scene.py"),
+          "--", addon_zip, trained_field, str(scene_dir)], _env(tmp_path / "setup"))
+    env = _env(tmp_path / "artist")          # a new user: nothing installed, nothing saved
+    env.pop("NEUMESH_PYTHONPATH")
+    out = tmp_path / "out"
+    r = subprocess.run([xvfb, "-a", "-s", "-screen 0 1280x900x24", BLENDER, "--python",
+                        os.path.join(HERE, "real_blender_prefs.py"), "--", addon_zip, TORCH_DIR,
+                        str(scene_dir / "scene.blend"), str(out)] + ([] if auto_save else ["manual"]),
+                       env=env, capture_output=True, text=True, timeout=400)
+    log = r.stdout + r.stderr
+    lines = [l for l in r.stdout.splitlines() if l.startswith("NEUMESH_FACTS ")]
+    assert lines, log[-4000:]
+    f = json.loads(lines[-1][14:])
+    assert f["errors"] == [] and f["install"] == ["FINISHED"] and f["enable"] == ["FINISHED"], f
+    if auto_save:
+        assert f["enabled"] == ["saved", False] and f["env_path"] == ["saved", False] and f["note"] == "", f
+        assert f["batch_rc"] == 0 and "not available" not in f["batch_log"], f["batch_log"]
+        assert f["frames"] == ["frame_0001.png"], f
+        from PIL import Image
+
+        img = np.asarray(Image.open(out / "frame_0001.png").convert("RGB"), np.float32) / 255
+        assert img.shape == (40, 48, 3) and img.std() > 0.02   # the field is in the picture
+    else:
+        assert f["enabled"] == ["manual", True] and f["env_path"] == ["manual", True], f
+        assert "Save Preferences" in f["note"], f
+        assert "engine not found 'NEUMESH'" in f["batch_log"] and f["frames"] == [], f["batch_log"]

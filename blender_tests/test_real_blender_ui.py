@@ -144,8 +144,9 @@ def test_poses_esc_and_import_undo_in_a_real_window(addon_zip, tmp_path):
 
 
 def test_arap_drag_and_undo_with_real_key_presses(addon_zip, tmp_path):
-    """Issue 52.1: G + mouse + click moves the handle Empty in a real window, the viewport path (drag
-    thread, timer) bends the bar, anchors stay; Ctrl+Z puts the Empty and the bar back."""
+    """G + mouse + click moves the handle Empty in a real window, the viewport path (drag thread,
+    timer) bends the bar, anchors stay; Ctrl+Z puts the Empty back and the 'NeuMesh ARAP' shape key
+    exactly as it was before the drag (no vertex left moved), Ctrl+Shift+Z the dragged shape."""
     if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
         pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
     env = _env(tmp_path)
@@ -161,12 +162,16 @@ def test_arap_drag_and_undo_with_real_key_presses(addon_zip, tmp_path):
     log = r.stdout + r.stderr
     f = _facts(r.stdout)
     assert r.returncode == 0 and f["errors"] == [], log[-4000:]
+    print("arap facts:", f)
     assert "NeuMesh ARAP" not in log, log[-4000:]
     handle_min, anchor_max = f["moved"]
     assert handle_min > 0.05 and anchor_max < 1e-4, f
     assert f["timings_after_move"]["mode"] == "drag"
     handle_back, anchor_back = f["undone"]
     assert handle_back < 1e-3 and anchor_back < 1e-4, f
+    assert f["key_moved"][0] > 20 and f["key_residue"] == [0, 0.0], f     # (vertices moved, largest move)
+    assert f["redone"][0] > 0.05 and f["redone_key_vs_moved"] == [0, 0.0], f
+    assert f["redone_key_solved_for_empty"], f
 
 
 def test_paint_on_view_opens_its_image_editor_inside_the_main_window(addon_zip, trained_field, tiny_dataset,

@@ -2,16 +2,20 @@
 an ordinary image on the UV map "NeuMesh Paint"; pixels written through ``image.pixels`` reach the
 field the viewport renders (the rendered colour at the painted texel changes, nothing far from it
 does), Blender's undo of the pixels is followed, Save paint writes the field with the paint (a new
-file; the core loads the same paint), and a mesh that is not the field's scaffold is refused."""
+file; the core loads the same paint), F12 of a painted field equals the core's render of the saved
+file also when the stroke was pushed while a render was sampling the atlas, and a mesh that is not
+the field's scaffold is refused."""
 from __future__ import annotations
 
+import importlib
 import shutil
+import threading
 
 import bpy
 import numpy as np
 import pytest
 
-from helpers import add_camera, manual_K_c2w
+from helpers import add_camera, exact_colour_settings, f12_srgb, manual_K_c2w
 
 W, H = 48, 40
 GREEN = (0.05, 0.9, 0.1)
@@ -120,6 +124,63 @@ def test_texture_paint_pixels_reach_the_rendered_field_undo_and_save(addon, trai
     np.testing.assert_allclose(saved.paint_atlas.image.numpy(), px.reshape(h, w, 4)[::-1], atol=0.5 / 255 + 1e-6)
     np.testing.assert_allclose(_render(saved, cam)[0].rgb, after.rgb, atol=2 / 255)
     assert bpy.ops.neumesh.save_paint() == {"CANCELLED"}          # nothing new: nothing written
+
+
+def test_f12_of_a_stroke_pushed_during_a_render_equals_the_core_render_of_the_saved_file(addon, trained_field,
+                                                                                       tmp_path, monkeypatch):
+    """A stroke is pushed into the field while the viewport's render builds the atlas's sampled copy
+    (held there after the colours were read, as on a big atlas where the build takes seconds); after
+    Save paint, F12 equals the core's render of the saved file within 1/255, and the stroke renders
+    in the brush's colour, not black."""
+    import neumesh_core as nm
+
+    tp, fields, frame = addon.edit.texture_paint, addon.render.fields, addon.render.frame
+    obj, cam, path = _scene(trained_field, tmp_path)
+    scene = bpy.context.scene
+    scene.camera = cam
+    exact_colour_settings(scene, W, H)
+    assert bpy.ops.neumesh.texture_paint(resolution=512) == {"FINISHED"}
+    img = tp.paint_image(obj)
+    field = fields.get_field(obj.name_full, path)
+    before, K, c2w = _render(field, cam)
+    solid = before.opacity > 0.9 * before.opacity.max()
+    y = int(np.median(np.nonzero(solid)[0]))
+    xs = np.nonzero(solid[y])[0][2:-2:3]                       # a band across the object
+    band = [_texel_under(field, K, c2w, before, y, int(x)) for x in xs]
+    assert len(band) >= 3
+    field.paint_atlas.changed()             # no sampled copy yet, as on an atlas just made
+    cyan = (0.0, 1.0, 1.0)
+    copy_mod = importlib.import_module(addon.runtime.core.get().__name__ + ".field.paint_copy")
+    plain, read_colour, pushed = copy_mod.premultiply, threading.Event(), threading.Event()
+
+    def held(rows):                          # the render's build, held after reading the colours
+        if rows.ndim == 3:
+            rgb = rows[..., :3] * rows[..., 3:]
+            read_colour.set()
+            pushed.wait(60)
+            return np.concatenate([rgb, rows[..., 3:]], -1).astype(np.float16)
+        return plain(rows)
+
+    monkeypatch.setattr(copy_mod, "premultiply", held)
+    items = fields.collect(bpy.context.evaluated_depsgraph_get(), for_render=False)
+    render = threading.Thread(target=frame.render_items, args=(items, K, c2w, W, H))
+    render.start()
+    assert read_colour.wait(60)
+    for row, col in band:                    # the stroke, pushed piece by piece as the watcher does
+        _write_block(img, row, col, 2, (*cyan, 1.0))
+        assert tp.sync_object(obj) > 0
+    pushed.set()
+    render.join(120)
+    assert not render.is_alive()
+    monkeypatch.setattr(copy_mod, "premultiply", plain)
+    assert bpy.ops.neumesh.save_paint() == {"FINISHED"}
+    saved = addon.scene.props.field_abspath(obj)
+    assert saved != path
+    f12 = f12_srgb(tmp_path / "f12.exr")
+    core = nm.render_camera(nm.load_field(saved), K, c2w, W, H)
+    assert np.abs(f12 - core.rgb).max() <= 1 / 255
+    a = before.opacity[y, xs][:, None]
+    assert np.abs(f12[y, xs] - (a * np.array(cyan) + (1 - a))).max() < 0.05   # cyan over white
 
 
 def test_texture_paint_refuses_a_mesh_that_is_not_the_scaffold(addon, trained_field, tmp_path):

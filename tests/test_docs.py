@@ -275,3 +275,28 @@ def test_the_age_rule_sees_the_history(tmp_path, monkeypatch):
     assert recorded_commit("new.json") is None and commits_behind("new.json") == 0
     assert STALE_MARK not in "".join(r.values[2] for r in README_ROWS)   # the mark never hides in a value
     assert set(STALE) <= set(HEADLINE_CODE)
+
+
+RENDER_ARGS = ("-f", "-a", "--render-frame", "--render-anim")
+OUTPUT_ARGS = ("-o", "-E", "-F", "--render-output", "--engine", "--render-format")
+
+
+def late_output_args(command: str) -> list:
+    """The output options (-o, -E, -F) a `blender` command line gives after it renders (-f, -a):
+    Blender reads its arguments in order, so they do not apply to that render."""
+    toks = command.split()
+    at = next((i for i, t in enumerate(toks) if t in RENDER_ARGS), None)
+    return [] if at is None else [t for t in toks[at:] if t in OUTPUT_ARGS]
+
+
+def test_blender_commands_in_the_docs_name_the_output_before_the_render():
+    assert late_output_args("blender -b f.blend -E NEUMESH -f 1 -o //out/####") == ["-o"]
+    assert late_output_args("blender -b f.blend -a -E NEUMESH") == ["-E"]
+    assert late_output_args("blender -b f.blend -E NEUMESH -o //out/#### -f 1") == []
+    bad = []
+    for doc in DOCS:
+        for n, line in enumerate(_read(doc).splitlines(), 1):
+            for command in re.findall(r"\bblender\s+-[^`\n]*", line):
+                if late_output_args(command):
+                    bad.append(f"{doc}:{n}: {command.strip()}")
+    assert not bad, "put -o/-E/-F before -f/-a (Blender reads its arguments in order):\n" + "\n".join(bad)

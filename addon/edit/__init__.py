@@ -2,7 +2,7 @@
 the shared plumbing, Undo edit and Revert (base), texture swap and fill (swap_fill), the swap's
 alignment preview (swap_preview), paint (paint; Blender's Texture Paint on the paint atlas: texture_paint, its image -> field sync: paint_sync), semantics (distil, select, semantic_colours; the
 panel: semantics), bake to material (bake), ARAP deform with handle Empties (arap: solves, drag
-thread, handlers; arap_ops: operators and panel).
+thread, handlers; arap_undo: undo and redo; arap_ops: operators and panel).
 Imports runtime, scene and render."""
 from __future__ import annotations
 

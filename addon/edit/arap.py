@@ -16,13 +16,16 @@ is cached per object and rebuilt when the groups, the Basis or the resolution ch
 the vertex groups).  *Apply as shape key* bakes the current pose into a shape key "ARAP pose" and removes
 the live setup, like a modifier's *Apply as shape key*.  In the viewport a drag's solve runs in a
 thread per object (the newest Empty transforms win; a timer writes the result), so the interface stays
-live while a big scaffold solves; scripts and renders (``bpy.app.background``) solve in place.  The
-operators, settings and panel are in :mod:`.arap_ops`.
+live while a big scaffold solves; scripts and renders (``bpy.app.background``) solve in place.
+Undo and redo restore the Empties and the live shape key together, exactly (:mod:`.arap_undo`: each
+write records the Empties' transforms it was solved for, and the shapes shown before drags are
+kept).  The operators, settings and panel are in :mod:`.arap_ops`.
 """
 from __future__ import annotations
 
 import threading
 import time
+from collections import OrderedDict
 
 import bpy
 from bpy.app.handlers import persistent
@@ -34,9 +37,13 @@ from ..scene import sync
 
 LIVE_KEY = "NeuMesh ARAP"
 APPLIED_KEY = "ARAP pose"
+SOLVED_FOR = "neumesh_arap_solved_for"   # on the shape keys' ID: digest of the Empties' transforms
 
-_SOLVERS: dict = {}   # object name -> {"key": cache key, "preview"/"full": ArapSolver, "last": transforms}
+_SOLVERS: dict = {}   # object name -> {"key": cache key, "preview"/"full": ArapSolver, "last": transforms,
+#                                         "stale": solvers whose warm start an undo made wrong}
 TIMINGS: dict = {}    # object name -> last solve's figures (setup_s, solve_s, write_s, mode)
+_SHAPES: dict = {}    # object name -> OrderedDict(transforms digest -> (N,3) shape shown for them)
+KEEP_SHAPES = 8       # shapes kept per object (undo/redo steps back to a shape shown before)
 
 
 # ------------------------------------------------------------------------------------------ state
@@ -134,14 +141,47 @@ def handle_transforms(obj, s, depsgraph=None) -> np.ndarray:
     return np.stack(out)
 
 
-def _write_live(obj, V: np.ndarray) -> None:
+def _digest(moved: bytes) -> str:
+    import hashlib
+
+    return hashlib.sha1(moved).hexdigest()
+
+
+def _write_live(obj, V: np.ndarray, moved: bytes) -> None:
+    """The live shape key := ``V``, solved for the Empties' transforms ``moved``."""
     keys = obj.data.shape_keys
     kb = keys.key_blocks.get(LIVE_KEY) if keys else None
     if kb is None:
         kb = obj.shape_key_add(name=LIVE_KEY, from_mix=False)
         kb.value = 1.0
     kb.data.foreach_set("co", np.ascontiguousarray(V, np.float32).ravel())
+    keys = obj.data.shape_keys
+    keys[SOLVED_FOR] = _digest(moved)
     obj.data.update()
+
+
+def _shown(obj):
+    """(transforms digest, (N,3) shape) the live key shows now, or None."""
+    keys = obj.data.shape_keys
+    kb = keys.key_blocks.get(LIVE_KEY) if keys else None
+    if kb is None or keys.get(SOLVED_FOR) is None:
+        return None
+    arr = np.empty(len(kb.data) * 3, np.float32)
+    kb.data.foreach_get("co", arr)
+    return str(keys[SOLVED_FOR]), arr.reshape(-1, 3)
+
+
+def _remember(obj) -> None:
+    """Keep the shape the live key shows now, so that an undo or redo back to its Empties' transforms
+    shows it again exactly (the last KEEP_SHAPES per object)."""
+    got = _shown(obj)
+    if got is None:
+        return
+    shapes = _SHAPES.setdefault(obj.name_full, OrderedDict())
+    shapes[got[0]] = got[1]
+    shapes.move_to_end(got[0])
+    while len(shapes) > KEEP_SHAPES:
+        shapes.popitem(last=False)
 
 
 def _unchanged(ent, moved, from_rest) -> bool:
@@ -162,10 +202,10 @@ def solve(obj, depsgraph=None, from_rest: bool = False, force: bool = False):
     if not force and _unchanged(ent, moved, from_rest):
         return None
     with ent["lock"]:
-        solver = ent.get(which) or _factorise(obj.name_full, ent, which)
+        solver = _ready(obj.name_full, ent, which)
         res = _solve_with(solver, M, s.frame_iterations if from_rest else s.iterations, from_rest)
     t1 = time.perf_counter()
-    _write_live(obj, res.vertices)
+    _write_live(obj, res.vertices, moved)
     ent["last"] = (moved, from_rest)
     TIMINGS.setdefault(obj.name_full, {}).update(
         mode="frame" if from_rest else "drag", solve_s=t1 - t0, write_s=time.perf_counter() - t1,
@@ -183,10 +223,21 @@ def start(obj, depsgraph=None):
         return solve(obj, depsgraph, from_rest=True, force=True)
     rest = _rest(obj)
     ent, _solver, _which = _entry(obj, s, rest, full=True, build=False)
-    _write_live(obj, rest)
-    ent["last"] = (M.round(7).tobytes(), True)
+    moved = M.round(7).tobytes()
+    _write_live(obj, rest, moved)
+    ent["last"] = (moved, True)
     TIMINGS.setdefault(obj.name_full, {})["mode"] = "rest"
     return None
+
+
+def _ready(name, ent, which):
+    """The ``which`` solver of ``ent``, factorised when missing, its warm start forgotten when an undo
+    restored another shape than its last solve (call under ``ent["lock"]``)."""
+    solver = ent.get(which) or _factorise(name, ent, which)
+    if which in ent.get("stale", ()):
+        solver.reset()
+        ent["stale"].discard(which)
+    return solver
 
 
 def _solve_with(solver, M, iterations, from_rest):
@@ -200,7 +251,9 @@ def _solve_with(solver, M, iterations, from_rest):
 
 
 # ------------------------------------------------------------------------ drags in a background thread
-_DRAGS: dict = {}   # object name -> {"want": (M, t_seen), "thread", "done": (V, t_seen, moved) or None}
+_DRAGS: dict = {}   # object name -> {"want": (M, t_seen, moved, iterations, epoch), "thread", "epoch",
+#                                       "done": (V, t_seen, moved, solve_s, cage, epoch) or None}
+_UNDO = {"busy": False}   # between undo_pre and undo_post (also redo): no solve may write
 
 
 def drag(obj, depsgraph=None) -> bool:
@@ -214,8 +267,10 @@ def drag(obj, depsgraph=None) -> bool:
     if _unchanged(ent, moved, False):
         return False
     name = obj.name_full
-    d = _DRAGS.setdefault(name, {"thread": None, "done": None, "error": None})
-    d["want"] = (M, t_seen, moved, s.iterations)
+    d = _DRAGS.setdefault(name, {"thread": None, "done": None, "error": None, "epoch": 0})
+    if d.get("want") is None and d["done"] is None and (d["thread"] is None or not d["thread"].is_alive()):
+        _remember(obj)     # a drag begins: the shape before it, for the undo of the drag
+    d["want"] = (M, t_seen, moved, s.iterations, d["epoch"])
     d["ent"], d["which"] = ent, which
     _start(name, d)
     if not bpy.app.timers.is_registered(_apply_drags):
@@ -258,14 +313,13 @@ def prepare_preview(obj) -> threading.Thread | None:
 
 def _drag_worker(name, ent, which, d):
     try:
-        with ent["lock"]:
-            solver = ent.get(which) or _factorise(name, ent, which)
         while d.get("want") is not None:
-            M, t_seen, moved, iters = d.pop("want")
+            M, t_seen, moved, iters, epoch = d.pop("want")
             with ent["lock"]:
                 t0 = time.perf_counter()
+                solver = _ready(name, ent, which)
                 res = _solve_with(solver, M, iters, False)
-            d["done"] = (res.vertices, t_seen, moved, time.perf_counter() - t0, solver.cage is not None)
+            d["done"] = (res.vertices, t_seen, moved, time.perf_counter() - t0, solver.cage is not None, epoch)
     except Exception as exc:  # noqa: BLE001 - reported by the timer, in the main thread
         d["error"] = exc
 
@@ -276,9 +330,11 @@ def _apply_drags():
     for name, d in list(_DRAGS.items()):
         done, d["done"] = d["done"], None
         obj = bpy.data.objects.get(name)
-        if done is not None and obj is not None and name in _SOLVERS:
-            V, t_seen, moved, solve_s, cage = done
-            _write_live(obj, V)
+        if done is not None and done[-1] != d.get("epoch", 0):
+            done = None            # solved for Empties an undo or redo has put back since
+        if done is not None and obj is not None and name in _SOLVERS and not _UNDO["busy"]:
+            V, t_seen, moved, solve_s, cage, _epoch = done
+            _write_live(obj, V, moved)
             _SOLVERS[name]["last"] = (moved, False)
             TIMINGS.setdefault(name, {}).update(mode="drag", solve_s=solve_s, cage=cage,
                                                 move_to_preview_s=time.perf_counter() - t_seen)
@@ -316,12 +372,13 @@ def _run(scene, depsgraph, from_rest):
 
 @persistent
 def on_frame_change(scene, depsgraph=None):
-    _run(scene, depsgraph, from_rest=True)
+    if not _UNDO["busy"]:
+        _run(scene, depsgraph, from_rest=True)
 
 
 @persistent
 def on_depsgraph_update(scene, depsgraph=None):
-    if depsgraph is None or not _arap_objects(scene):
+    if depsgraph is None or _UNDO["busy"] or not _arap_objects(scene):
         return
     if not any(isinstance(u.id, bpy.types.Object) for u in depsgraph.updates):
         return

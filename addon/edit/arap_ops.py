@@ -9,10 +9,11 @@ from bpy.props import BoolProperty, IntProperty, PointerProperty, StringProperty
 from ..runtime._np import np
 from ..runtime import classes_factory
 from ..runtime.errors import UserError
-from .arap import (APPLIED_KEY, LIVE_KEY, TIMINGS, _DRAGS, _SOLVERS, _apply_drags, _list, _rest,
+from .arap import (APPLIED_KEY, LIVE_KEY, TIMINGS, _DRAGS, _SHAPES, _SOLVERS, _apply_drags, _list, _rest,
                    on_depsgraph_update, on_frame_change, prepare_preview, read_groups, start,
                    wait_for_drags)
-from .base import EditSubPanel
+from .arap_undo import on_undo_post, on_undo_pre
+from .base import EditSubPanel, shown_object
 
 
 class NeuMeshArapSettings(bpy.types.PropertyGroup):
@@ -40,7 +41,7 @@ class NeuMeshArapSettings(bpy.types.PropertyGroup):
 
 # -------------------------------------------------------------------------------------- operators
 def _active_mesh(context):
-    obj = context.active_object
+    obj = shown_object(context.active_object)   # the handle Empty selected: the object it deforms
     if obj is None or obj.type != "MESH":
         raise UserError("select the mesh object to deform (the one with the Anchor and Handle groups)")
     return obj
@@ -132,6 +133,7 @@ def _remove_setup(obj) -> None:
     s.enabled = False
     s.handle_groups = s.handle_empties = s.centroids = ""
     _SOLVERS.pop(obj.name_full, None)
+    _SHAPES.pop(obj.name_full, None)
 
 
 class NEUMESH_OT_arap_apply(_ArapOperator, bpy.types.Operator):
@@ -198,7 +200,9 @@ classes = (NeuMeshArapSettings, NEUMESH_OT_arap_add, NEUMESH_OT_arap_refresh, NE
 _register, _unregister = classes_factory(
     classes, ((bpy.types.Object, "neumesh_arap", lambda: PointerProperty(type=NeuMeshArapSettings)),))
 _HANDLERS = ((bpy.app.handlers.frame_change_post, on_frame_change),
-             (bpy.app.handlers.depsgraph_update_post, on_depsgraph_update))
+             (bpy.app.handlers.depsgraph_update_post, on_depsgraph_update),
+             (bpy.app.handlers.undo_pre, on_undo_pre), (bpy.app.handlers.redo_pre, on_undo_pre),
+             (bpy.app.handlers.undo_post, on_undo_post), (bpy.app.handlers.redo_post, on_undo_post))
 
 
 def register():
@@ -214,6 +218,7 @@ def unregister():
             lst.remove(fn)
     _SOLVERS.clear()
     _DRAGS.clear()
+    _SHAPES.clear()
     if bpy.app.timers.is_registered(_apply_drags):
         bpy.app.timers.unregister(_apply_drags)
     _unregister()

@@ -271,9 +271,22 @@ class NEUMESH_OT_revert_field(_PointBack, bpy.types.Operator):
     bl_idname, bl_label, which = "neumesh.revert_field", "Revert to trained field", "root"
 
 
+def shown_object(obj):
+    """The object whose field the Edit field panels show and their buttons act on, for the active
+    object ``obj``: itself, or for an ARAP handle Empty (what the artist selects to drag it) the object
+    the Empty deforms."""
+    parent = getattr(obj, "parent", None)
+    if obj is not None and obj.type == "EMPTY" and parent is not None and parent.type == "MESH":
+        s = getattr(parent, "neumesh_arap", None)
+        if s is not None and s.enabled and obj.name in s.handle_empties.split("\n"):
+            return parent
+    return obj
+
+
 class _FieldPanel:
     """A sidebar panel about the active object's field: ``draw_edit(context, layout, obj)`` runs when the
-    active object carries one, else the panel says to select one."""
+    active object carries one (an ARAP handle Empty: the object it deforms, see :func:`shown_object`),
+    else the panel says to select one."""
 
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
@@ -281,8 +294,14 @@ class _FieldPanel:
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        obj = context.active_object
+        active = context.active_object
+        obj = shown_object(active)
         col = self.layout.column()
+        if obj is not None and obj != active:   # a handle Empty: the buttons act on its object
+            col.context_pointer_set("active_object", obj)
+            if not getattr(self, "bl_parent_id", ""):
+                wrapped_label(col, f"'{obj.name}', which the selected handle deforms", text_width(context),
+                              icon="OBJECT_DATA", context=context)
         job = jobs.active(self.bl_label)   # the running job of the operator with the panel's label
         if job is not None:   # the modal operator redraws the sidebar on every progress step
             text = f"{self.bl_label} {100 * job.fraction:.0f}% (Esc cancels)"

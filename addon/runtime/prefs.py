@@ -6,7 +6,7 @@ import os
 import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
-from . import blas, core, deps, install, text
+from . import blas, core, deps, install, persist, text
 from .jobs import redraw
 from .settings import ADDON_ID, extra_paths, get_prefs
 
@@ -23,6 +23,7 @@ def refresh_paths_and_status(do_import=False):
 
 def _on_env_path(self, _context):
     refresh_paths_and_status()
+    persist.changed()     # a `blender -b` started now must find the folder too
 
 
 class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
@@ -67,6 +68,9 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
 
     def draw(self, context):
         layout = self.layout
+        note = persist.unsaved_note()
+        if note:
+            text.wrapped_label(layout, note, text.text_width(context), icon="ERROR", context=context)
         statuses = _status_cache["statuses"]
         if statuses is None:
             statuses = refresh_paths_and_status()
@@ -127,7 +131,9 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
             return
         width = text.text_width(context)
         if st["own"]:
-            text.wrapped_label(box, "Speed: " + speed_message(st), width, icon="CHECKMARK")
+            level = speed_level(st.get("gflops"))
+            icon = {"fast": "CHECKMARK", "moderate": "INFO"}.get(level, "ERROR")
+            text.wrapped_label(box, "Speed: " + speed_message(st), width, icon=icon)
             return
         text.wrapped_label(box, "Speed: " + speed_message(st), width, icon="ERROR")
         text.wrapped_label(box, "Start Blender with torch's BLAS preloaded (see docs/addon.md, 'Speed'):", width)
@@ -171,16 +177,52 @@ def speed_status(measure: bool = True):
     return st
 
 
+# The 2-core machine of docs/benchmarks.md: fp32 matrix multiply 177-183 GFLOP/s, lego rendered at
+# 400x400 in ~0.7 s (early interpolation), 36 ms per 4,096-ray training step on the built-in scene.
+# A rate is judged against it: from FAST_GFLOPS on, those figures hold; below SLOW_GFLOPS renders and
+# training take several times longer (matrix multiplies are much of their work, not all of it).
+REFERENCE_GFLOPS = 180.0
+FAST_GFLOPS = 120.0
+SLOW_GFLOPS = 40.0
+REFERENCE_LEGO_S = 0.7
+
+
+def speed_level(gflops) -> str:
+    """"fast", "moderate" or "slow" for a measured matrix-multiply rate ("" when not measured)."""
+    if gflops is None:
+        return ""
+    return "fast" if gflops >= FAST_GFLOPS else "moderate" if gflops >= SLOW_GFLOPS else "slow"
+
+
+def speed_judgement(gflops) -> str:
+    """What a measured matrix-multiply rate means for renders and training, and what to do when it is
+    slow ('' when not measured)."""
+    level = speed_level(gflops)
+    if not level:
+        return ""
+    ref = f"the {REFERENCE_GFLOPS:.0f} GFLOP/s of the 2 cores the docs' figures come from"
+    if level == "fast":
+        return f"fast: about {ref} or more (a lego frame at 400x400 in ~{REFERENCE_LEGO_S:.1f} s)"
+    times = REFERENCE_GFLOPS / max(float(gflops), 0.1)
+    slower = (f"{times:.0f}x below {ref}: renders and training up to {times:.0f}x slower (a lego frame at "
+              f"400x400 up to ~{REFERENCE_LEGO_S * times:.0f} s instead of ~{REFERENCE_LEGO_S:.1f} s)")
+    if level == "moderate":
+        return "moderate: " + slower
+    return ("slow: " + slower + ". Other programs keep the CPU busy (try CPU threads 1 or 2 below, and "
+            "measure again) or the CPU is small; a CUDA GPU (Device) renders many times faster")
+
+
 def speed_message(st) -> str:
-    """One sentence on torch's matrix-multiply speed in this Blender ('' before it was measured); the
-    launcher command is not part of it (``st["remedy"]``)."""
+    """One sentence on torch's matrix-multiply speed in this Blender and what it means ('' before it
+    was measured); the launcher command is not part of it (``st["remedy"]``)."""
     if not st:
         return ""
     rate = "" if st.get("gflops") is None else f" {st['gflops']:.0f} GFLOP/s"
     if st["own"]:
         foreign = st["rebind"].get("foreign") if st["rebind"].get("rebound") else None
         src = f" (rebound from {', '.join(os.path.basename(f) for f in foreign)})" if foreign else ""
-        return f"matrix multiply{rate} with torch's own BLAS{src}"
+        judged = speed_judgement(st.get("gflops"))
+        return f"matrix multiply{rate} with torch's own BLAS{src}" + (f": {judged}" if judged else "")
     return (f"matrix multiply{rate} on {os.path.basename(st['sgemm'])}, the slow BLAS this Blender links: "
             "renders and training run several times slower")
 
@@ -206,7 +248,7 @@ class NEUMESH_OT_check_dependencies(bpy.types.Operator):
         if st is not None:
             msg = "NeuMesh: " + speed_message(st)
             if st["own"]:
-                self.report({"INFO"}, msg)
+                self.report({"WARNING" if speed_level(st.get("gflops")) == "slow" else "INFO"}, msg)
             else:
                 self.report({"WARNING"}, f"{msg}. Start Blender as: {st['remedy']}")
         return {"FINISHED"}
@@ -308,6 +350,7 @@ def register():
         deps.configure_sys_path(extra_paths())
     except Exception:
         pass
+    persist.schedule()    # just enabled (Install, the tick): saved so that `blender -b` has the engine
 
 
 def unregister():

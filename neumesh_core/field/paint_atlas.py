@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from ..errors import CheckpointError, NeuMeshError
+from .paint_copy import PremultipliedCopy
 from .triangles import closest_faces_reference, closest_points_on_triangles  # noqa: F401  (re-exported)
 
 ATLAS_VERSION = 1
@@ -112,24 +113,16 @@ class PaintAtlas:
         if self.offsets is not None and not torch.isfinite(self.offsets).all():
             raise NeuMeshError("the paint atlas's surface offsets hold NaN/inf values")
         self._cache = None
-        self._premultiplied = None
+        self._premultiplied = PremultipliedCopy()   # what sample() reads; safe across threads
 
     def changed(self, texels=None) -> None:
         """Call after writing :attr:`image` in place: the premultiplied copy used for sampling is
-        rebuilt, or with ``texels`` (flat indices of the texels written) updated at those texels only."""
-        if texels is None or self._premultiplied is None:
-            self._premultiplied = None
-            return
-        t = np.asarray(texels, np.int64).reshape(-1)
-        if len(t) == 0:
-            return
-        rows = self.image.view(-1, 4).numpy()[t]
-        pm = self._premultiplied[0].reshape(-1, 4)
-        pm[t] = np.concatenate([rows[:, :3] * rows[:, 3:], rows[:, 3:]], 1).astype(np.float16)
-        any_paint = self._premultiplied[1] or bool((rows[:, 3] > 0).any())
-        if self._premultiplied[1] and not (rows[:, 3] > 0).all():
-            any_paint = bool((pm[:, 3] > 0).any())        # paint taken away (undo): look again
-        self._premultiplied = (self._premultiplied[0], any_paint)
+        rebuilt, or with ``texels`` (flat indices of the texels written) updated at those texels only
+        (also while another thread renders: field/paint_copy.py)."""
+        if texels is None:
+            self._premultiplied.invalidate()
+        else:
+            self._premultiplied.update(self.image.numpy(), texels)
 
     def set_image(self, rgba, region=None) -> np.ndarray:
         """Replace the paint image, or the part of it in ``region`` (y0, y1, x0, x1 in image rows/columns,
@@ -174,11 +167,7 @@ class PaintAtlas:
         return t
 
     def _pm(self) -> np.ndarray:
-        if self._premultiplied is None:
-            img = self.image.numpy()
-            self._premultiplied = (np.concatenate([img[..., :3] * img[..., 3:], img[..., 3:]], -1).astype(np.float16),
-                                   bool((img[..., 3] > 0).any()))
-        return self._premultiplied[0]
+        return self._premultiplied.get(self.image.numpy())[0]
 
     # -- basics ---------------------------------------------------------------------------------------
     @property
@@ -192,8 +181,7 @@ class PaintAtlas:
 
     @property
     def is_empty(self) -> bool:
-        self._pm()
-        return not self._premultiplied[1]
+        return not self._premultiplied.get(self.image.numpy())[1]
 
     def copy(self) -> "PaintAtlas":
         return PaintAtlas(self.uv.clone(), self.image.clone(), self.source, self.cell,

@@ -245,3 +245,48 @@ def test_set_image_updates_the_sampled_paint_as_a_full_rebuild_does(blob3):
         atlas.set_image(px, (0, 12, 0, 10))
     with pytest.raises(NeuMeshError, match="NaN"):
         atlas.set_image(np.full((32, 32, 4), np.nan, np.float32))
+
+
+def test_texels_written_while_another_thread_builds_the_sampled_copy_are_sampled_as_written(blob3, monkeypatch):
+    """A paint program writes texels in one thread while a render builds the premultiplied copy it
+    samples in another (the first render after the atlas was made; seconds at 4096^2): the build is
+    held after reading the colours and before reading the alpha, the texels are written then, and every
+    one is sampled as written, none with the colour from before the write and the alpha from after it
+    (black paint).  A copy of the atlas samples its own image."""
+    import copy
+    import threading
+
+    from neumesh_core.field import paint_copy
+
+    res = 64
+    atlas = _atlas(textured_field(blob3, interpolation="early"), res=res)
+    read_colour, written = threading.Event(), threading.Event()
+    plain = paint_copy.premultiply
+
+    def held(rows):
+        if rows.ndim == 3:                                 # the whole image: a build
+            rgb = rows[..., :3] * rows[..., 3:]
+            read_colour.set()
+            assert written.wait(30)
+            return np.concatenate([rgb, rows[..., 3:]], -1).astype(np.float16)
+        return plain(rows)
+
+    monkeypatch.setattr(paint_copy, "premultiply", held)
+    render = threading.Thread(target=lambda: atlas.is_empty)
+    render.start()
+    assert read_colour.wait(30)
+    yy, xx = np.mgrid[10:20, 30:50]
+    texels = (yy * res + xx).ravel()
+    cyan = np.tile(np.float32([0.0, 1.0, 1.0, 1.0]), (len(texels), 1))
+    assert len(atlas.set_texels(texels, cyan)) == len(texels)
+    written.set()
+    render.join(30)
+    assert not render.is_alive()
+    monkeypatch.setattr(paint_copy, "premultiply", plain)
+    uv = np.stack([(xx.ravel() + 0.5) / res, 1.0 - (yy.ravel() + 0.5) / res], 1)   # texel centres
+    assert not atlas.is_empty
+    np.testing.assert_allclose(atlas.sample(uv), cyan, atol=1e-3)
+    twin = copy.deepcopy(atlas)
+    np.testing.assert_allclose(twin.sample(uv), cyan, atol=1e-3)
+    twin.set_texels(texels, np.zeros_like(cyan))
+    assert twin.is_empty and not atlas.is_empty
