@@ -1,4 +1,4 @@
-"""Scaffold of a real capture without masks (issue 49): how much of the object the held-out photos see
+"""Scaffold of a real capture without masks: how much of the object the held-out photos see
 lies within the field's reach of the scaffold.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_real_scaffold.py --data ../shared/data/real/fox \

@@ -1,4 +1,4 @@
-"""Run inside a real `blender -b` by test_real_blender.py (issue 47: Semantics and Bake out of the box):
+"""Run inside a real `blender -b` by test_real_blender.py (Semantics and Bake out of the box):
 
     blender -b --factory-startup --python real_blender_features.py -- ZIP OUT_DIR
 

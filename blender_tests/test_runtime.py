@@ -1,6 +1,6 @@
 """runtime/: the one background-job class, what *Install dependencies* installs (only what Blender
 lacks, never a numpy over Blender's own), and the check that names a feature's missing packages
-before its job starts (issue 47: Distil semantics died in its thread on `No module named 'skimage'`)."""
+before its job starts (rather than the job dying in its thread on `No module named 'skimage'`)."""
 from __future__ import annotations
 
 import os

@@ -209,14 +209,14 @@ def test_a_cancelled_background_edit_changes_nothing(addon, trained_field, tmp_p
 
 
 def test_a_region_swapped_onto_itself_changes_nothing_and_writes_no_file(addon, trained_field, tmp_path):
-    """Issue 47: swapping a region onto itself reported "10242 vertices changed"; no row changes, so
-    nothing is saved and the object keeps its file."""
+    """Swapping a region onto itself changes no row, so nothing is saved, the object keeps its file and
+    the report counts no changed vertex."""
     target, _, tgt_path, _, _, region = _setup(trained_field, tmp_path)
     field, _ = addon.edit.base.field_for_edit(target)
     nm = addon.runtime.core.get()
     work = addon.edit.base.edit_copy(field)
     rec = nm.swap_texture(work, region, work, region)
-    # the record holds every row it wrote; num_changed (core, #47.1) and changed_rows count none of them
+    # the record holds every row it wrote; num_changed (core) and changed_rows count none of them
     assert len(rec.vertices) == len(region) and rec.num_changed == 0 and addon.edit.base.changed_rows(rec) == 0
     other = addon.edit.base.edit_copy(field)
     import torch

@@ -4,7 +4,7 @@ export (glTF, FBX, OBJ).
 
 ``target``: ``FIELD`` (default) bakes onto a mesh the core extracts from the field's own density
 (marching cubes, decimated to ``field_decimate`` x the scaffold's faces): it lies where the field
-renders; ``SCAFFOLD`` onto the field's scaffold in its current pose (the old default, quicker).
+renders; ``SCAFFOLD`` onto the field's scaffold in its current pose (quicker).
 ``colours``: ``VIEWS`` (default) gives each texel the colour the field's renders from ``views``
 virtual cameras show there; ``RAYS`` the colour one short ray along the texel's normal sees (quicker).
 The core (``neumesh_core.bake.bake_texture``) unwraps the target with xatlas (docs/baking.md).  That colour already holds

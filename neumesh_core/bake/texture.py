@@ -160,7 +160,7 @@ def _target_mesh(field, mesh):
 
 
 FIELD_FACES = 0.2   # mesh="field" without an ExtractConfig: decimated to this x the scaffold's faces
-                    # (lego: the mesh oracle is 30.0 dB at 20% as at 50%, 29.6 at 10%; docs/baking.md)
+                    # (finer gains nothing on lego, coarser loses: docs/baking.md, the experiment log)
 
 
 def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Optional[float] = None,
@@ -170,9 +170,9 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
                  extract=None) -> BakeResult:
     """Bake the field's view-independent appearance into a UV texture of a mesh.
 
-    Defaults (issue 50): ``mesh="field"`` decimated to ``FIELD_FACES`` x the scaffold's faces and
-    ``colours="views"`` (lego: 28.1 dB against the field instead of 24.3 for the scaffold with rays;
-    docs/baking.md); ``mesh=None, colours="rays"`` is the quicker scaffold bake of before.
+    Defaults: ``mesh="field"`` decimated to ``FIELD_FACES`` x the scaffold's faces and
+    ``colours="views"``, the bake closest to the field (figures in docs/benchmarks.md, "Baking lego");
+    ``mesh=None, colours="rays"`` is the quicker scaffold bake.
 
     ``mesh``: the mesh to bake onto: None = the field's scaffold in its current pose (edited,
     deformed); else an ``nm.Mesh`` or (vertices, faces) in world space lying near the field's surface,

@@ -14,7 +14,7 @@ Semantics (optional in both versions): ``field_config.sem_dim``/``sem_features``
 holds ``param/sem_codes`` (N, sem_dim) and ``param/sem_decoder.*``; the header's ``semantics`` entry
 says how they were distilled.  A file without them loads as a field without semantics.
 
-Real captures (optional in version 2, issue 49): the header's ``object_box`` (centre, half_extents,
+Real captures (optional in version 2): the header's ``object_box`` (centre, half_extents,
 rotation) and ``background`` (the background model's configuration; its tensors are
 ``param/background.*``).  Files without them load as fields without a box or background.
 """

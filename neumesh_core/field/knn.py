@@ -192,8 +192,7 @@ def make_index(vertices, k: int, radius: float, backend: str = "kdtree"):
     synchronisation; CUDA, or Triton's interpreter; elsewhere, e.g. a field saved so and loaded on a
     CPU, what "kdtree" gives).  "kdtree" is the CPU's choice: for vertices on a
     GPU with a finite radius it gives the Triton index where triton imports, else the hash grid; both
-    answer on the GPU (a KD-tree would copy every query to the host and back: twice the frame time on
-    an H200)."""
+    answer on the GPU (a KD-tree would copy every query to the host and back)."""
     if backend == "kdtree":
         on_gpu = torch.is_tensor(vertices) and vertices.device.type != "cpu"
         if on_gpu and np.isfinite(float(radius)) and float(radius) > 0:

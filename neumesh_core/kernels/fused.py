@@ -92,11 +92,10 @@ class FieldTables:
 
 
 def default_block(device) -> int:
-    """Rays per program: 32 on a GPU (with 4 warps: on an H200 the fastest of the options timed by
-    ``benchmarks/bench/bench_render_gpu.py --sweep``, 37.7 ms for lego 800² against 44.7 ms for 64 rays x 8
-    warps, although the sm_90 build of 64 x 8 spills less: a smaller block waits less for its slowest
-    ray); in the interpreter (CPU) one big block, since there each operation costs about the same for any
-    block size."""
+    """Rays per program: 32 on a GPU (with 4 warps: the fastest of the options timed by
+    ``benchmarks/bench/bench_render_gpu.py --sweep``, docs/benchmarks.md "Fused Triton renderer"; a smaller
+    block waits less for its slowest ray); in the interpreter (CPU) one big block, since there each operation
+    costs about the same for any block size."""
     return 32 if torch.device(device).type == "cuda" else 1024
 
 
@@ -108,10 +107,9 @@ KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 4, "cells_per
 
 
 def default_cells(device) -> int:
-    """Neighbour-grid cells per radius: 1 on a GPU and in the interpreter (27 cells a radius wide; on an
-    H200 37.7 ms for lego 800² against 41.8 ms with 125 half-radius cells, which measured fewer vertices
-    but walked more cells -- before knn_keys read them nearest first and pruned them, which cuts their
-    rounds about threefold (benchmarks/diagnose/knn_merges.py); the GPU sweep times both again)."""
+    """Neighbour-grid cells per radius: 1 on a GPU and in the interpreter (27 cells a radius wide; 125
+    half-radius cells hold fewer vertices but take more cells to walk: the GPU sweep times both,
+    benchmarks/diagnose/knn_merges.py counts their work; docs/benchmarks.md)."""
     return 1
 
 

@@ -431,8 +431,7 @@ def to_host(tensors: Sequence[torch.Tensor]) -> list:
     """float32 device tensors as numpy arrays of the same shapes, each contiguous.  On a GPU in one
     copy: the tensors packed end to end, copied into page-locked host memory (torch's caching host
     allocator, so no allocation after the first frame of a size), the arrays views of it; one copy of
-    ~20 MB instead of one pageable copy per output (the profile of a lego 800² frame: 4 copies,
-    9.9 ms).  On the CPU: the tensors themselves."""
+    ~20 MB instead of one pageable copy per output.  On the CPU: the tensors themselves."""
     if not tensors or tensors[0].device.type != "cuda":
         return [t.detach().cpu().float().numpy() for t in tensors]
     flat = torch.cat([t.detach().float().reshape(-1) for t in tensors])

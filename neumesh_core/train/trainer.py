@@ -48,7 +48,7 @@ class TrainConfig:
     # full-frame colour; with masks it is left alone
     lr_background: float = 1e-2
     # K-Planes' plane total variation on that background model (its paper: 2e-4 for unbounded scenes;
-    # on fox it changed nothing at 15 minutes, 22.41 against 22.40 dB: off, docs/real_captures.md)
+    # off: no gain on fox, docs/real_captures.md)
     weight_background_tv: float = 0.0
     # per-image appearance (NeRF-W's remedy for exposure changes, here 6 numbers an image: colour x
     # exp(scale) + offset; their mean over the images is held at zero) applied to the rendered colour

@@ -130,7 +130,7 @@ def test_field_surface_bake_with_views_cancels_in_every_stage(shell, stop_at):
 
 
 def test_bake_defaults_to_the_field_surface_with_projected_colours(shell):
-    """Issue 50's decision: ``bake_texture(field)`` bakes onto the field's own surface, decimated to
+    """By default ``bake_texture(field)`` bakes onto the field's own surface, decimated to
     FIELD_FACES x the scaffold's faces, with colours from the field's renders (the scaffold with rays is
     ``mesh=None, colours="rays"``)."""
     from neumesh_core.bake import bake_texture

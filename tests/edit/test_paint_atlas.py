@@ -1,6 +1,6 @@
 """Painting from one view into the paint atlas (texel paint): the painted pixels reach the paint as
 sharp as painted (a one-pixel line stays one pixel), nothing 2 px away changes, another view sees the
-paint on the same surface, undo/redo are exact, the bake carries the paint, and the old per-vertex
+paint on the same surface, undo/redo are exact, the bake carries the paint, and per-vertex
 painting stays the default for fields without an atlas.  Untrained textured blob, 64 px views."""
 import numpy as np
 import pytest

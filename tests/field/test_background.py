@@ -1,4 +1,4 @@
-"""Background model of real captures (issue 49): frame and box, compositing, training without masks,
+"""Background model of real captures: frame and box, compositing, training without masks,
 save/load.  The scene is the built-in blob in a textured room, rendered without masks."""
 import numpy as np
 import pytest
