@@ -279,10 +279,10 @@ def test_semantics_and_bake_work_or_name_their_missing_packages(addon_zip, tmp_p
     f = _facts(_run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_features.py"),
                      "--", addon_zip, str(tmp_path / "out")], env, timeout=600))
     if f["missing"]["semantics"]:
-        assert "Distil semantics needs the Python package" in f["distil"], f
-        assert all(p in f["distil"] for p in f["missing"]["semantics"]) and f["distil_job"] is None, f
+        assert "Distill semantics needs the Python package" in f["distill"], f
+        assert all(p in f["distill"] for p in f["missing"]["semantics"]) and f["distill_job"] is None, f
     else:
-        assert f["distil"] == ["FINISHED"] and f["distil_job"][0] == "DONE", f
+        assert f["distill"] == ["FINISHED"] and f["distill_job"][0] == "DONE", f
     if f["missing"]["bake"]:
         assert "Bake to material needs the Python package xatlas" in f["bake"] and not f["baked"], f
     else:

@@ -42,7 +42,7 @@ DEPENDENCIES = (
     # shape-aware selection: the scaffold's Laplacian; without it selection uses colour alone
     ("robust_laplacian", "robust-laplacian", False, "robust-laplacian", ("shape",)),
 )
-FEATURES = {"scaffold": "Build scaffold", "semantics": "Distil semantics", "select": "Select by click",
+FEATURES = {"scaffold": "Build scaffold", "semantics": "Distill semantics", "select": "Select by click",
             "edit": "Texture edits", "bake": "Bake to material", "capture": "Real captures (COLMAP, video)",
             "shape": "Shape-aware selection", "bake_field": "Bake onto the field surface"}
 

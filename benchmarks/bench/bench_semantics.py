@@ -317,7 +317,7 @@ def blender_clicks(field_path: str, cams, clicks, threshold: float):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_options(ap, "field", "data",
-                field=dict(help="trained field (.neumesh); with --skip-distil, one with semantics"),
+                field=dict(help="trained field (.neumesh); with --skip-distill, one with semantics"),
                 data=dict(help="its dataset"))
     ap.add_argument("--make-multipart", action="store_true",
                     help="write the small multi-part scene to --data and train --field on it when missing")
@@ -336,8 +336,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=1500)
     ap.add_argument("--rays-per-view", type=int, default=4096)
     ap.add_argument("--threshold", type=float, default=0.75, help="selection similarity (default 0.75)")
-    ap.add_argument("--skip-distil", action="store_true", help="use the field's own semantic codes")
-    ap.add_argument("--save", help="write the distilled field here (reuse it with --skip-distil)")
+    ap.add_argument("--skip-distill", action="store_true", help="use the field's own semantic codes")
+    ap.add_argument("--save", help="write the distilled field here (reuse it with --skip-distill)")
     ap.add_argument("--pictures", help="PNG with one row per click (view | selection)")
     ap.add_argument("--picture-size", type=int, default=256, help="tile size in the picture (default 256)")
     ap.add_argument("--blender", action="store_true", help="also time the clicks through the add-on in bpy")
@@ -369,7 +369,7 @@ def main(argv=None) -> int:
     scene = nm.load_scene(args.data)
     result.update({"field": args.field, "data": args.data, "vertices": field.num_vertices})
     print(f"field {args.field}: {field.num_vertices} vertices")
-    if not args.skip_distil:
+    if not args.skip_distill:
         ex = make_extractor(args.extractor)
         cfg = DistillConfig(steps=args.steps, rays_per_view=args.rays_per_view, log_every=100)
 
@@ -454,7 +454,7 @@ def main(argv=None) -> int:
         result["pictures"] = args.pictures
     if args.blender and clicks:
         path = args.field
-        if not args.skip_distil:   # the add-on reads the distilled field from a file
+        if not args.skip_distill:   # the add-on reads the distilled field from a file
             path = args.save or os.path.join(os.environ.get("TMPDIR", "/tmp"), "bench_semantics_field.neumesh")
             if not args.save:
                 nm.save_field(field, path)

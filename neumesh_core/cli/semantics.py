@@ -1,4 +1,4 @@
-"""`neumesh semantics`: distil semantic codes into a field file (saved beside it as an edit)."""
+"""`neumesh semantics`: distill semantic codes into a field file (saved beside it as an edit)."""
 from __future__ import annotations
 
 import sys
@@ -9,7 +9,7 @@ from .common import Progress, _fmt_time
 
 def add_commands(sub) -> None:
     p = sub.add_parser(
-        "semantics", help="distil per-vertex semantic codes from 2D image features (for one-click selection)",
+        "semantics", help="distill per-vertex semantic codes from 2D image features (for one-click selection)",
         description="Extract 2D features from the training images, fit the field's semantic codes and "
                     "decoder to them (geometry and appearance stay frozen) and save the result beside the "
                     "field as <name>.edit-NNN.neumesh (or --out). Ctrl-C cancels without writing.")

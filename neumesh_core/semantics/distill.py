@@ -122,7 +122,7 @@ class RayBank:
 def _images(data: Union[Scene, ImageSet], cfg: DistillConfig) -> ImageSet:
     images = data.split(cfg.split) if isinstance(data, Scene) else data
     if len(images) == 0:
-        raise ValueError(f"no images in split '{cfg.split}' to distil semantics from")
+        raise ValueError(f"no images in split '{cfg.split}' to distill semantics from")
     if cfg.max_views is not None and len(images) > cfg.max_views:
         keep = np.unique(np.linspace(0, len(images) - 1, cfg.max_views).round().astype(int))
         images = images.subset(keep)
@@ -181,7 +181,7 @@ def build_bank(field, images: ImageSet, fmaps: list, cfg: DistillConfig, gen: to
         pix.append((i, x, y))
         raw.append(sample_features(fmaps[i], x, y, cams.width, cams.height))
     if not pix:
-        raise ValueError("every view's mask is empty: there is no object to distil semantics from")
+        raise ValueError("every view's mask is empty: there is no object to distill semantics from")
     target, info = _fit_targets(torch.cat(raw), cfg, gen)
     K_all = torch.from_numpy(cams.K).to(device)
     c2w_all = torch.from_numpy(cams.c2w).to(device)
