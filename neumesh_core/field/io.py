@@ -84,7 +84,7 @@ def save_field(field, path: str, optimizer: Optional[torch.optim.Optimizer] = No
     With ``optimizer`` its moments are stored too, so training can resume exactly.  A field that trains
     with coarse code levels (``field.code_prior``) is written as a plain field: the levels are folded
     into the per-vertex codes it stores, and the field in memory is left as it was.  ``edit``: the
-    JSON-serialisable edit description stored in the header (see :mod:`neumesh_core.edit.files`);
+    JSON-serialisable edit description stored in the header (see :mod:`neumesh_core.edit.edited_files`);
     by default a field loaded from an edited file keeps its description.
     """
     prior = getattr(field, "code_prior", None)
