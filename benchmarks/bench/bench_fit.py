@@ -83,8 +83,9 @@ def main(argv=None) -> int:
                     help="marching step / radius when evaluating (default 0.25; 0: the field's training step)")
     ap.add_argument("--seed", type=int, default=None,
                     help="seed of the ray batches and TV samples (default: TrainConfig's; the field's init is fixed)")
-    ap.add_argument("--knn", default="kdtree", choices=KNN_BACKENDS,
-                    help="neighbour search: kdtree (pykdtree on the CPU) or hashgrid (torch, on the field's device)")
+    ap.add_argument("--knn", default="auto", choices=KNN_BACKENDS,
+                    help="neighbour search: auto (pykdtree on the CPU, the Triton index on a GPU), hashgrid "
+                         "(torch, on the field's device) or triton")
     ap.add_argument("--results-name", default=None, help="results file name (default fit_<scene>.json)")
     args = ap.parse_args(argv)
     use_threads(args.threads)

@@ -10,13 +10,13 @@ The decoders that read these tables are :mod:`.decoders` (radiance and geometry)
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Optional
+from typing import Literal, Optional
 
 import numpy as np
 import torch
 
 from ..mesh import Mesh
-from .knn import KNN_BACKENDS
+from .knn import KNN_BACKENDS, knn_backend
 from .scaffold import Neighbourhood, take_rows
 
 
@@ -40,12 +40,15 @@ class FieldConfig:
     grid_resolution: int = 128  # occupancy grid cells along the longest axis
     step_scale: float = 0.5     # marching step = radius x step_scale (training and rendering)
     code_init_std: float = 1e-2
-    knn: str = "kdtree"         # neighbour search: "kdtree" (pykdtree, CPU; on a GPU the Triton kernel, or the
-    #                             hash grid without triton), "hashgrid" (torch, any device) or "triton" (GPU)
+    knn: Literal["auto", "hashgrid", "triton"] = "auto"   # neighbour search: "auto" (pykdtree on the CPU; on
+    #                             a GPU the Triton kernel, or the hash grid without triton), "hashgrid" (torch,
+    #                             any device) or "triton" (GPU); "kdtree", the name older files saved, is "auto"
 
     def __post_init__(self) -> None:
-        if self.knn not in KNN_BACKENDS:
-            raise ValueError(f"knn must be one of {', '.join(KNN_BACKENDS)}, not {self.knn!r}")
+        try:
+            self.knn = knn_backend(self.knn)
+        except ValueError:
+            raise ValueError(f"knn must be one of {', '.join(KNN_BACKENDS)}, not {self.knn!r}") from None
         if self.interpolation not in ("post", "early"):
             raise ValueError(f"interpolation must be 'post' or 'early', not {self.interpolation!r}")
         if self.k < 1 or self.hidden < 1:

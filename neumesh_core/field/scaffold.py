@@ -21,7 +21,7 @@ from torch import nn
 
 from ..errors import VertexMismatchError
 from ..mesh import Mesh, face_incidence, vertex_normals
-from .knn import VertexIndex, make_index, vertex_neighbours
+from .knn import KDTreeIndex, make_index, vertex_neighbours
 
 # builds neighbour indices beside the main thread (Scaffold.set_vertices)
 _INDEX_BUILDER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="neumesh-index")
@@ -132,7 +132,7 @@ class Scaffold(nn.Module):
         self.register_buffer("rest_normals", torch.zeros_like(verts), persistent=False)
         self.register_buffer("rest_frames", torch.zeros(n, 3, 3), persistent=False)
         self.to_rest: Optional[torch.Tensor] = None  # (N,3,3) current->rest rotation; None at rest
-        self.index = None  # VertexIndex, HashGridIndex or TritonKNNIndex (knn backend, make_index)
+        self.index = None  # KDTreeIndex, HashGridIndex or TritonKNNIndex (knn backend, make_index)
         self.update_rest_geometry()
         from ..sampling.occupancy import OccupancyGrid
 
@@ -226,7 +226,7 @@ class Scaffold(nn.Module):
                 self._grid_anchors = None
                 if self.grid.refined:
                     centers = self.grid.occupied_centers()
-                    nearest, _ = VertexIndex(self.rest_vertices, 1).query(centers)
+                    nearest, _ = KDTreeIndex(self.rest_vertices, 1).query(centers)
                     nearest = nearest[:, 0]
                     self._grid_anchors = (nearest, centers - self.rest_vertices[nearest])
             carried = None
