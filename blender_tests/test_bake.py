@@ -124,7 +124,7 @@ def test_baked_files_load_in_blender(trained_field, tmp_path):
     from neumesh_core.bake import bake_texture, save_bake
 
     field = nm.load_field(trained_field)
-    res = bake_texture(field, resolution=64, vertex_colors=False, mesh=None, colours="rays")
+    res = bake_texture(field, resolution=64, vertex_colours=False, mesh=None, colours="rays")
     paths = save_bake(res, str(tmp_path / "out"), "asset")
     n_faces = len(res.faces)
     assert bpy.ops.wm.obj_import(filepath=paths["obj"]) == {"FINISHED"}

@@ -64,7 +64,7 @@ def test_depth_pass_is_camera_axis_distance_and_matches_cycles_of_the_scaffold(a
     alpha = render_pass(addon.render.composite, scene, "Alpha", tmp_path / "a.exr")[..., 0]
     mod = render_pass(addon.render.composite, scene, addon.render.engine.MOD_PASS, tmp_path / "m.exr")[..., :3]
     ref, K, c2w, field = _core(addon, trained_field, scene, cam)
-    np.testing.assert_allclose(mod, ref.mod_rgb, atol=1e-5)   # the modification-colour layer
+    np.testing.assert_allclose(mod, ref.mod_colour, atol=1e-5)   # the modification-colour layer
     hit = np.isfinite(ref.depth)
     assert hit.mean() > 0.2 and (~hit).mean() > 0.2
     # alpha is the field's opacity (Film > Transparent)

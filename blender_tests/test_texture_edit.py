@@ -29,7 +29,7 @@ def _other_texture_file(trained_field, path):
     g = torch.Generator().manual_seed(3)
     with torch.no_grad():
         f.tex_codes.normal_(0, 0.8, generator=g)
-        f.mod_colors.copy_(torch.tensor([-0.3, 0.4, -0.3]).expand_as(f.mod_colors))
+        f.mod_colours.copy_(torch.tensor([-0.3, 0.4, -0.3]).expand_as(f.mod_colours))
         for p in f.rad_decoder.parameters():
             p.add_(0.3 * torch.randn(p.shape, generator=g))
     nm.save_field(f, path)
@@ -221,9 +221,9 @@ def test_a_region_swapped_onto_itself_changes_nothing_and_writes_no_file(addon, 
     other = addon.edit.base.edit_copy(field)
     import torch
 
-    rec2 = nm.edit.EditRecord.begin("probe", other, region[:5], ("mod_colors",))
+    rec2 = nm.edit.EditRecord.begin("probe", other, region[:5], ("mod_colours",))
     with torch.no_grad():
-        other.mod_colors[torch.as_tensor(region[:2])] += 0.25
+        other.mod_colours[torch.as_tensor(region[:2])] += 0.25
     rec2.finish(other)
     assert addon.edit.base.changed_rows(rec2) == 2   # the rows whose values moved, not all it wrote
     assert bpy.ops.neumesh.swap_texture(target_group="region", source_object="", source_group="region",

@@ -69,7 +69,7 @@ def bench_load(data: str, downscales, repo: str) -> dict:
 
 
 def pose_agreement(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> dict:
-    """Similarity-align estimated cameras onto reference cameras (by centres) and measure the errors."""
+    """Similarity-align estimated cameras onto the given cameras (by centres) and measure the errors."""
     from neumesh_core.edit.align import umeyama
 
     ce, cr = est_c2w[:, :3, 3], ref_c2w[:, :3, 3]

@@ -99,7 +99,7 @@ def procedural_field(subdiv: int, device):
         f.geo_codes.normal_(0, 0.5)
         f.tex_codes.normal_(0, 0.5)
         f.geo_decoder[-1].bias.fill_(float(np.log(8.0 / f.radius)))
-        f.mod_colors.normal_(0, 0.1)
+        f.mod_colours.normal_(0, 0.1)
     f.eval()
     return f.to(device)
 

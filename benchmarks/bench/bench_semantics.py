@@ -227,15 +227,15 @@ def tinted_render(field, K, c2w, w, h, vertices, tint=(1.0, 0.0, 1.0), amount=0.
     import neumesh_core as nm
 
     idx = torch.as_tensor(np.asarray(vertices, np.int64))
-    old = field.mod_colors.detach().clone()
+    old = field.mod_colours.detach().clone()
     try:
         with torch.no_grad():
-            field.mod_colors.sub_(dim)
-            field.mod_colors[idx] = old[idx] + amount * (torch.tensor(tint) - 0.5)
+            field.mod_colours.sub_(dim)
+            field.mod_colours[idx] = old[idx] + amount * (torch.tensor(tint) - 0.5)
         return nm.render_camera(field, K, c2w, w, h, background=(1, 1, 1)).rgb
     finally:
         with torch.no_grad():
-            field.mod_colors.copy_(old)
+            field.mod_colours.copy_(old)
 
 
 def _mark(img, xy, r=4, colour=(1.0, 0.0, 1.0)):

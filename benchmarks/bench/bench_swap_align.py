@@ -63,7 +63,7 @@ def textured(mesh, seed: int = 0):
         f.tex_codes.normal_(0, 0.5)
         f.geo_decoder[-1].bias.fill_(float(np.log(8.0 / f.radius)))
         x = f.rest_vertices[:, 0]
-        f.mod_colors.copy_(torch.where(x[:, None] > 0, torch.tensor([0.8, -0.3, -0.3]),
+        f.mod_colours.copy_(torch.where(x[:, None] > 0, torch.tensor([0.8, -0.3, -0.3]),
                                        torch.tensor([-0.3, -0.3, 0.8])))
     f.eval()
     return f
@@ -109,7 +109,7 @@ def similar_copy_figures(field, region: np.ndarray, views: int, resolution: int)
         out = _renders(work, cams)
         zeroed = copy.deepcopy(field)
         zeroed.tex_codes[torch.as_tensor(region)] = 0.0
-        zeroed.mod_colors[torch.as_tensor(region)] = 0.0
+        zeroed.mod_colours[torch.as_tensor(region)] = 0.0
         hole = _renders(zeroed, cams)
     mask = np.concatenate([(np.abs(h - r).max(-1) > 1 / 255).ravel() for h, r in zip(hole, ref)])
     a = np.concatenate([o.reshape(-1, 3) for o in out])

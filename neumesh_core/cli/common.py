@@ -262,9 +262,9 @@ def _print_eval(r: dict) -> None:
         print("lpips: unavailable (no local weights; see README 'Metrics')")
 
 
-def turntable_cameras(center, radius: float, n: int, width: int, height: int, fov_deg: float = 40.0,
+def turntable_cameras(centre, radius: float, n: int, width: int, height: int, fov_deg: float = 40.0,
                       elevation_deg: float = 25.0):
-    """n cameras on a circle around ``center`` (z up), OpenCV c2w."""
+    """n cameras on a circle around ``centre`` (z up), OpenCV c2w."""
     import neumesh_core as nm
     from ..data.synthetic import look_at_opencv
 
@@ -273,8 +273,8 @@ def turntable_cameras(center, radius: float, n: int, width: int, height: int, fo
     c2ws = []
     for i in range(n):
         az = 2 * np.pi * i / n
-        pos = np.asarray(center) + radius * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
-        c2ws.append(look_at_opencv(pos, center))
+        pos = np.asarray(centre) + radius * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        c2ws.append(look_at_opencv(pos, centre))
     return nm.Cameras(np.repeat(K[None], n, 0), np.stack(c2ws), width, height)
 
 

@@ -1,6 +1,6 @@
 """What a field learns per vertex, and where: :class:`FieldConfig` (saved in every field file) and
 :class:`FieldParams`, the part of :class:`~neumesh_core.field.field.NeuMeshField` that holds the
-per-vertex tables (``geo_codes``, ``tex_codes``, ``mod_colors``, ``sem_codes``, ``decoder_id``,
+per-vertex tables (``geo_codes``, ``tex_codes``, ``mod_colours``, ``sem_codes``, ``decoder_id``,
 ``tex_frame``) on the scaffold (``field.scaffold``): the scaffold's geometry, row lookups (sparse
 gradients while training), the code tables with the training-time coarse levels.
 

@@ -225,10 +225,10 @@ class Scaffold(nn.Module):
                 self._rest_grid_state = self.grid.state()
                 self._grid_anchors = None
                 if self.grid.refined:
-                    centers = self.grid.occupied_centers()
-                    nearest, _ = KDTreeIndex(self.rest_vertices, 1).query(centers)
+                    centres = self.grid.occupied_centres()
+                    nearest, _ = KDTreeIndex(self.rest_vertices, 1).query(centres)
                     nearest = nearest[:, 0]
-                    self._grid_anchors = (nearest, centers - self.rest_vertices[nearest])
+                    self._grid_anchors = (nearest, centres - self.rest_vertices[nearest])
             carried = None
             if self._grid_anchors is not None:
                 vid, offset = self._grid_anchors

@@ -78,7 +78,7 @@ class FieldTables:
         self.vtab = sc._vertex_table().contiguous()
         self.geo = field.geo_codes.detach().contiguous()
         self.tex = field.tex_codes.detach().contiguous()
-        self.mod = field.mod_colors.detach().contiguous()
+        self.mod = field.mod_colours.detach().contiguous()
         self.rest_n = field.rest_normals.contiguous()
         self.rot = None if sc.to_rest is None else sc.to_rest.reshape(-1, 9).contiguous()
         params = list(field.geo_decoder.parameters()) + list(field.rad_decoders[0].parameters())
@@ -224,7 +224,7 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
             near, far, opts, out)
     opacity = out[:, 3]
     depth = torch.where(opacity > 1e-6, out[:, 4] / opacity.clamp_min(1e-6), torch.full_like(opacity, float("inf")))
-    return {"rgb": out[:, :3], "opacity": opacity, "depth": depth, "mod_rgb": out[:, 5:8],
+    return {"rgb": out[:, :3], "opacity": opacity, "depth": depth, "mod_colour": out[:, 5:8],
             "n_samples": out[:, 8]}
 
 

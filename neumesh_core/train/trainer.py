@@ -30,7 +30,7 @@ class TrainConfig:
     lr_decoders: float = 2e-3
     lr_final_factor: float = 0.1      # exponential decay to lr * factor at the last step
     warmup_steps: int = 50
-    weight_mod: float = 0.01          # x mean squared rendered modification colour
+    weight_mod_colour: float = 0.01   # x mean squared rendered modification colour
     weight_mask: float = 0.05         # mask BCE (only when the scene has masks/alpha)
     weight_tv: float = 1e-3           # total variation between neighbouring vertex codes
     tv_samples: int = 8192            # vertices sampled per step for the TV loss ("random")
@@ -153,7 +153,7 @@ class _Batcher:
 
 def _make_optimizer(field, cfg: TrainConfig, extra_codes=(), background=None):
     groups = [
-        {"params": [field.geo_codes, field.tex_codes, field.mod_colors, *extra_codes], "lr": cfg.lr_codes,
+        {"params": [field.geo_codes, field.tex_codes, field.mod_colours, *extra_codes], "lr": cfg.lr_codes,
          "name": "codes"},
         {"params": list(field.geo_decoder.parameters()) + list(field.rad_decoder.parameters()),
          "lr": cfg.lr_decoders, "name": "decoders"},
@@ -298,7 +298,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
                     f"the rendered opacity became NaN/inf at step {step}; lower lr_codes/lr_decoders and "
                     "resume from the last checkpoint")
             mse = torch.mean((out["rgb"] - target) ** 2)
-            loss = mse + cfg.weight_mod * torch.mean(out["mod_rgb"] ** 2)
+            loss = mse + cfg.weight_mod_colour * torch.mean(out["mod_colour"] ** 2)
             if mask is not None and cfg.weight_mask > 0:
                 op = out["opacity"].clamp(1e-4, 1 - 1e-4)
                 loss = loss + cfg.weight_mask * torch.nn.functional.binary_cross_entropy(op, mask)

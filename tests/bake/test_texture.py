@@ -124,7 +124,7 @@ def test_bake_follows_the_current_pose(trained, baked):
     with one_thread():
         res = bake_texture(moved, resolution=64, padding=2, fit=False, mesh=None, colours="rays")
     np.testing.assert_allclose(res.vertices, np.asarray(moved.vertices)[res.vertex_index], atol=1e-6)
-    diff = np.abs(res.vertex_colors - baked.vertex_colors)
+    diff = np.abs(res.vertex_colours - baked.vertex_colours)
     assert np.percentile(diff, 95) < 0.03, float(np.percentile(diff, 95))
     # fitted onto the field's surface (one level, no calibration): the moved bake's mesh is the
     # original's moved by the same shift
@@ -132,9 +132,9 @@ def test_bake_follows_the_current_pose(trained, baked):
 
     cfg = SurfaceFitConfig(level=0.1)
     with one_thread():
-        a = bake_texture(field, resolution=32, padding=2, fit=cfg, vertex_colors=False, measure_texels=0, mesh=None,
+        a = bake_texture(field, resolution=32, padding=2, fit=cfg, vertex_colours=False, measure_texels=0, mesh=None,
                          colours="rays")
-        b = bake_texture(moved, resolution=32, padding=2, fit=cfg, vertex_colors=False, measure_texels=0, mesh=None,
+        b = bake_texture(moved, resolution=32, padding=2, fit=cfg, vertex_colours=False, measure_texels=0, mesh=None,
                          colours="rays")
     moved_by = np.zeros((field.num_vertices, 3))
     moved_by[b.vertex_index] = b.vertices
@@ -246,16 +246,16 @@ def test_bake_onto_a_coarser_target_mesh(trained):
     assert b.info["mesh_vertices"] == 642 and b.info["mesh_faces"] == len(b.faces) == 1280
     np.testing.assert_array_equal(b.vertex_index[b.faces], target.faces)
     np.testing.assert_allclose(b.vertices, target.vertices[b.vertex_index], atol=1e-6)
-    assert b.vertex_colors.shape == (642, 3)
+    assert b.vertex_colours.shape == (642, 3)
     assert _overlap_counts(b.uvs, b.faces, 128).max() == 1
     val = _mean_psnr_vs_field(field, scene, b)
     print("coarse target: baked vs field PSNR", round(val, 2))
     assert val > 29.0
     # (vertices, faces) pairs work too and give the same atlas
     with one_thread():
-        b2 = bake_texture(field, resolution=32, mesh=(target.vertices, target.faces), vertex_colors=False,
+        b2 = bake_texture(field, resolution=32, mesh=(target.vertices, target.faces), vertex_colours=False,
                           colours="rays")
-    assert len(b2.faces) == 1280 and b2.vertex_colors is None
+    assert len(b2.faces) == 1280 and b2.vertex_colours is None
 
 
 def test_bake_target_far_from_the_field_is_filled_not_black(trained):
@@ -338,9 +338,9 @@ def test_bake_moves_an_offset_mesh_onto_the_field(trained):
     m = default_mesh(subdiv=3)
     V = m.vertices + 0.6 * field.radius * np.asarray(vertex_normals(m.vertices, m.faces))
     with one_thread():
-        off = bake_texture(field, resolution=128, mesh=(V, m.faces), fit=False, vertex_colors=False,
+        off = bake_texture(field, resolution=128, mesh=(V, m.faces), fit=False, vertex_colours=False,
                            colours="rays")
-        on = bake_texture(field, resolution=128, mesh=(V, m.faces), vertex_colors=False, colours="rays")
+        on = bake_texture(field, resolution=128, mesh=(V, m.faces), vertex_colours=False, colours="rays")
     p_off, p_on = _mean_psnr_vs_field(field, scene, off), _mean_psnr_vs_field(field, scene, on)
     print(f"inflated target: {p_off:.2f} dB where it is, {p_on:.2f} dB fitted (level {on.info['fit']['level']})")
     assert p_on > 29.0 and p_on > p_off + 5.0

@@ -98,13 +98,13 @@ def test_novel_views_see_the_paint_where_the_painted_surface_is(blob5, interp):
 
 def test_undo_restores_the_modification_colours_exactly(blob5):
     f = textured_field(blob5)
-    old = f.mod_colors.detach().clone()
+    old = f.mod_colours.detach().clone()
     K, c2w, _ = _view(f, 0.0)
     rec = paint_texture(f, K, c2w, S, S, _stroke((0.0, 1.0, 0.0)))
-    changed = np.nonzero((f.mod_colors != old).any(1).numpy())[0]
+    changed = np.nonzero((f.mod_colours != old).any(1).numpy())[0]
     assert np.array_equal(changed, rec.vertices) or set(changed) <= set(rec.vertices)
     rec.undo(f)
-    assert torch.equal(f.mod_colors, old)   # exact: the old rows are written back
+    assert torch.equal(f.mod_colours, old)   # exact: the old rows are written back
 
 
 def test_paint_layer_from_a_painted_image():
@@ -119,7 +119,7 @@ def test_paint_layer_from_a_painted_image():
 
 def test_bad_input_changes_nothing(blob5):
     f = textured_field(blob5)
-    old = f.mod_colors.detach().clone()
+    old = f.mod_colours.detach().clone()
     K, c2w, _ = _view(f, 0.0)
     with pytest.raises(nm.EditError, match="nothing is painted"):
         paint_texture(f, K, c2w, S, S, np.zeros((S, S, 4), np.float32))
@@ -129,6 +129,6 @@ def test_bad_input_changes_nothing(blob5):
         paint_texture(f, K, c2w, S, S, np.zeros((S // 2, S, 4), np.float32))
     with pytest.raises(nm.Cancelled):
         paint_texture(f, K, c2w, S, S, _stroke((1, 0, 0)), progress=lambda x: x < 0.5)
-    assert torch.equal(f.mod_colors, old)
+    assert torch.equal(f.mod_colours, old)
     with pytest.raises(nm.EditError, match="damping"):
         PaintConfig(damping=0)

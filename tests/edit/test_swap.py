@@ -11,7 +11,7 @@ from neumesh_core.edit import SwapConfig, swap_texture
 from ..conftest import textured_field
 from .helpers import masked_psnr, only_touching, render, touched_pixels
 
-TABLES = ("tex_codes", "mod_colors", "decoder_id", "geo_codes")
+TABLES = ("tex_codes", "mod_colours", "decoder_id", "geo_codes")
 
 
 def _region(f, axis=0, above=0.2):
@@ -25,7 +25,7 @@ def _other_texture(f, seed=5):
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         g.tex_codes.normal_(0, 0.8, generator=gen)
-        g.mod_colors.copy_(torch.tensor([-0.4, 0.5, -0.4]).expand_as(g.mod_colors))
+        g.mod_colours.copy_(torch.tensor([-0.4, 0.5, -0.4]).expand_as(g.mod_colours))
         for p in g.rad_decoder.parameters():
             p.normal_(0, 0.6, generator=gen)
     return g
@@ -160,7 +160,7 @@ def test_geometry_and_rows_outside_the_region_never_change(blob_mesh):
     verts = f.rest_vertices.clone()
     swap_texture(f, region, src, _region(src, 1, 0.1))
     out = np.setdiff1d(np.arange(f.num_vertices), region)
-    for n in ("tex_codes", "mod_colors", "decoder_id"):
+    for n in ("tex_codes", "mod_colours", "decoder_id"):
         assert torch.equal(getattr(f, n)[out], before[n][out]), n
     assert torch.equal(f.geo_codes, before["geo_codes"]) and torch.equal(f.rest_vertices, verts)
 

@@ -23,7 +23,7 @@ from ..conftest import textured_field
 from .helpers import masked_psnr, render
 from .test_swap import _other_texture, _region, _rotation
 
-TABLES = ("tex_codes", "mod_colors", "decoder_id", "geo_codes")
+TABLES = ("tex_codes", "mod_colours", "decoder_id", "geo_codes")
 # an alignment that places the multi-part body ~14 units from the 2-unit blob: a failed fit
 OFF_TARGET = Similarity(0.67, np.eye(3), np.array([-9.95, -8.79, -5.73]))
 
@@ -37,7 +37,7 @@ def multipart():
     f = nm.NeuMeshField(mesh, nm.FieldConfig())
     with torch.no_grad():
         f.tex_codes.normal_(0, 0.5)
-        f.mod_colors.copy_(torch.tensor([0.5, -0.4, -0.4]).expand_as(f.mod_colors))
+        f.mod_colours.copy_(torch.tensor([0.5, -0.4, -0.4]).expand_as(f.mod_colours))
     f.eval()
     return f, labels
 
@@ -187,12 +187,12 @@ def test_the_record_counts_rows_whose_values_changed(blob_mesh):
     before = _snapshot(f)
     src = _other_texture(f)
     with torch.no_grad():            # a few rows of the source already hold the target's values
-        for n in ("tex_codes", "mod_colors"):
+        for n in ("tex_codes", "mod_colours"):
             getattr(src, n)[region[:5]] = getattr(f, n)[region[:5]]
     src.rad_decoders[0] = copy.deepcopy(f.rad_decoders[0])
     rec = swap_texture(f, region, src, region)
     differ = np.zeros(f.num_vertices, bool)
-    for n in ("tex_codes", "mod_colors", "decoder_id"):
+    for n in ("tex_codes", "mod_colours", "decoder_id"):
         differ |= (getattr(f, n) != before[n]).reshape(f.num_vertices, -1).any(1).numpy()
     assert np.array_equal(rec.changed, np.nonzero(differ)[0]) and rec.num_changed == len(region) - 5
 
