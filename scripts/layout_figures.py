@@ -307,7 +307,7 @@ LIBRARY_NAMES = {"color", "color_attributes", "colorspace_settings", "active_col
                  "optimize", "COLOR_BGR2GRAY", "cvtColor", "baseColorTexture"}
 CODE_DIRS = ("neumesh_core", "addon", "tests", "blender_tests", "benchmarks", "scripts")
 TEXT_EXT = (".py", ".sh", ".toml", ".md", ".txt", ".cfg", ".yml", ".yaml", ".json")
-# an issue number, a reference to an issue's report or a round of work, in a source or doc file
+# an issue number, a mention of an issue's report or a round of work, in a source or doc file
 ISSUE_MENTION = re.compile(r"(?i)\bissues?\s*#?\s*\d+|(?:^|[\s(])#\d{2,3}\b|\bthe[ ]issue'?s?\b|\bround[ ]\d\b")
 _WORD = re.compile(r"[A-Z]+(?![a-z])|[A-Z]?[a-z]+|\d+")
 

@@ -8,7 +8,7 @@ add-on's real panels.  Every picture shows our own built-in scene (the procedura
 1. Trains a field on the built-in scene (``--steps``, default 600; reused from ``--field`` when that
    file exists, so a second run skips training) and writes, under ``--out`` (docs/images):
 
-   * ``demo.png``: held-out test views, the reference ray tracer's image (top) above the field's
+   * ``demo.png``: held-out test views, the ground-truth ray tracer's image (top) above the field's
      render (bottom), as ``neumesh demo`` draws its comparison figure;
    * ``hero.png``: one view of the field as trained, deformed (twisted through ``field.set_vertices``)
      and edited (a painted stroke through ``nm.paint_texture``), side by side;

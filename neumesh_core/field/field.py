@@ -58,7 +58,7 @@ from .heads import SemanticsHead
 from .knn import vertex_neighbours
 from .params import FieldConfig, FieldParams
 from .regularisers import tv_loss as _tv_loss
-from .scaffold import Neighbourhood, Scaffold, reference_neighbours, take_rows, tangent_frames  # noqa: F401 (re-exported)
+from .scaffold import Neighbourhood, Scaffold, tangent_neighbours, take_rows, tangent_frames  # noqa: F401 (re-exported)
 
 
 class NeuMeshField(FieldParams, RadianceDecoding, SemanticsHead, nn.Module):

@@ -9,7 +9,8 @@ Versions: 1 (one radiance decoder ``rad_decoder``; scaffold buffers at the top l
 decoders ``rad_decoders.<i>`` with a per-vertex ``decoder_id``, and ``tex_frame`` (N,3,3) when a
 texture edit rotated the frames of the codes it brought; scaffold buffers under ``scaffold.``).
 Version-1 files load as single-decoder fields with every vertex bound to decoder 0.  Tensors a file
-holds under an earlier name (``param/mod_colors``) load under the field's name for them.
+holds under an earlier name (``param/mod_colors``, ``buffer/scaffold.tangent_ref``) load under the
+field's name for them.
 
 Semantics (optional in both versions): ``field_config.sem_dim``/``sem_features`` > 0 means the file
 holds ``param/sem_codes`` (N, sem_dim) and ``param/sem_decoder.*``; the header's ``semantics`` entry
@@ -40,7 +41,7 @@ _V1_RENAMES = (("rad_decoder.", "rad_decoders.0."), ("faces", "scaffold.faces"),
 
 
 # tensors saved under an earlier name (any version) -> the name the field has now
-_RENAMED = {"mod_colors": "mod_colours"}
+_RENAMED = {"mod_colors": "mod_colours", "scaffold.tangent_ref": "scaffold.tangent_neighbour"}
 
 
 def _v1_to_v2_name(name: str) -> str:

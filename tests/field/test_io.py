@@ -33,8 +33,9 @@ def test_round_trip_renders_identical_pixels(blob_mesh, tmp_path):
 
 
 def test_tensors_saved_under_earlier_names_load_under_the_current_ones(blob_mesh, tmp_path):
-    """A file whose modification colours (and their Adam moments) are stored as ``mod_colors`` and whose
-    field config says ``knn="kdtree"`` loads as the field it was: the same rows, the same neighbour search."""
+    """A file whose modification colours (and their Adam moments) are stored as ``mod_colors``, whose
+    tangent neighbours are ``scaffold.tangent_ref`` and whose field config says ``knn="kdtree"`` loads as
+    the field it was: the same rows, the same tangent frames, the same neighbour search."""
     import json
 
     from safetensors import safe_open
@@ -50,12 +51,14 @@ def test_tensors_saved_under_earlier_names_load_under_the_current_ones(blob_mesh
     nm.save_field(f, path, optimizer=opt)
     with safe_open(path, framework="pt") as fh:
         meta = json.loads(fh.metadata()["neumesh"])
-        tensors = {k.replace("mod_colours", "mod_colors"): fh.get_tensor(k) for k in fh.keys()}
+        tensors = {k.replace("mod_colours", "mod_colors").replace("tangent_neighbour", "tangent_ref"): fh.get_tensor(k)
+                   for k in fh.keys()}
     meta["field_config"]["knn"] = "kdtree"
-    assert {"param/mod_colors", "optim/mod_colors/exp_avg"} <= set(tensors)
+    assert {"param/mod_colors", "optim/mod_colors/exp_avg", "buffer/scaffold.tangent_ref"} <= set(tensors)
     save_file(tensors, old, metadata={"neumesh": json.dumps(meta)})
     g = nm.load_field(old)
     assert torch.equal(g.mod_colours, f.mod_colours) and g.config.knn == "auto"
+    assert torch.equal(g.scaffold.tangent_neighbour, f.scaffold.tangent_neighbour)
     assert torch.equal(g._checkpoint_optim["mod_colours/exp_avg"], opt.state[f.mod_colours]["exp_avg"])
 
 
