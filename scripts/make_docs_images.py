@@ -70,7 +70,7 @@ def trained_field(scene, path: str, steps: int) -> tuple:
             print(f"  step {p.step}/{p.total_steps} PSNR {p.psnr:.2f} ({p.elapsed_s:.0f} s)", file=sys.stderr)
         return True
 
-    res = nm.train(field, scene, nm.TrainConfig(steps=steps), callback=cb)
+    res = nm.train(field, scene, nm.TrainConfig(steps=steps), progress=cb)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     nm.save_field(field, path)
     info = {"steps": res.steps_done, "train_s": round(res.seconds, 1)}

@@ -62,7 +62,7 @@ class DistillJob(jobs.Job):
     def status_text(self) -> str:
         return "NeuMesh " + ": ".join(self.status_lines()).replace("Semantics", "semantics", 1)
 
-    def _callback(self, p):
+    def _progress(self, p):
         self.stage, self.step, self.total, self.loss = p.stage, int(p.step), int(p.total), float(p.loss)
         return not self.cancel_requested
 
@@ -73,7 +73,7 @@ class DistillJob(jobs.Job):
         scene = nm.load_scene(self.dataset_path, downscale=self.downscale, background=self.background)
         extractor = sem.make_extractor(self.extractor)
         cfg = sem.DistillConfig(steps=self.steps, **self.config)
-        res = sem.distill_semantics(field, scene, extractor, cfg, callback=self._callback)
+        res = sem.distill_semantics(field, scene, extractor, cfg, progress=self._progress)
         if res.cancelled or self.cancel_requested:
             self.state, self.message = "CANCELLED", "nothing was written"
             return None

@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     snaps = {}
     history = []
 
-    def callback(p):
+    def on_progress(p):
         wall = time.perf_counter() - t0
         history.append({"step": p.step, "wall_s": wall, "train_psnr": p.psnr, "rays_per_sec": p.rays_per_sec,
                         "samples_per_ray": p.samples_per_ray})
@@ -145,7 +145,7 @@ def main(argv=None) -> int:
            if v is not None}
     cfg = nm.TrainConfig(steps=10 ** 6, rays_per_batch=args.rays, max_seconds=budget - scaffold_s, log_every=10,
                          **tkw)
-    res = nm.train(field, scene, cfg, callback=callback)
+    res = nm.train(field, scene, cfg, progress=on_progress)
     total_s = time.perf_counter() - t0
     final_path = os.path.join(out, "field.neumesh")
     nm.save_field(field, final_path)

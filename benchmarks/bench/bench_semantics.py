@@ -377,7 +377,7 @@ def main(argv=None) -> int:
             if p.stage == "train" and p.step % 500 == 0:
                 print(f"  train {p.step}/{p.total} loss {p.loss:.4f} ({p.elapsed_s:.0f}s)", flush=True)
 
-        res = distill_semantics(field, scene, ex, cfg, callback=cb)
+        res = distill_semantics(field, scene, ex, cfg, progress=cb)
         result["distill"] = {"extractor": ex.name, "steps": res.steps_done, "loss": res.final_loss,
                              "seconds": res.seconds, "bank_rays": res.bank_rays, "bank_samples": res.bank_samples,
                              "views": len(scene.split(cfg.split)), **res.timings}

@@ -38,7 +38,7 @@ def cmd_demo(args) -> int:
                  f"({mesh.num_vertices} scaffold vertices)...")
     path = os.path.join(args.out, "field.neumesh")
     cfg = nm.TrainConfig(steps=args.steps, rays_per_batch=args.rays, checkpoint_path=path)
-    res = nm.train(field, scene, cfg, callback=progress.training)
+    res = nm.train(field, scene, cfg, progress=progress.training)
     progress.end()
     if res.interrupted:
         print(f"interrupted; the field so far is in {path}", file=sys.stderr)

@@ -222,17 +222,21 @@ def build_bank(field, images: ImageSet, fmaps: list, cfg: DistillConfig, gen: to
     return bank, info
 
 
+DistillProgressFn = Callable[[DistillProgress], Optional[bool]]   # returns False to cancel
+
+
 def distill_semantics(field, data: Union[Scene, ImageSet], extractor: Optional[FeatureExtractor] = None,
-                      config: Optional[DistillConfig] = None,
-                      callback: Optional[Callable[[DistillProgress], Optional[bool]]] = None) -> DistillResult:
+                      config: Optional[DistillConfig] = None, progress: Optional[DistillProgressFn] = None, *,
+                      callback: Optional[DistillProgressFn] = None) -> DistillResult:
     """Give ``field`` a semantic branch distilled from 2D features of ``data``'s training images.
 
     ``extractor``: any :class:`FeatureExtractor` (default: the weight-free "colour-texture").
-    ``callback(progress)`` is called per view while extracting and marching, and every ``log_every``
-    steps while training; returning False cancels.  A cancel before training leaves the field as it
-    was; a cancel while training keeps what was learned (``DistillResult.cancelled``).
-    Only ``sem_codes`` and ``sem_decoder`` change.
+    ``progress(p)`` (a :class:`DistillProgress`) is called per view while extracting and marching, and
+    every ``log_every`` steps while training; returning False cancels (``callback``: its older name).  A
+    cancel before training leaves the field as it was; a cancel while training keeps what was learned
+    (``DistillResult.cancelled``).  Only ``sem_codes`` and ``sem_decoder`` change.
     """
+    progress = progress if progress is not None else callback
     cfg = config or DistillConfig()
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -252,7 +256,7 @@ def distill_semantics(field, data: Union[Scene, ImageSet], extractor: Optional[F
             p.eta_s = (time.perf_counter() - t_train) / step * (total - step)
         if stage == "train":
             history.append(p)
-        return callback(p) if callback is not None else None
+        return progress(p) if progress is not None else None
 
     # 1. 2D features
     fmaps = []

@@ -1,5 +1,5 @@
 """Training: photometric + modification-colour + mask BCE + total-variation losses, Adam, schedule,
-progress/cancel callback, periodic atomic checkpoints, resume, Ctrl-C safe."""
+progress/cancel, periodic atomic checkpoints, resume, Ctrl-C safe."""
 from __future__ import annotations
 
 import math
@@ -196,13 +196,16 @@ def _lr_factor(step: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> float:
 
 
 def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = None,
+          progress: Optional[Callable[[TrainProgress], Optional[bool]]] = None, *,
           callback: Optional[Callable[[TrainProgress], Optional[bool]]] = None) -> TrainResult:
     """Train ``field`` in place on ``data`` (a Scene: its ``config.split``; or an ImageSet).
 
-    ``callback(progress)`` is called every ``log_every`` steps and at the end; returning False cancels
-    (the field keeps what it learned; a checkpoint is written when ``checkpoint_path`` is set).
+    ``progress(p)`` (a :class:`TrainProgress`) is called every ``log_every`` steps and at the end;
+    returning False cancels (the field keeps what it learned; a checkpoint is written when
+    ``checkpoint_path`` is set).  ``callback``: the same, under the name older scripts pass.
     Ctrl-C (KeyboardInterrupt) stops cleanly the same way and is reported in ``TrainResult.interrupted``.
     """
+    progress = progress if progress is not None else callback
     cfg = config or TrainConfig()
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -338,7 +341,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
                                   samples_done / max(1, rays_done), field.grid.occupied_fraction,
                                   _progress(step, cfg, elapsed), limit)
                 history.append(p)
-                if callback is not None and callback(p) is False:
+                if progress is not None and progress(p) is False:
                     cancelled = True
                     break
             if cfg.checkpoint_path and step % cfg.checkpoint_every == 0 and not last:
