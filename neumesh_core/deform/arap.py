@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field as dc_field, replace
-from typing import Optional
+from typing import Literal, Optional
 
 import numpy as np
 
@@ -50,7 +50,7 @@ class ArapConfig:
     needs hundreds of them, and the cage provides the large scale cheaply (0: start from rest).
     ``energies``: record the energy after every iteration (``ArapResult.energies``; costs ~10%)."""
 
-    weights: str = "cotangent"
+    weights: Literal["cotangent", "uniform"] = "cotangent"
     iterations: int = 8
     tolerance: float = 1e-4
     cage_vertices: int = 0

@@ -33,7 +33,7 @@ class FieldConfig:
     radius: float = 0.0         # neighbour search radius; 0 = auto (radius_scale x mean edge length)
     radius_scale: float = 2.5
     hidden: int = 64            # decoder width
-    interpolation: str = "post"  # "post" (paper default) or "early" (~3x cheaper, ~0.15 dB worse)
+    interpolation: Literal["post", "early"] = "post"   # post: the paper's default; early: cheaper, a little worse
     pos_freqs: int = 4          # frequencies of the encoding of p / radius
     sh_degree: int = 4          # spherical-harmonics degree of the view-direction encoding
     k_tv: int = 8               # neighbours per vertex in the total-variation loss

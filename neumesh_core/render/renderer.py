@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence
+from typing import Callable, Literal, Optional, Sequence
 
 import numpy as np
 import torch
@@ -34,7 +34,7 @@ class RenderSettings:
     # which renderer marches and decodes: "auto" (the fused Triton kernel on CUDA when triton imports and
     # the field is covered; the torch path otherwise, the CPU included), "torch" (the reference) or
     # "triton" (the kernel, an error where it cannot run); kernels/path.render_path decides
-    backend: str = "auto"
+    backend: Literal["auto", "torch", "triton"] = "auto"
     # render_camera: a field's background model (real captures, field/background.py) composited behind
     # the field by its transmittance: on, the photo-like frame; off, the object alone with a true alpha
     background_model: bool = True

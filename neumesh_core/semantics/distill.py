@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, field as dc_field
-from typing import Callable, Optional, Union
+from typing import Callable, Literal, Optional, Union
 
 import numpy as np
 import torch
@@ -71,7 +71,7 @@ class DistillConfig:
 
 @dataclass
 class DistillProgress:
-    stage: str          # "features", "rays" or "train"
+    stage: Literal["features", "rays", "train"]
     step: int           # views done (features, rays) or optimisation steps done (train)
     total: int
     loss: float = float("nan")

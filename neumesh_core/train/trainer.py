@@ -6,7 +6,7 @@ import math
 import os
 import time
 from dataclasses import dataclass, field as dc_field
-from typing import Callable, Optional, Union
+from typing import Callable, Literal, Optional, Union
 
 import numpy as np
 import torch
@@ -34,7 +34,7 @@ class TrainConfig:
     weight_mask: float = 0.05         # mask BCE (only when the scene has masks/alpha)
     weight_tv: float = 1e-3           # total variation between neighbouring vertex codes
     tv_samples: int = 8192            # vertices sampled per step for the TV loss ("random")
-    tv_vertices: str = "random"       # TV over "random" vertices or the ones the "batch" looked up
+    tv_vertices: Literal["random", "batch"] = "random"   # TV over random vertices or the batch's
     # coarse-to-fine codes while training (field.pyramid.CodePyramid): this many coarse levels, each
     # code_level_factor times sparser than the last; baked into the per-vertex codes at the end.  0 = off
     code_levels: int = 0
@@ -108,7 +108,7 @@ class TrainProgress:
     # the budget, whichever part ends the run first: the steps, or the wall-clock budget
     # (TrainConfig.max_seconds, limit "time"; eta_s is then the time left of it)
     fraction: float = 0.0             # of the budget used, 0..1
-    limit: str = "steps"              # "steps" | "time": what ends the run
+    limit: Literal["steps", "time"] = "steps"   # what ends the run
 
 
 @dataclass
