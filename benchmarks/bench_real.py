@@ -1,4 +1,4 @@
-"""Real captures (issue 49): fit a phone capture without masks, scaffold included, and measure the
+"""Real captures: fit a phone capture without masks, scaffold included, and measure the
 held-out photos full frame (every 8th photo), with the background model on and off.
 
     .venv/bin/python benchmarks/bench_real.py --data /work/shared/data/real/fox --downscale 4 \

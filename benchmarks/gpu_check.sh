@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU check of issue 53 (fused Triton renderer), in one go, from the repository root:
+# The GPU check of the fused Triton renderer, in one go, from the repository root:
 #
 #     bash benchmarks/gpu_check.sh                     # a field made on the spot (no data needed)
 #     FIELD=runs/lego/field.neumesh DATA=path/to/nerf_synthetic/lego bash benchmarks/gpu_check.sh

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 49's GPU figure: the fox fit on a GPU (the device tool's machine), from the repository root:
+# The real-capture GPU figure: the fox fit on a GPU (the device tool's machine), from the repository root:
 #
 #     FOX=.gpu/fox SCAFFOLD=.gpu/fox_scaffold.ply MINUTES=8 bash benchmarks/gpu_fox.sh
 #

@@ -1,4 +1,4 @@
-"""ARAP deform as a person drives it (issue 52.1), in a real `blender` window under Xvfb, run by
+"""ARAP deform as a person drives it, in a real `blender` window under Xvfb, run by
 test_real_blender_ui.py in two steps:
 
 1. ``blender -b --factory-startup --python real_blender_arap_ui.py -- setup ZIP OUT_DIR``: installs the

@@ -1,4 +1,4 @@
-"""Run inside a real `blender -b` by test_real_blender.py (issue 48 point 3: real captures):
+"""Run inside a real `blender -b` by test_real_blender.py (real captures):
 
     blender -b --factory-startup --python real_blender_capture.py -- ZIP CAPTURE_DIR
 

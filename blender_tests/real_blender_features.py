@@ -1,8 +1,8 @@
-"""Run inside a real `blender -b` by test_real_blender.py (issue 47: Semantics and Bake out of the box):
+"""Run inside a real `blender -b` by test_real_blender.py (Semantics and Bake out of the box):
 
     blender -b --factory-startup --python real_blender_features.py -- ZIP OUT_DIR
 
-Installs the add-on, makes a tiny dataset and an untrained field with the core, and runs Distil
+Installs the add-on, makes a tiny dataset and an untrained field with the core, and runs Distill
 semantics, Select by click and Bake to material. Where Blender's Python lacks a feature's packages the
 operator must refuse before any job starts, naming them; where it has them the operator must work.
 Prints JSON facts on a line starting with NEUMESH_FACTS.
@@ -40,9 +40,9 @@ def run(name, fn):
         out[name] = f"{type(exc).__name__}: {exc}"
 
 
-run("distil", lambda: bpy.ops.neumesh.distil_semantics(wait=True, steps=2, max_views=2, rays_per_view=32))
+run("distill", lambda: bpy.ops.neumesh.distill_semantics(wait=True, steps=2, max_views=2, rays_per_view=32))
 job = addon.edit.distil.current_job()
-out["distil_job"] = None if job is None else [job.state, job.message]
+out["distill_job"] = None if job is None else [job.state, job.message]
 run("bake", lambda: bpy.ops.neumesh.bake_material(resolution=64))
 out["baked"] = [o.name for o in bpy.data.objects if o.name.endswith("_baked")]
 facts(**out)

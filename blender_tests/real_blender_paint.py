@@ -1,4 +1,4 @@
-"""Paint on view in a real `blender` window (issue 47.5), driven by test_real_blender_ui.py after
+"""Paint on view in a real `blender` window, driven by test_real_blender_ui.py after
 real_blender_ui.py's setup step made OUT_DIR/ui.blend:
 
     blender OUT_DIR/ui.blend --enable-event-simulate --python real_blender_paint.py -- paint OUT_DIR

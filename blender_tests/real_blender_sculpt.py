@@ -1,4 +1,4 @@
-"""Sculpt mode and the Rendered viewport in a real `blender` window (issue 47.8), driven by
+"""Sculpt mode and the Rendered viewport in a real `blender` window, driven by
 test_real_blender_ui.py after real_blender_ui.py's setup step made OUT_DIR/ui.blend:
 
     blender OUT_DIR/ui.blend --enable-event-simulate --python real_blender_sculpt.py -- sculpt OUT_DIR

@@ -1,4 +1,4 @@
-"""Texture Paint of a field in a real `blender` window (issue 50.2), driven by test_real_blender_ui.py
+"""Texture Paint of a field in a real `blender` window, driven by test_real_blender_ui.py
 after real_blender_ui.py's setup step made OUT_DIR/ui.blend:
 
     blender OUT_DIR/ui.blend --enable-event-simulate --python real_blender_texture_paint.py -- tpaint OUT_DIR

@@ -1,4 +1,4 @@
-"""Fill's redo panel, the viewport's redraw after an edit and Ctrl+Z, with real X input (issue 47.4):
+"""Fill's redo panel, the viewport's redraw after an edit and Ctrl+Z, with real X input:
 driven by test_real_blender_redo.py after real_blender_ui.py's ``setup`` step made OUT_DIR/ui.blend:
 
 ``blender OUT_DIR/ui.blend --python real_blender_xdo.py -- xdo OUT_DIR``   (no --enable-event-simulate:
@@ -25,7 +25,7 @@ clicks, key presses), the way a mouse and keyboard do; Blender reads them from i
 The facts (NEUMESH_FACTS) and the screenshots (OUT_DIR/*.png) go back to the test.
 
 Two more modes on the same OUT_DIR/ui.blend: ``swap`` (the refused swap preview, test_real_blender_redo.py)
-and ``sculpt`` (a measurement for docs/addon.md, issue 47.8: seconds to the preview's finest level in
+and ``sculpt`` (a measurement for docs/addon.md: seconds to the preview's finest level in
 Object Mode and after a real Grab stroke in Sculpt Mode; run by hand as the test runs ``xdo``).
 """
 import os
@@ -538,7 +538,7 @@ class Driver:
 
 
 class SwapDriver(Driver):
-    """Issue 47.1 in the real window: *Preview alignment* of a swap whose pairs squeeze one cap of the
+    """In the real window: *Preview alignment* of a swap whose pairs squeeze one cap of the
     blob onto a few vertices of the other (as a careless pick would: the fit check fails).  The Swap
     panel shows the figures and the whole message; the aligned source is drawn as a wireframe; no file
     is written.  The sidebar shows *Edit field* and *Swap texture* only, turned to with real Ctrl+Wheel
@@ -610,7 +610,7 @@ class SwapDriver(Driver):
 
 
 class SculptDriver(Driver):
-    """Issue 47.8, measured: seconds from a request to the preview's finest level in Object Mode, then
+    """Measured: seconds from a request to the preview's finest level in Object Mode, then
     in Sculpt Mode after a real Grab stroke (xdotool: button down, eight moves, button up over the
     object), the pointer then left alone.  Facts only (``object_levels``, ``sculpt_levels``: the
     preview's (divisor, seconds since the request) of the image finally drawn; ``sculpt_done_s``:

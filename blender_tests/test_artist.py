@@ -1,4 +1,4 @@
-"""What an artist meets (issue #35), in bpy 5.0.1: colour management when NeuMesh is chosen, the
+"""What an artist meets, in bpy 5.0.1: colour management when NeuMesh is chosen, the
 training mesh after Load field, wrapped messages, the wording of errors, field paths across Save As
 (the 3.4 binary has its own tests in test_real_blender.py / test_real_blender_ui.py)."""
 from __future__ import annotations
@@ -40,8 +40,8 @@ def test_choosing_neumesh_sets_photo_colours_once(addon):
 
 
 def test_a_render_chosen_by_script_or_command_line_uses_photo_colours(addon, tmp_path):
-    """Issue 47: `-E NEUMESH` (or a script setting the engine) never reached the message bus, so a file
-    saved with Filmic rendered flat and grey. The render_pre handler sets the photographic view before
+    """`-E NEUMESH` (or a script setting the engine) does not reach the message bus, so a file saved
+    with Filmic would render flat and grey: the render_pre handler sets the photographic view before
     the first NeuMesh render, once per scene, as the interface does."""
     scene = bpy.context.scene
     default = scene.view_settings.view_transform
@@ -60,7 +60,7 @@ def test_a_render_chosen_by_script_or_command_line_uses_photo_colours(addon, tmp
 
 
 def test_render_panel_note_is_wrapped_to_the_panel(addon):
-    """The Render properties note used to be one label cut off mid-word; every line now fits."""
+    """The Render properties note is wrapped to the panel: every line fits, none is cut off mid-word."""
     ui = addon.runtime.text
     measure = ui.text_measure()
     text = ("Colours look flat: View Transform is 'AgX', Look is 'AgX - Punchy'. NeuMesh fields hold the "

@@ -44,7 +44,7 @@ def test_bake_material_creates_a_textured_object(addon, trained_field, tmp_path,
     src = np.empty(len(obj.data.vertices) * 3, np.float32)
     obj.data.vertices.foreach_get("co", src)
     # the bake follows the pose (world space) and moves each vertex onto the field's surface along its
-    # normal (issue 50: at most SurfaceFitConfig.search radii), so the baked mesh lies where the field renders
+    # normal (at most SurfaceFitConfig.search radii), so the baked mesh lies where the field renders
     shift = np.linalg.norm(co.reshape(-1, 3) - (src.reshape(-1, 3) + [1.5, 0, 0]), axis=1)
     assert shift.max() <= nm.bake.SurfaceFitConfig().search * field.radius + 1e-4, shift.max()
     uv = me.uv_layers.get(addon.edit.bake.UV_NAME)
@@ -124,7 +124,7 @@ def test_baked_files_load_in_blender(trained_field, tmp_path):
     from neumesh_core.bake import bake_texture, save_bake
 
     field = nm.load_field(trained_field)
-    res = bake_texture(field, resolution=64, vertex_colors=False, mesh=None, colours="rays")
+    res = bake_texture(field, resolution=64, vertex_colours=False, mesh=None, colours="rays")
     paths = save_bake(res, str(tmp_path / "out"), "asset")
     n_faces = len(res.faces)
     assert bpy.ops.wm.obj_import(filepath=paths["obj"]) == {"FINISHED"}
@@ -169,13 +169,13 @@ def test_bake_field_surface_with_views_renders_like_the_field(addon, trained_fie
     64 px): the new object is a mesh extracted from the field's density (not the scaffold); read back from
     Blender and rendered at the scene's test view (3x its 32 px) it matches the field's own render.
 
-    Measured 20.3 dB; pass mark 18 dB.  Why so low a mark: the session's field is trained for 40 steps
+    Pass mark 18 dB.  Why so low a mark: the session's field is trained for 40 steps
     on 32 px photos, so its edges are soft, half-transparent shells an opaque mesh cannot show, and its
     colour is nearly flat (a flat texture of the bake's mean colour scores about the same; the texture's
-    fidelity is measured on trained fields in tests/test_bake.py and benchmarks/bench_bake.py).  What
-    this field does show is the target: the old default (Scaffold + Rays, one click away) renders the
-    same field at 13.4 dB, because the field's surface lies about a radius off its scaffold; the pass
-    mark asks the new default for 4 dB more than that."""
+    fidelity is measured on trained fields in tests/bake/ and benchmarks/bench/bench_bake.py).  What
+    this field does show is the target: Scaffold + Rays (one click away) renders the same field at
+    13.4 dB, because the field's surface lies about a radius off its scaffold; the pass mark asks the
+    default (Field surface + Views) for 4 dB more than that."""
     import neumesh_core as nm
     from neumesh_core.metrics import psnr
     from neumesh_core.render.raster import render_textured_mesh

@@ -1,4 +1,4 @@
-"""A capture without masks in Blender (issue 49 point 4): the NeuMesh Box that Import Cameras makes is
+"""A capture without masks in Blender: the NeuMesh Box that Import Cameras makes is
 what Build scaffold and Train take as the object (moved, rotated and scaled by the artist), the field
 keeps it and learns a background model, and the render setting *Background* shows the room or the
 object alone (with Film > Transparent: alpha = the object's own opacity)."""

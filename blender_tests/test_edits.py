@@ -44,9 +44,9 @@ def _paint_red(addon, obj):
 
     field, path = addon.edit.base.field_for_edit(obj)
     rows = np.nonzero(field.rest_vertices[:, 0].numpy() > 0)[0]
-    rec = nm.edit.EditRecord.begin("test-paint", field, rows, ("mod_colors",))
+    rec = nm.edit.EditRecord.begin("test-paint", field, rows, ("mod_colours",))
     with torch.no_grad():
-        field.mod_colors[torch.as_tensor(rows)] = torch.tensor([0.4, -0.4, -0.4])
+        field.mod_colours[torch.as_tensor(rows)] = torch.tensor([0.4, -0.4, -0.4])
     rec.finish(field)
     return addon.edit.base.commit_edit(obj, field, rec, path), path
 

@@ -350,7 +350,7 @@ def test_progressive_preview_starts_coarser_when_the_first_level_would_be_slow(a
 
 
 def test_preview_reaches_full_resolution_after_sculpt_style_updates_stop(addon, trained_field):
-    """Issue 47.8: sculpt mode sends depsgraph updates while nothing moves.  The viewport (view_update,
+    """Sculpt mode sends depsgraph updates while nothing moves.  The viewport (view_update,
     then view_draw's request when the generation changed) restarts the progressive preview only when
     the vertices change: during the stroke each update restarts it; once the stroke stops, further
     updates leave the render alone and the preview reaches the last (full) level."""

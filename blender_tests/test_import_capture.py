@@ -1,4 +1,4 @@
-"""Real captures in Blender (issue 48 point 3): Import Cameras of a COLMAP folder and of a transforms.json
+"""Real captures in Blender: Import Cameras of a COLMAP folder and of a transforms.json
 folder written here (cameras, photos as backgrounds, sparse points, "NeuMesh Box"), and Poses from
 Photos on a textured cube rendered here (the job's progress, cancel, the operator's import)."""
 from __future__ import annotations

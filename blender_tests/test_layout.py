@@ -1,4 +1,4 @@
-"""The add-on's layout (issue 46): it reaches the core only through ``neumesh_core``'s public names, its
+"""The add-on's layout: it reaches the core only through ``neumesh_core``'s public names, its
 modules import each other without a circle, and each room (sub-package) imports only the rooms below it
 (DEVELOPERS.md, "addon/"). Static checks with ast: nothing is imported or run."""
 from __future__ import annotations

@@ -104,7 +104,7 @@ def test_bad_paint_input_changes_nothing(addon, trained_field, tmp_path):
 
 
 def test_apply_and_cancel_sit_in_the_image_editor_showing_the_paint(addon, trained_field, tmp_path):
-    """Issue 47.5: the Image Editor that shows the paint image has a NeuMesh sidebar panel and header
+    """The Image Editor that shows the paint image has a NeuMesh sidebar panel and header
     buttons with Apply / Cancel (for that image); Cancel discards both images and applies nothing.
     (Opening an Image Editor inside the main window is checked in the real window: test_real_blender_ui.)"""
     import types

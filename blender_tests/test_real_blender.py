@@ -86,10 +86,10 @@ def test_real_blender_renders_animation_with_neumesh_engine(addon_zip, trained_f
     assert f1.shape == f2.shape == (40, 48, 3)
     assert f1.std() > 0.02  # the field is in the picture
 
-    # issue 47: the same file saved with Filmic and another engine; `-E NEUMESH` on the command line never
-    # reached the interface's engine-change message, and the frame came out flat and grey. Now the first
-    # NeuMesh render of a scene sets the photographic view (as choosing the engine in the interface
-    # does): the batch frame has the pixels of the Standard-view file, and the log says why.
+    # the same file saved with Filmic and another engine; `-E NEUMESH` on the command line does not reach
+    # the interface's engine-change message, so the first NeuMesh render of a scene sets the
+    # photographic view (as choosing the engine in the interface does): the batch frame has the pixels
+    # of the Standard-view file, and the log says why.
     filmic = str(out / "filmic.blend")
     expr = ("import bpy; s = bpy.context.scene; s.view_settings.view_transform = 'Filmic'; "
             "s.render.engine = 'CYCLES'; s.neumesh.photo_colour_set = False; "
@@ -271,19 +271,18 @@ def test_composite_with_scene_renders_with_blender_b_a(addon_zip, trained_field,
 
 
 def test_semantics_and_bake_work_or_name_their_missing_packages(addon_zip, tmp_path):
-    """Issue 47: in Blender 3.4 Distil semantics said it started, then died in its thread on
-    `No module named 'skimage'`; Bake needed xatlas. Now each operator either works (the packages are
-    in the torch folder: scripts/setup_blender.sh installs the add-on's whole list) or refuses before
-    starting, naming the package in full."""
+    """In Blender 3.4 each of Distill semantics and Bake either works (the packages are in the torch
+    folder: scripts/setup_blender.sh installs the add-on's whole list) or refuses before starting,
+    naming the package in full (never dying in its thread on `No module named 'skimage'`)."""
     _need_torch()
     env = _env(tmp_path)
     f = _facts(_run([BLENDER, "-b", "--factory-startup", "--python", os.path.join(HERE, "real_blender_features.py"),
                      "--", addon_zip, str(tmp_path / "out")], env, timeout=600))
     if f["missing"]["semantics"]:
-        assert "Distil semantics needs the Python package" in f["distil"], f
-        assert all(p in f["distil"] for p in f["missing"]["semantics"]) and f["distil_job"] is None, f
+        assert "Distill semantics needs the Python package" in f["distill"], f
+        assert all(p in f["distill"] for p in f["missing"]["semantics"]) and f["distill_job"] is None, f
     else:
-        assert f["distil"] == ["FINISHED"] and f["distil_job"][0] == "DONE", f
+        assert f["distill"] == ["FINISHED"] and f["distill_job"][0] == "DONE", f
     if f["missing"]["bake"]:
         assert "Bake to material needs the Python package xatlas" in f["bake"] and not f["baked"], f
     else:
@@ -291,7 +290,7 @@ def test_semantics_and_bake_work_or_name_their_missing_packages(addon_zip, tmp_p
 
 
 def test_import_cameras_of_a_colmap_capture_in_real_blender(addon_zip, tmp_path):
-    """Issue 48 point 3 in the real binary: a COLMAP folder (written here) imports as cameras with their
+    """In the real binary: a COLMAP folder (written here) imports as cameras with their
     photos, the sparse points drawn as points by the Mesh to Points node group (built with the 3.x
     node-group API there, the 4+ one in bpy 5), and the NeuMesh Box."""
     _need_torch()
@@ -311,7 +310,7 @@ def test_import_cameras_of_a_colmap_capture_in_real_blender(addon_zip, tmp_path)
 
 
 def test_real_blender_arap_deform_renders_keyed_handle(addon_zip, trained_field, tmp_path):
-    """Issue 52.1 in Debian's Blender 3.4: Add ARAP deform, a keyed handle Empty, then
+    """In Debian's Blender 3.4: Add ARAP deform, a keyed handle Empty, then
     `blender -b arap.blend -E NEUMESH -a`: frame 2 shows the bent field, frame 1 the rest."""
     _need_torch()
     env = _env(tmp_path)

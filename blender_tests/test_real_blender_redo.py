@@ -1,4 +1,4 @@
-"""Issue 47.4 in a real window (Xvfb) with real input: a real click (xdotool, XTEST) on *Fill texture*
+"""In a real window (Xvfb) with real input: a real click (xdotool, XTEST) on *Fill texture*
 runs Fill; typing Scale 3 in *Adjust Last Operation* re-runs it; a real Ctrl+Z goes back; after each,
 the Rendered viewport draws the new field within a second without the pointer moving. "Did it re-run /
 redraw" is read from Fill's execute calls, the object's field file and the viewport engine's drawn
@@ -95,7 +95,7 @@ def test_fill_click_redo_panel_and_ctrl_z_with_real_input(addon_zip, trained_fie
 
 def test_failed_swap_preview_in_a_real_window_shows_the_refusal_and_writes_nothing(addon_zip, trained_field,
                                                                                     tiny_dataset, tmp_path):
-    """Issue 47.1 in the real window: the Swap panel of a failed automatic fit (pairs squeezing one cap
+    """In the real window: the Swap panel of a failed automatic fit (pairs squeezing one cap
     onto the other) draws without error, with the aligned source as a wireframe object; no file."""
     r, log, f = run_in_window("real_blender_xdo.py", "swap", addon_zip, trained_field, tiny_dataset, tmp_path, 420,
                               simulate=False)

@@ -115,7 +115,7 @@ def test_sidebar_in_a_real_window(addon_zip, trained_field, tiny_dataset, tmp_pa
 
 
 def test_poses_esc_and_import_undo_in_a_real_window(addon_zip, tmp_path):
-    """Issue 48 point 3 as a person uses it: Poses from Photos runs modally and Esc cancels it (nothing
+    """As a person uses it: Poses from Photos runs modally and Esc cancels it (nothing
     imported); Import Cameras of a COLMAP folder runs modally, and Ctrl+Z / Ctrl+Shift+Z remove and
     bring back its cameras, points and box."""
     if "pycolmap" not in os.listdir(TORCH_DIR):
@@ -176,7 +176,7 @@ def test_arap_drag_and_undo_with_real_key_presses(addon_zip, tmp_path):
 
 def test_paint_on_view_opens_its_image_editor_inside_the_main_window(addon_zip, trained_field, tiny_dataset,
                                                                      tmp_path):
-    """Issue 47.5 in the real window: Paint on view splits the 3D View (no new window); that Image
+    """In the real window: Paint on view splits the 3D View (no new window); that Image
     Editor shows the paint image in Paint mode with the NeuMesh sidebar panel (Apply / Cancel) drawn;
     Cancel painting closes it again and removes the paint images."""
     r, log, f = run_in_window("real_blender_paint.py", "paint", addon_zip, trained_field, tiny_dataset, tmp_path, 300)
@@ -198,7 +198,7 @@ def test_paint_on_view_opens_its_image_editor_inside_the_main_window(addon_zip, 
 
 def test_sculpt_mode_preview_reaches_the_last_level_after_a_stroke(addon_zip, trained_field, tiny_dataset,
                                                                    tmp_path):
-    """Issue 47.8 in the real window: a Grab stroke in Sculpt Mode with the Rendered viewport; once the
+    """In the real window: a Grab stroke in Sculpt Mode with the Rendered viewport; once the
     stroke ends, the preview reaches its last (finest) level and further updates do not restart it."""
     r, log, f = run_in_window("real_blender_sculpt.py", "sculpt", addon_zip, trained_field, tiny_dataset, tmp_path, 500)
     print("sculpt facts:", f)
@@ -210,7 +210,7 @@ def test_sculpt_mode_preview_reaches_the_last_level_after_a_stroke(addon_zip, tr
 
 def test_texture_paint_stroke_shows_in_the_rendered_viewport_and_undoes(addon_zip, trained_field, tiny_dataset,
                                                                          tmp_path):
-    """Issue 50.2 in the real window (Blender 3.4): a brush stroke in Texture Paint mode on the field
+    """In the real window (Blender 3.4): a brush stroke in Texture Paint mode on the field
     object paints its image; the add-on pushes the image into the field and the Rendered viewport
     shows the paint; Ctrl+Z (Blender's texture paint undo) restores the image and the viewport."""
     r, log, f = run_in_window("real_blender_texture_paint.py", "tpaint", addon_zip, trained_field, tiny_dataset,

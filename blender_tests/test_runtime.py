@@ -1,6 +1,6 @@
 """runtime/: the one background-job class, what *Install dependencies* installs (only what Blender
 lacks, never a numpy over Blender's own), and the check that names a feature's missing packages
-before its job starts (issue 47: Distil semantics died in its thread on `No module named 'skimage'`)."""
+before its job starts (rather than the job dying in its thread on `No module named 'skimage'`)."""
 from __future__ import annotations
 
 import os
@@ -121,7 +121,7 @@ def test_the_blender_crash_quiet_prevents(tmp_path):
 def test_every_background_job_is_the_one_job_class(addon):
     Job = addon.runtime.jobs.Job
     assert issubclass(addon.train.worker.TrainJob, Job)
-    assert issubclass(addon.edit.distil.DistilJob, Job)
+    assert issubclass(addon.edit.distil.DistillJob, Job)
     assert issubclass(addon.runtime.install.InstallJob, Job)
     assert not addon.runtime.install.InstallJob.uses_torch
 
@@ -192,7 +192,7 @@ def test_a_feature_names_its_missing_packages_in_full(addon, monkeypatch):
     with pytest.raises(addon.runtime.errors.UserError) as exc:
         addon.runtime.core.require("semantics")
     msg = str(exc.value)
-    assert "Distil semantics needs the Python packages scikit-image, scikit-learn" in msg
+    assert "Distill semantics needs the Python packages scikit-image, scikit-learn" in msg
     assert "'Install these 2'" in msg and "Install dependencies" in msg
     assert addon.runtime.deps.install_label(["xatlas"]) == "Install xatlas"
 
@@ -203,7 +203,7 @@ def test_install_button_of_a_feature_installs_nothing_when_present(addon):
     assert job is None or job.requirements != ["xatlas", "scikit-image"]   # nothing was started
 
 
-def test_distil_and_bake_refuse_to_start_without_their_packages(addon, monkeypatch, tmp_path):
+def test_distill_and_bake_refuse_to_start_without_their_packages(addon, monkeypatch, tmp_path):
     """The check runs before any job: the message names the package; no thread dies later."""
     deps = addon.runtime.deps
     monkeypatch.setattr(deps, "missing_for", lambda feature, statuses=None: {
@@ -217,8 +217,8 @@ def test_distil_and_bake_refuse_to_start_without_their_packages(addon, monkeypat
     nm.save_field(field, path)
     assert bpy.ops.neumesh.load_field(filepath=path, new_object=True) == {"FINISHED"}
     bpy.context.scene.neumesh.dataset_path = d
-    with pytest.raises(RuntimeError, match="Distil semantics needs the Python package scikit-image"):
-        bpy.ops.neumesh.distil_semantics(wait=True)
+    with pytest.raises(RuntimeError, match="Distill semantics needs the Python package scikit-image"):
+        bpy.ops.neumesh.distill_semantics(wait=True)
     assert addon.edit.distil.current_job() is None or not addon.edit.distil.current_job().running
     with pytest.raises(RuntimeError, match="Bake to material needs the Python package xatlas"):
         bpy.ops.neumesh.bake_material(resolution=64)

@@ -1,6 +1,6 @@
 """Semantics in Blender: Select by click (driven with a camera view and a pixel, and with the stored
 viewport matrices the modal click records) writes the clicked part as a vertex group and the edit-mode
-selection; Distil semantics runs the core in the background; semantic colours."""
+selection; Distill semantics runs the core in the background; semantic colours."""
 from __future__ import annotations
 
 import os
@@ -155,7 +155,7 @@ def test_click_errors(addon, parts_data):
         bpy.ops.neumesh.select_by_click(camera="cam", pixel=_click_on(addon, cam, 1))
 
 
-def test_distil_semantics_operator_writes_an_edit(addon, parts_data, tmp_path):
+def test_distill_semantics_operator_writes_an_edit(addon, parts_data, tmp_path):
     import neumesh_core as nm
 
     d, plain, _, _ = parts_data
@@ -164,7 +164,7 @@ def test_distil_semantics_operator_writes_an_edit(addon, parts_data, tmp_path):
     obj, _ = _scene(src)
     bpy.context.scene.neumesh.dataset_path = d
     bpy.context.scene.neumesh_semantics.steps = 3
-    assert bpy.ops.neumesh.distil_semantics(wait=True, max_views=2, rays_per_view=64) == {"FINISHED"}
+    assert bpy.ops.neumesh.distill_semantics(wait=True, max_views=2, rays_per_view=64) == {"FINISHED"}
     out = addon.scene.props.field_abspath(obj)
     assert out == str(tmp_path / "parts.edit-001.neumesh")
     f = nm.load_field(out)
@@ -173,7 +173,7 @@ def test_distil_semantics_operator_writes_an_edit(addon, parts_data, tmp_path):
     assert bpy.ops.neumesh.undo_edit() == {"FINISHED"} and addon.scene.props.field_abspath(obj) == src
     bpy.context.scene.neumesh.dataset_path = str(tmp_path / "missing")
     with pytest.raises(RuntimeError, match="dataset folder"):
-        bpy.ops.neumesh.distil_semantics(wait=True)
+        bpy.ops.neumesh.distill_semantics(wait=True)
 
 
 def test_semantic_colours(addon, parts_data):

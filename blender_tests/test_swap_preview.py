@@ -1,4 +1,4 @@
-"""Issue 47.1 in Blender: *Preview alignment* draws the aligned source as a temporary wireframe (a child
+"""In Blender: *Preview alignment* draws the aligned source as a temporary wireframe (a child
 of the target, nothing written) with its fit figures; *Accept* applies exactly that alignment;
 *Discard* removes it; a failed fit is refused with the core's message (what to do), and no file is
 written, both by the Swap operator and by Accept, unless the fit check is skipped.

@@ -29,7 +29,7 @@ def _other_texture_file(trained_field, path):
     g = torch.Generator().manual_seed(3)
     with torch.no_grad():
         f.tex_codes.normal_(0, 0.8, generator=g)
-        f.mod_colors.copy_(torch.tensor([-0.3, 0.4, -0.3]).expand_as(f.mod_colors))
+        f.mod_colours.copy_(torch.tensor([-0.3, 0.4, -0.3]).expand_as(f.mod_colours))
         for p in f.rad_decoder.parameters():
             p.add_(0.3 * torch.randn(p.shape, generator=g))
     nm.save_field(f, path)
@@ -209,21 +209,21 @@ def test_a_cancelled_background_edit_changes_nothing(addon, trained_field, tmp_p
 
 
 def test_a_region_swapped_onto_itself_changes_nothing_and_writes_no_file(addon, trained_field, tmp_path):
-    """Issue 47: swapping a region onto itself reported "10242 vertices changed"; no row changes, so
-    nothing is saved and the object keeps its file."""
+    """Swapping a region onto itself changes no row, so nothing is saved, the object keeps its file and
+    the report counts no changed vertex."""
     target, _, tgt_path, _, _, region = _setup(trained_field, tmp_path)
     field, _ = addon.edit.base.field_for_edit(target)
     nm = addon.runtime.core.get()
     work = addon.edit.base.edit_copy(field)
     rec = nm.swap_texture(work, region, work, region)
-    # the record holds every row it wrote; num_changed (core, #47.1) and changed_rows count none of them
+    # the record holds every row it wrote; num_changed (core) and changed_rows count none of them
     assert len(rec.vertices) == len(region) and rec.num_changed == 0 and addon.edit.base.changed_rows(rec) == 0
     other = addon.edit.base.edit_copy(field)
     import torch
 
-    rec2 = nm.edit.EditRecord.begin("probe", other, region[:5], ("mod_colors",))
+    rec2 = nm.edit.EditRecord.begin("probe", other, region[:5], ("mod_colours",))
     with torch.no_grad():
-        other.mod_colors[torch.as_tensor(region[:2])] += 0.25
+        other.mod_colours[torch.as_tensor(region[:2])] += 0.25
     rec2.finish(other)
     assert addon.edit.base.changed_rows(rec2) == 2   # the rows whose values moved, not all it wrote
     assert bpy.ops.neumesh.swap_texture(target_group="region", source_object="", source_group="region",

@@ -218,7 +218,7 @@ def test_paint_on_view_paints_the_atlas_of_a_field_that_has_one(addon, trained_f
     assert out != path
     edited = nm.load_field(out)
     assert not edited.paint_atlas.is_empty
-    np.testing.assert_allclose(edited.mod_colors.detach().numpy(), src.mod_colors.detach().numpy(), atol=0)
+    np.testing.assert_allclose(edited.mod_colours.detach().numpy(), src.mod_colours.detach().numpy(), atol=0)
     K, c2w = manual_K_c2w(cam, W, H)
     before = nm.render_camera(src, K, c2w, W, H)
     after = nm.render_camera(edited, K, c2w, W, H)

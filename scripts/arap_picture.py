@@ -1,4 +1,4 @@
-"""docs/images/arap_lego.png: lego's bucket lifted by an ARAP handle, the body anchored (issue 52).
+"""docs/images/arap_lego.png: lego's bucket lifted by an ARAP handle, the body anchored.
 
     python scripts/arap_picture.py --field /work/runs/lego/field.neumesh
 

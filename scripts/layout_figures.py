@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """Layout figures: files over 400 lines and functions over 100 lines (neumesh_core, and the add-on
-beside it), import arrows that run back up the layers, import circles, and results files without a
-commit in their machine record. Pure `ast` and json (nothing is imported). tests/test_layers.py uses
-the same rules and holds the package to LONG_FILES / LONG_FUNCTIONS below.
+beside it), import arrows that run back up the layers, import circles, results files without a
+commit in their machine record, and the house's words: names spelled two ways and source files that
+mention an issue number. Pure `ast`, `tokenize` and json (nothing is imported). tests/test_layers.py
+uses the same rules and holds the package to LONG_FILES / LONG_FUNCTIONS below.
 
     python scripts/layout_figures.py [--root CHECKOUT] [--label now] [--json benchmarks/results/figures/layout.json]
 """
@@ -10,9 +11,12 @@ from __future__ import annotations
 
 import argparse
 import ast
+import io
 import json
 import os
+import re
 import sys
+import tokenize
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PKG = "neumesh_core"
@@ -29,7 +33,7 @@ LAYERS = {
     "cli": 7,
     "": 8,  # the package root (neumesh_core/__init__.py): only cli/ may import it
 }
-# the pre-issue-46 name of reconstruct/, for the "before" figures
+# reconstruct/'s earlier name, so that older checkouts (--root) measure too
 OLD_ROOMS = {"scaffold": "reconstruct"}
 
 
@@ -287,6 +291,106 @@ def results_without_commit(root: str = ROOT) -> list[str]:
     return sorted(out)
 
 
+# --- the house's words ------------------------------------------------------------------------------------
+# One word per thing, one spelling. Identifiers spell British (DEVELOPERS.md, "One word, one meaning");
+# the libraries' own names (bpy, torch, OpenCV, PIL, trimesh) keep theirs and are not counted.
+SPELLINGS = {   # a word's other spelling -> the house's
+    "color": "colour", "colors": "colours", "colored": "coloured", "center": "centre", "centers": "centres",
+    "gray": "grey", "neighbor": "neighbour", "neighbors": "neighbours", "normalize": "normalise",
+    "normalized": "normalised", "optimize": "optimise", "optimizer": "optimiser", "behavior": "behaviour",
+    "initialize": "initialise", "analyze": "analyse", "visualize": "visualise", "favor": "favour",
+    "license": "licence",
+    "distil": "distill",   # the core's package, function and command spell it distill; the add-on follows
+}
+LIBRARY_NAMES = {"color", "color_attributes", "colorspace_settings", "active_color", "diffuse_color", "color_mode",
+                 "color_type", "use_unified_color", "color_depth", "colorspace", "normalize", "Optimizer",
+                 "optimize", "COLOR_BGR2GRAY", "cvtColor", "baseColorTexture"}
+CODE_DIRS = ("neumesh_core", "addon", "tests", "blender_tests", "benchmarks", "scripts")
+TEXT_EXT = (".py", ".sh", ".toml", ".md", ".txt", ".cfg", ".yml", ".yaml", ".json")
+# an issue number, a mention of an issue's report or a round of work, in a source or doc file
+ISSUE_MENTION = re.compile(r"(?i)\bissues?\s*#?\s*\d+|(?:^|[\s(])#\d{2,3}\b|\bthe[ ]issue'?s?\b|\bround[ ]\d\b")
+_WORD = re.compile(r"[A-Z]+(?![a-z])|[A-Z]?[a-z]+|\d+")
+
+
+def _source_files(root: str, exts=TEXT_EXT, dirs=None):
+    """Files of the checkout (relative paths), caches, environments and benchmark results left out."""
+    skip = {".git", ".venv", "__pycache__", "node_modules", "build", "dist", ".pytest_cache", ".ruff_cache"}
+    for top in (dirs or [""]):
+        base = os.path.join(root, top)
+        if os.path.isfile(base):
+            yield top
+            continue
+        for dirpath, dirnames, filenames in os.walk(base):
+            rel = os.path.relpath(dirpath, root).replace(os.sep, "/")
+            dirnames[:] = sorted(d for d in dirnames if d not in skip and not d.startswith(".")
+                                 and f"{rel}/{d}".lstrip("./") != "benchmarks/results")
+            for fn in sorted(filenames):
+                if fn.endswith(exts):
+                    yield os.path.relpath(os.path.join(dirpath, fn), root).replace(os.sep, "/")
+
+
+def identifiers(path: str) -> set[str]:
+    """The names a Python file spells (tokenize's NAME tokens: variables, functions, attributes, keywords
+    of calls), strings and comments left out."""
+    with open(path, "rb") as fh:
+        toks = tokenize.tokenize(io.BytesIO(fh.read()).readline)
+        try:
+            return {t.string for t in toks if t.type == tokenize.NAME}
+        except (tokenize.TokenError, SyntaxError):
+            return set()
+
+
+def _house_form(name: str) -> str:
+    """``name`` with every word in the house's spelling, lower case: the key two spellings share."""
+    return "_".join(SPELLINGS.get(w.lower(), w.lower()) for w in _WORD.findall(name))
+
+
+def _plain_form(name: str) -> str:
+    """``name``'s words in lower case: case and underscores aside, one spelling."""
+    return "_".join(w.lower() for w in _WORD.findall(name))
+
+
+def spellings(root: str = ROOT) -> dict:
+    """Names spelled two ways in the code: identifiers that differ only in a word's spelling
+    (``mod_colors`` / ``mod_colours``), and words that appear in both spellings across identifiers
+    (colour in one name, color in another), the libraries' own names left out."""
+    names = set()
+    for rel in _source_files(root, (".py",), [d for d in CODE_DIRS if os.path.exists(os.path.join(root, d))]
+                             + [f for f in ("build_addon.py",) if os.path.exists(os.path.join(root, f))]):
+        names |= identifiers(os.path.join(root, rel))
+    names -= LIBRARY_NAMES
+    forms: dict[str, set] = {}
+    for n in names:
+        forms.setdefault(_house_form(n), set()).add(n)
+    twins = {k: sorted(v) for k, v in sorted(forms.items()) if len({_plain_form(x) for x in v}) > 1}
+    used: dict[str, set] = {}
+    house_words = set(SPELLINGS.values())
+    for n in names:
+        for w in _WORD.findall(n):
+            w = w.lower()
+            if w in SPELLINGS or w in house_words:
+                used.setdefault(SPELLINGS.get(w, w).removesuffix("s"), set()).add(w.removesuffix("s"))
+    two_ways = {k: sorted(v) for k, v in sorted(used.items()) if len(v) > 1}
+    return {"identifiers_spelled_two_ways": len(twins), "identifier_twins": twins,
+            "words_spelled_two_ways": len(two_ways), "word_spellings": two_ways}
+
+
+def issue_mentions(root: str = ROOT) -> dict[str, list[str]]:
+    """Source and doc files that mention an issue number, an issue's report or a round of work, by area
+    (neumesh_core, addon, tests, blender_tests, other); benchmark results files left out."""
+    out: dict[str, list[str]] = {}
+    for rel in _source_files(root):
+        try:
+            with open(os.path.join(root, rel), encoding="utf-8") as fh:
+                text = fh.read()
+        except (UnicodeDecodeError, OSError):
+            continue
+        if ISSUE_MENTION.search(text):
+            top = rel.split("/")[0]
+            out.setdefault(top if top in CODE_DIRS[:4] else "other", []).append(rel)
+    return out
+
+
 def figures(root: str = ROOT) -> dict:
     pkg_dir = os.path.join(root, PKG)
     mods, edges = graph(pkg_dir)
@@ -298,7 +402,11 @@ def figures(root: str = ROOT) -> dict:
     addon_files = long_files(addon) if os.path.isdir(addon) else {}
     addon_fns = long_functions(addon) if os.path.isdir(addon) else {}
     nocommit = results_without_commit(root)
-    return {"modules": len(mods), "files_over_400_lines": len(lf), "long_files": lf,
+    words, issues = spellings(root), issue_mentions(root)
+    return {**words, "files_mentioning_an_issue": sum(len(v) for v in issues.values()),
+            "files_mentioning_an_issue_by_area": {k: len(v) for k, v in sorted(issues.items())},
+            "issue_mention_files": issues,
+            "modules": len(mods), "files_over_400_lines": len(lf), "long_files": lf,
             "functions_over_100_lines": len(fns), "long_functions": fns,
             "addon_files_over_400_lines": len(addon_files), "addon_functions_over_100_lines": len(addon_fns),
             "addon_long_functions": addon_fns,
@@ -322,7 +430,8 @@ def main(argv=None) -> int:
     f = figures(a.root)
     for k in ("modules", "files_over_400_lines", "functions_over_100_lines", "addon_files_over_400_lines",
               "addon_functions_over_100_lines", "results_files", "results_without_commit", "upward_imports",
-              "room_cycles", "module_cycles", "bpy_imports"):
+              "room_cycles", "module_cycles", "bpy_imports", "identifiers_spelled_two_ways",
+              "words_spelled_two_ways", "files_mentioning_an_issue"):
         print(f"{k:30s} {f[k]}")
     for p, n in f["long_files"].items():
         print(f"  long file: {p} {n}")
@@ -332,6 +441,12 @@ def main(argv=None) -> int:
         print(f"  up:   {u}")
     for c in f["room_cycle_list"] + f["module_cycle_list"]:
         print(f"  circle: {' <-> '.join(c)}")
+    for k, v in f["identifier_twins"].items():
+        print(f"  name spelled two ways: {' / '.join(v)}")
+    for k, v in f["word_spellings"].items():
+        print(f"  word spelled two ways in names: {' / '.join(v)}")
+    for area, files in f["issue_mention_files"].items():
+        print(f"  mentions an issue ({area}, {len(files)}): {' '.join(files)}")
     if a.json:
         data = {}
         if os.path.exists(a.json):

@@ -8,7 +8,7 @@ add-on's real panels.  Every picture shows our own built-in scene (the procedura
 1. Trains a field on the built-in scene (``--steps``, default 600; reused from ``--field`` when that
    file exists, so a second run skips training) and writes, under ``--out`` (docs/images):
 
-   * ``demo.png``: held-out test views, the reference ray tracer's image (top) above the field's
+   * ``demo.png``: held-out test views, the ground-truth ray tracer's image (top) above the field's
      render (bottom), as ``neumesh demo`` draws its comparison figure;
    * ``hero.png``: one view of the field as trained, deformed (twisted through ``field.set_vertices``)
      and edited (a painted stroke through ``nm.paint_texture``), side by side;
@@ -70,7 +70,7 @@ def trained_field(scene, path: str, steps: int) -> tuple:
             print(f"  step {p.step}/{p.total_steps} PSNR {p.psnr:.2f} ({p.elapsed_s:.0f} s)", file=sys.stderr)
         return True
 
-    res = nm.train(field, scene, nm.TrainConfig(steps=steps), callback=cb)
+    res = nm.train(field, scene, nm.TrainConfig(steps=steps), progress=cb)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     nm.save_field(field, path)
     info = {"steps": res.steps_done, "train_s": round(res.seconds, 1)}

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Runs blender_tests under Blender 5.3 as a Python module (bpy==5.3.0, Python 3.13, numpy 2), beside the
-# main venv's bpy 5.0.1 / numpy 1.26 (issue 47, point 10).  Not part of CI: the install pulls torch 2.13.0
+# main venv's bpy 5.0.1 / numpy 1.26.  Not part of CI: the install pulls torch 2.13.0
 # for Python 3.13, a CUDA build of about 5 GB (it runs on the CPU); see DEVELOPERS.md.
 #
 # Usage: bash scripts/test_bpy53.sh [pytest args]

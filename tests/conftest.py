@@ -54,7 +54,7 @@ def textured_field(mesh, interpolation="post", seed=0, **config):
         f.tex_codes.normal_(0, 0.5)
         f.geo_decoder[-1].bias.fill_(float(np.log(8.0 / f.radius)))
         x = f.rest_vertices[:, 0]
-        f.mod_colors.copy_(torch.where(x[:, None] > 0, torch.tensor([0.8, -0.3, -0.3]),
+        f.mod_colours.copy_(torch.where(x[:, None] > 0, torch.tensor([0.8, -0.3, -0.3]),
                                        torch.tensor([-0.3, -0.3, 0.8])))
     f.eval()
     return f

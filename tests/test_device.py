@@ -51,11 +51,11 @@ def test_cuda_render_matches_cpu(blob_mesh, small_scene_dir):
     assert f_gpu.rest_vertices.is_cuda and f_gpu.grid.occ.is_cuda
     # the CPU's KD-tree becomes the Triton index on the GPU (the hash grid without triton; no host round
     # trip per query), and back
-    from neumesh_core.field.knn import HashGridIndex, VertexIndex
+    from neumesh_core.field.knn import HashGridIndex, KDTreeIndex
     from neumesh_core.kernels.knn import TritonKNNIndex, triton_available
     gpu_index = TritonKNNIndex if triton_available() else HashGridIndex
     assert isinstance(f_gpu.scaffold.index, gpu_index) and f_gpu.scaffold.index.n == f_gpu.num_vertices
-    assert isinstance(textured_field(blob_mesh).to("cuda").to("cpu").scaffold.index, VertexIndex)
+    assert isinstance(textured_field(blob_mesh).to("cuda").to("cpu").scaffold.index, KDTreeIndex)
     a = nm.render_camera(f_cpu, *_camera(scene), background=(1.0, 1.0, 1.0))
     b = nm.render_camera(f_gpu, *_camera(scene), background=(1.0, 1.0, 1.0))
     assert a.opacity.max() > 0.5   # the view sees the object

@@ -1,4 +1,4 @@
-"""`neumesh fit` on a capture without masks (issue 49): the built-in blob in a textured room written
+"""`neumesh fit` on a capture without masks: the built-in blob in a textured room written
 as an instant-ngp transforms.json capture, end to end at a tiny budget."""
 import json
 import math

@@ -1,4 +1,4 @@
-"""The layout's rules (issue 46), checked on the source with `ast` (nothing is imported):
+"""The layout's rules, checked on the source with `ast` (nothing is imported):
 
 * no `bpy` anywhere in neumesh_core;
 * the files over 400 lines and the functions over 100 lines are the ones scripts/layout_figures.py

@@ -1,4 +1,4 @@
-"""ARAP deform (issue 52): pull a handle, the object bends as rigidly as possible, the field follows.
+"""ARAP deform: pull a handle, the object bends as rigidly as possible, the field follows.
 
 The artist marks an *Anchor* vertex group (stays) and one or more *Handle* groups (every group whose name
 starts with "Handle"), and presses *Add ARAP deform*: one Empty per handle group appears at the group's

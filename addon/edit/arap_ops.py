@@ -1,4 +1,4 @@
-"""ARAP deform, the Blender side of it (issue 52): the settings, the operators (Add ARAP deform, Refresh,
+"""ARAP deform, the Blender side of it: the settings, the operators (Add ARAP deform, Refresh,
 Apply as shape key, Remove) and the panel under *Edit field*; the solving and the handlers are in
 :mod:`.arap`."""
 from __future__ import annotations

@@ -4,7 +4,7 @@ export (glTF, FBX, OBJ).
 
 ``target``: ``FIELD`` (default) bakes onto a mesh the core extracts from the field's own density
 (marching cubes, decimated to ``field_decimate`` x the scaffold's faces): it lies where the field
-renders; ``SCAFFOLD`` onto the field's scaffold in its current pose (the old default, quicker).
+renders; ``SCAFFOLD`` onto the field's scaffold in its current pose (quicker).
 ``colours``: ``VIEWS`` (default) gives each texel the colour the field's renders from ``views``
 virtual cameras show there; ``RAYS`` the colour one short ray along the texel's normal sees (quicker).
 The core (``neumesh_core.bake.bake_texture``) unwraps the target with xatlas (docs/baking.md).  That colour already holds
@@ -158,10 +158,10 @@ def build_object(name: str, result, shading: str, collection=None):
     me = obj.data
     uv = me.uv_layers.new(name=UV_NAME)
     uv.data.foreach_set("uv", np.ascontiguousarray(result.uvs[result.faces].reshape(-1), np.float32))
-    if result.vertex_colors is not None and hasattr(me, "color_attributes"):
+    if result.vertex_colours is not None and hasattr(me, "color_attributes"):
         attr = me.color_attributes.new(COLOR_NAME, "FLOAT_COLOR", "POINT")
         rgba = np.ones((n_field, 4), np.float32)
-        rgba[:, :3] = frame.srgb_to_linear(result.vertex_colors[:n_field])
+        rgba[:, :3] = frame.srgb_to_linear(result.vertex_colours[:n_field])
         attr.data.foreach_set("color", rgba.ravel())
     img = make_image(f"{name}_texture", result.texture)
     mat = make_material(f"{name}_material", img, shading)

@@ -149,8 +149,8 @@ class EditOperator(JobModal):
         """Invoked from the interface: an undo step of the state the edit starts from is pushed first, so
         the redo panel (which undoes to the step before this operator's and calls :meth:`execute` with
         the new options) starts from exactly that state, also when the scene was changed without an undo
-        step (a script, a timer): otherwise the redo undid those changes too (the object deselected, its
-        vertex groups gone) and the re-run failed without a word (issue 47.4)."""
+        step (a script, a timer): without that step the redo would undo those changes too (the object
+        deselected, its vertex groups gone) and the re-run would fail without a word."""
         if "UNDO" in self.bl_options:
             push_undo_step(context, f"Before {self.bl_label}")
         return JobModal.invoke(self, context, event)

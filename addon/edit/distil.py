@@ -1,4 +1,4 @@
-"""Distil semantics: ``nm.semantics.distill_semantics`` on the active object's field (loaded afresh: the
+"""Distill semantics: ``nm.semantics.distill_semantics`` on the active object's field (loaded afresh: the
 render cache's field is not touched) in a background :class:`jobs.Job`, with progress in the panel and
 the status bar; Cancel writes nothing. The result is saved beside the field as an edit
 (``<name>.edit-NNN.neumesh``) and the object points at it, so "Undo edit" / Ctrl+Z go back to the
@@ -18,7 +18,7 @@ from ..scene import props
 STAGES = {"features": "2D features", "rays": "Marching rays", "train": "Training"}
 
 
-class DistilJob(jobs.Job):
+class DistillJob(jobs.Job):
     """Distillation in a thread; never touches bpy (the operator reads Blender state beforehand)."""
 
     def __init__(self, *, object_name: str, field_path: str, dataset_path: str, downscale: int = 1,
@@ -62,7 +62,7 @@ class DistilJob(jobs.Job):
     def status_text(self) -> str:
         return "NeuMesh " + ": ".join(self.status_lines()).replace("Semantics", "semantics", 1)
 
-    def _callback(self, p):
+    def _progress(self, p):
         self.stage, self.step, self.total, self.loss = p.stage, int(p.step), int(p.total), float(p.loss)
         return not self.cancel_requested
 
@@ -73,7 +73,7 @@ class DistilJob(jobs.Job):
         scene = nm.load_scene(self.dataset_path, downscale=self.downscale, background=self.background)
         extractor = sem.make_extractor(self.extractor)
         cfg = sem.DistillConfig(steps=self.steps, **self.config)
-        res = sem.distill_semantics(field, scene, extractor, cfg, callback=self._callback)
+        res = sem.distill_semantics(field, scene, extractor, cfg, progress=self._progress)
         if res.cancelled or self.cancel_requested:
             self.state, self.message = "CANCELLED", "nothing was written"
             return None
@@ -83,11 +83,11 @@ class DistilJob(jobs.Job):
         return self.out_path
 
 
-_job: DistilJob | None = None
+_job: DistillJob | None = None
 _watch = None
 
 
-def current_job() -> DistilJob | None:
+def current_job() -> DistillJob | None:
     return _job
 
 
@@ -99,12 +99,12 @@ def _point_at_result(job):
             props.set_field_path(obj, job.out_path)
 
 
-class NEUMESH_OT_distil_semantics(bpy.types.Operator):
-    """Distil semantic codes into the active object's field from 2D features of the dataset's training
+class NEUMESH_OT_distill_semantics(bpy.types.Operator):
+    """Distill semantic codes into the active object's field from 2D features of the dataset's training
     images (background thread; the result is saved beside the field as an edit)"""
 
-    bl_idname = "neumesh.distil_semantics"
-    bl_label = "Distil semantics"
+    bl_idname = "neumesh.distill_semantics"
+    bl_label = "Distill semantics"
 
     steps: IntProperty(name="Steps", default=0, min=0, options={"SKIP_SAVE"}, description="0 = panel setting")
     max_views: IntProperty(default=0, min=0, options={"HIDDEN", "SKIP_SAVE"}, description="0 = all views")
@@ -128,7 +128,7 @@ class NEUMESH_OT_distil_semantics(bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
         cfg = {k: v for k, v in (("max_views", self.max_views), ("rays_per_view", self.rays_per_view)) if v}
-        _job = DistilJob(object_name=obj.name, field_path=path, dataset_path=dataset,
+        _job = DistillJob(object_name=obj.name, field_path=path, dataset_path=dataset,
                          downscale=context.scene.neumesh.downscale, extractor=s.extractor,
                          steps=self.steps or s.steps, config=cfg).start()
         if self.wait:
@@ -141,10 +141,10 @@ class NEUMESH_OT_distil_semantics(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NEUMESH_OT_distil_cancel(bpy.types.Operator):
+class NEUMESH_OT_distill_cancel(bpy.types.Operator):
     """Stop the semantic distillation (nothing is written)"""
 
-    bl_idname = "neumesh.distil_cancel"
+    bl_idname = "neumesh.distill_cancel"
     bl_label = "Cancel distillation"
 
     def execute(self, context):
@@ -155,7 +155,7 @@ class NEUMESH_OT_distil_cancel(bpy.types.Operator):
         return {"FINISHED"}
 
 
-classes = (NEUMESH_OT_distil_semantics, NEUMESH_OT_distil_cancel)
+classes = (NEUMESH_OT_distill_semantics, NEUMESH_OT_distill_cancel)
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
 
 

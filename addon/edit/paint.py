@@ -235,14 +235,14 @@ def _onto_source(nm, record, shown, source, ids):
     keep = src >= 0
     if not keep.any():
         return None
-    new = shown.mod_colors.detach().cpu().numpy()[rows[keep]]
+    new = shown.mod_colours.detach().cpu().numpy()[rows[keep]]
     uniq, inv = np.unique(src[keep], return_inverse=True)
     acc = np.zeros((len(uniq), 3))
     np.add.at(acc, inv, new)
     acc /= np.bincount(inv, minlength=len(uniq))[:, None]
-    rec = nm.edit.EditRecord.begin("paint_texture", source, uniq, ("mod_colors",))
+    rec = nm.edit.EditRecord.begin("paint_texture", source, uniq, ("mod_colours",))
     with torch.no_grad():
-        source.mod_colors[torch.as_tensor(uniq)] = torch.as_tensor(acc, dtype=source.mod_colors.dtype)
+        source.mod_colours[torch.as_tensor(uniq)] = torch.as_tensor(acc, dtype=source.mod_colours.dtype)
     return rec.finish(source, **record.info)
 
 

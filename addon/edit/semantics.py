@@ -1,4 +1,4 @@
-"""The Semantics panel (under *Edit field*) and its settings: Distil semantics (:mod:`distil`), Select
+"""The Semantics panel (under *Edit field*) and its settings: Distill semantics (:mod:`distil`), Select
 by click (:mod:`select`), Show semantic colours (:mod:`semantic_colours`)."""
 from __future__ import annotations
 
@@ -42,9 +42,9 @@ class NEUMESH_PT_semantics(bpy.types.Panel):
             prefs.draw_missing(col, "semantics", context)
             labelled(col, s, "extractor", "2D features")
             col.prop(s, "steps")
-            col.operator("neumesh.distil_semantics", icon="SHADERFX")
+            col.operator("neumesh.distill_semantics", icon="SHADERFX")
         if job is not None:
-            job_status(col, job, context, cancel="neumesh.distil_cancel")
+            job_status(col, job, context, cancel="neumesh.distill_cancel")
         col.separator()
         prefs.draw_missing(col, "select", context)
         if prefs.draw_missing(col, "shape", context):   # selection still works, on colour alone

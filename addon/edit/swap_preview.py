@@ -1,4 +1,4 @@
-"""The swap's alignment shown before it is applied (issue 47.1): *Preview alignment* runs
+"""The swap's alignment shown before it is applied: *Preview alignment* runs
 ``nm.edit.swap_alignment`` (nothing written) and draws the aligned source region as a temporary
 wireframe object, a child of the target drawn in the target's frame (the field's rest frame, which
 is the object's local frame of a loaded field); the Swap panel shows the overlap, the residual and

@@ -60,8 +60,8 @@ def get_field(key: str, path: str):
     stamp = _stamp(path)
     # Not under _LOCK: a render in another thread (the viewport's preview) holds it for a whole level,
     # seconds on a big field, and the main thread asks here on every depsgraph update and after every
-    # undo. Waiting there froze Blender until the level ended (Ctrl+Z in a real window: 93 s on a busy
-    # machine) before the viewport could even ask for the new image, which cancels that render.
+    # undo. Waiting there would freeze Blender until the level ended before the viewport could even ask
+    # for the new image, which cancels that render.
     # A hit is one dict read; a load makes a new field object, never touching the one a render uses.
     e = _CACHE.get(key)
     if e is not None and e.path == path and e.stamp == stamp:

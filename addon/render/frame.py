@@ -147,7 +147,7 @@ def render_passes(items: list[Item], K, c2w, width: int, height: int, transparen
     else:
         rgba = _rgba(out, width, height, transparent)
         z = nm.ray_to_axis_depth(out.depth.reshape(height, width), K)
-        mod = np.asarray(out.mod_rgb, np.float32).reshape(height, width, 3)
+        mod = np.asarray(out.mod_colour, np.float32).reshape(height, width, 3)
         a = np.asarray(out.alpha, np.float32).reshape(height, width)
     combined = to_scene_linear(rgba, transparent)
     if occluder_z is not None:

@@ -5,8 +5,8 @@ element). torch's CPU library (``libtorch_cpu.so``) carries its own optimised BL
 on x86-64) but calls them as ordinary exported symbols (``sgemm_``, ``dgetrf_`` ...) through its
 procedure linkage table. The dynamic linker binds such a call to the first definition in the
 process's global scope, and in that Blender that is the executable's own ``libblas.so.3``: every
-torch matrix multiply then runs on the reference BLAS, ~50x slower (5 against 300 GFLOP/s measured),
-and a NeuMesh render takes 4-5x longer. ``LD_PRELOAD=<torch>/lib/libtorch_cpu.so blender`` fixes it
+torch matrix multiply then runs on the reference BLAS, an order of magnitude slower, and so does a
+NeuMesh render. ``LD_PRELOAD=<torch>/lib/libtorch_cpu.so blender`` fixes it
 from outside, but cannot be done from inside a running Blender.
 
 :func:`rebind_torch_blas` does the equivalent for torch alone, in-process: it reads the dynamic

@@ -34,15 +34,15 @@ DEPENDENCIES = (
     ("trimesh", "trimesh", False, "trimesh", ()),
     ("sklearn", "scikit-learn", False, "scikit-learn", ("semantics", "select")),   # PCA, DBSCAN
     ("skimage", "scikit-image", False, "scikit-image", ("semantics", "scaffold", "bake_field")),  # superpixels, marching cubes
-    # the field-surface bake's decimation (issue 50; the core falls back to libigl's collapse)
+    # the field-surface bake's decimation (the core falls back to libigl's collapse)
     ("fast_simplification", "fast-simplification", False, "fast-simplification", ("bake_field",)),
     ("xatlas", "xatlas", False, "xatlas", ("bake",)),                              # UV atlas
     ("pycolmap", "pycolmap", False, "pycolmap>=4", ("capture",)),                   # COLMAP folders, poses from photos
     ("cv2", "opencv-python-headless", False, "opencv-python-headless<4.12", ("capture",)),  # undistortion, video
-    # shape-aware selection (issue 51): the scaffold's Laplacian; without it selection uses colour alone
+    # shape-aware selection: the scaffold's Laplacian; without it selection uses colour alone
     ("robust_laplacian", "robust-laplacian", False, "robust-laplacian", ("shape",)),
 )
-FEATURES = {"scaffold": "Build scaffold", "semantics": "Distil semantics", "select": "Select by click",
+FEATURES = {"scaffold": "Build scaffold", "semantics": "Distill semantics", "select": "Select by click",
             "edit": "Texture edits", "bake": "Bake to material", "capture": "Real captures (COLMAP, video)",
             "shape": "Shape-aware selection", "bake_field": "Bake onto the field surface"}
 

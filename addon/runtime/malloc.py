@@ -4,10 +4,9 @@ Blender builds for Linux (Debian's 3.4 among them) link jemalloc, which then ser
 the process, torch's included. jemalloc hands freed pages back to the kernel on a timer ("decay":
 Blender 3.4 sets 4 s dirty / 0 s muzzy; allocations of 8 MiB and more live in an arena with 0 s,
 i.e. at once). A NeuMesh render allocates and frees hundreds of MB per chunk of rays, so pages are
-returned and page-faulted in again (zero-filled by the kernel) all the time. Measured in blender 3.4
-(benchmarks/bench_addon.py, one torch thread, 200x200, 6 interleaved renders): Blender's settings
-1.78 s, plain Python (glibc malloc) 1.47 s; decay 10 s for every arena 1.66 s, 30 s 1.58 s; never
-returning pages 1.25 s.
+returned and page-faulted in again (zero-filled by the kernel) all the time; a render that keeps its
+pages is faster than one under Blender's decay settings, and than plain Python's glibc malloc
+(benchmarks/bench/bench_addon.py times the two interleaved).
 
 :func:`retain` is a context manager around torch work (renders, training, edits): on entering, every
 arena (the oversize one made first if need be) and the default for new ones get decay -1 (freed pages

@@ -1,4 +1,4 @@
-"""Real captures (issue 48): Import Cameras of a COLMAP folder (sparse/0 + images) or a transforms.json
+"""Real captures: Import Cameras of a COLMAP folder (sparse/0 + images) or a transforms.json
 folder, and *Poses from Photos* (a folder of photos or a video -> COLMAP poses, then imported).
 
 Both run in one :class:`CaptureJob` (the add-on's background :class:`jobs.Job`): the core reads the
@@ -34,8 +34,8 @@ VIDEO_EXTENSIONS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mts")
 def box_bounds(obj):
     """World-space (lo (3,), hi (3,)) of a "NeuMesh Box" Empty as the artist left it (moved, scaled,
     rotated: the axis-aligned bounds of its 8 corners). The Empty's local cube is [-1, 1]^3 times
-    ``empty_display_size`` (1), so the corners are ``matrix_world @ (+-1, +-1, +-1)``. The box is what
-    issue 49 (part 2) takes as the region to reconstruct."""
+    ``empty_display_size`` (1), so the corners are ``matrix_world @ (+-1, +-1, +-1)``. The box is the
+    region to reconstruct."""
     M = np.asarray([list(r) for r in obj.matrix_world], np.float64)
     s = float(getattr(obj, "empty_display_size", 1.0) or 1.0)
     corners = np.array([[x, y, z, 1.0] for x in (-s, s) for y in (-s, s) for z in (-s, s)])

@@ -70,7 +70,7 @@ class TrainJob(Job):
         return lines
 
     # ---------------------------------------------------------------- thread
-    def _callback(self, p):
+    def _progress(self, p):
         self.step = int(getattr(p, "step", self.step))
         self.total_steps = int(getattr(p, "total_steps", self.total_steps))
         self.loss = float(getattr(p, "loss", self.loss))
@@ -104,7 +104,7 @@ class TrainJob(Job):
         kw.setdefault("log_every", 1)                   # progress + cancel checks every step
         kw.setdefault("checkpoint_path", self.field_path)   # checkpoints with optimizer state + step
         try:
-            result = nm.train(field, scene, nm.TrainConfig(steps=self.steps, **kw), callback=self._callback)
+            result = nm.train(field, scene, nm.TrainConfig(steps=self.steps, **kw), progress=self._progress)
         except nm.Cancelled:
             result = None
         self.state = "SAVING"

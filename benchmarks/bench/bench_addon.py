@@ -5,7 +5,7 @@
    time until the first progressive-preview image exists (1/8 of an 800x600 viewport, or coarser when
    the preview's measured rate says 1/8 would miss 0.1 s: PreviewRenderer.levels), and until the 1/8
    image. Broken down into depsgraph evaluation + sync (evaluated world vertices), set_vertices, and
-   the low-res render. Target (issue 36): <= 0.5 s at 300k vertices (``--vertices 300000``).
+   the low-res render. Target: <= 0.5 s at 300k vertices (``--vertices 300000``).
 2. F12: `bpy.ops.render.render()` through the NEUMESH engine at 400x400 for the same scaffold.
    An untrained field is semi-transparent everywhere (no early ray termination): a worst case for
    the marcher; a trained field renders faster.

@@ -1,4 +1,4 @@
-"""ARAP deformation (issue 52): speed on a big scaffold and its cage, and fidelity against ground truth.
+"""ARAP deformation: speed on a big scaffold and its cage, and fidelity against ground truth.
 
     python benchmarks/bench/bench_arap.py                            # both parts, built-in defaults
     python benchmarks/bench/bench_arap.py --mesh /work/runs/lego/scaffold.ply --skip-drop

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""ARAP deform in Blender (issue 52.1; bpy==5.0.1 in the venv): from a handle move to the first preview.
+"""ARAP deform in Blender (bpy==5.0.1 in the venv): from a handle move to the first preview.
 
 A mesh object (the built-in scene's scaffold by default, or ``--mesh`` such as lego's scaffold.ply) gets
 an 'Anchor' group (bottom 15%) and a 'Handle' group (top 10%), *Add ARAP deform* (the Empty at rest: the

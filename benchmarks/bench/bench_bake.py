@@ -11,12 +11,11 @@ default ``test``) and compared with the field's render of the same views (PSNR),
 photos.  ``--mesh FILE`` bakes onto that mesh, ``--decimate R`` onto a quadric-decimated copy (about R x
 the faces) of the scaffold (or of --mesh); ``--target field`` onto a mesh extracted from the field's own
 density (marching cubes at a calibrated level, decimated to --decimate x the scaffold's faces).
-``--colours views`` takes the texel colours from the field's renders on virtual cameras
-(``--proj-views`` of ``--proj-size`` pixels) instead of a ray along each texel's normal.  Two
-comparisons: ``psnr_vs_field`` (the field's render with one ray per pixel centre against the raster's
-2x2 supersampled one, as before) and ``psnr_vs_field_ss2`` (both 2x2 supersampled: the same
-anti-aliasing on both sides, as a photo and Cycles have; this is the headline figure since issue 50's
-attempt 2).  Writes bake_<name>.json to benchmarks/results/log (or ``--results-dir``) and, with
+``--colours views`` takes the texel colours from the field's renders on virtual cameras (``--proj-views`` of
+``--proj-size`` pixels) instead of a ray along each texel's normal. Two comparisons: ``psnr_vs_field`` (the
+field's render with one ray per pixel centre against the raster's 2x2 supersampled one) and
+``psnr_vs_field_ss2`` (both 2x2 supersampled: the same anti-aliasing on both sides, as a photo and Cycles
+have; the headline figure). Writes bake_<name>.json to benchmarks/results/log (or ``--results-dir``) and, with
 ``--figure``, field render | baked render pictures (``--figure-views`` views, one row each).
 """
 from __future__ import annotations

@@ -83,8 +83,9 @@ def main(argv=None) -> int:
                     help="marching step / radius when evaluating (default 0.25; 0: the field's training step)")
     ap.add_argument("--seed", type=int, default=None,
                     help="seed of the ray batches and TV samples (default: TrainConfig's; the field's init is fixed)")
-    ap.add_argument("--knn", default="kdtree", choices=KNN_BACKENDS,
-                    help="neighbour search: kdtree (pykdtree on the CPU) or hashgrid (torch, on the field's device)")
+    ap.add_argument("--knn", default="auto", choices=KNN_BACKENDS,
+                    help="neighbour search: auto (pykdtree on the CPU, the Triton index on a GPU), hashgrid "
+                         "(torch, on the field's device) or triton")
     ap.add_argument("--results-name", default=None, help="results file name (default fit_<scene>.json)")
     args = ap.parse_args(argv)
     use_threads(args.threads)
@@ -122,7 +123,7 @@ def main(argv=None) -> int:
     snaps = {}
     history = []
 
-    def callback(p):
+    def on_progress(p):
         wall = time.perf_counter() - t0
         history.append({"step": p.step, "wall_s": wall, "train_psnr": p.psnr, "rays_per_sec": p.rays_per_sec,
                         "samples_per_ray": p.samples_per_ray})
@@ -144,7 +145,7 @@ def main(argv=None) -> int:
            if v is not None}
     cfg = nm.TrainConfig(steps=10 ** 6, rays_per_batch=args.rays, max_seconds=budget - scaffold_s, log_every=10,
                          **tkw)
-    res = nm.train(field, scene, cfg, callback=callback)
+    res = nm.train(field, scene, cfg, progress=on_progress)
     total_s = time.perf_counter() - t0
     final_path = os.path.join(out, "field.neumesh")
     nm.save_field(field, final_path)

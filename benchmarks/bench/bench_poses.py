@@ -1,4 +1,4 @@
-"""Real captures (issue 48): load time and memory of a transforms.json/COLMAP capture at several
+"""Real captures: load time and memory of a transforms.json/COLMAP capture at several
 downscales, and poses recovered from its photos with pycolmap against the poses it ships.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench/bench_poses.py --data ../shared/data/real/fox \
@@ -10,7 +10,7 @@ e.g. ``git archive f2bf72a | tar -x -C /tmp/before``) measures the same loads wi
 (``load_before``: photos stored as float32 before the uint8 storage). Poses: ``estimate_poses`` on the
 photo folder (read in place), then a similarity (Umeyama on camera centres) maps the recovered cameras
 onto the given ones; rotation error = angle of R_given^T R_aligned per camera, centre error relative to
-the rig radius (mean distance of the given camera centres from their centroid). Goals (issue 48): all
+the rig radius (mean distance of the given camera centres from their centroid). Goals: all
 photos registered, median rotation error <= 1 deg, median centre error <= 1 % of the rig radius.
 Writes benchmarks/results/log/poses_<name>.json (``--results-dir``; a section skipped keeps the file's).
 """
@@ -69,7 +69,7 @@ def bench_load(data: str, downscales, repo: str) -> dict:
 
 
 def pose_agreement(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> dict:
-    """Similarity-align estimated cameras onto reference cameras (by centres) and measure the errors."""
+    """Similarity-align estimated cameras onto the given cameras (by centres) and measure the errors."""
     from neumesh_core.edit.align import umeyama
 
     ce, cr = est_c2w[:, :3, 3], ref_c2w[:, :3, 3]

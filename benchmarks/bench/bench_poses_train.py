@@ -1,4 +1,4 @@
-"""Recovered vs given poses (issue 48): train a real capture from the poses it ships and from the poses
+"""Recovered vs given poses: train a real capture from the poses it ships and from the poses
 ``neumesh poses`` recovered from its photos, same budget, and compare held-out PSNR.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench/bench_poses_train.py --data /work/shared/data/real/fox \

@@ -146,7 +146,7 @@ class Profiler:
         from neumesh_core.sampling import occupancy
 
         prof = self
-        self._wrap(knn.VertexIndex, "query", "neighbour_search", lambda a, k: len(a[1]))
+        self._wrap(knn.KDTreeIndex, "query", "neighbour_search", lambda a, k: len(a[1]))
         self._wrap(knn.HashGridIndex, "query", "neighbour_search", lambda a, k: len(a[1]))
         self._wrap(scaffold.Scaffold, "neighbourhood", "_neighbourhood")
         self._wrap(occupancy.OccupancyGrid, "lookup", "occupancy_lookup", lambda a, k: a[1].numel() // 3)

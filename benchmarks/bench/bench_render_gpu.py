@@ -99,7 +99,7 @@ def procedural_field(subdiv: int, device):
         f.geo_codes.normal_(0, 0.5)
         f.tex_codes.normal_(0, 0.5)
         f.geo_decoder[-1].bias.fill_(float(np.log(8.0 / f.radius)))
-        f.mod_colors.normal_(0, 0.1)
+        f.mod_colours.normal_(0, 0.1)
     f.eval()
     return f.to(device)
 
@@ -221,8 +221,8 @@ def sweep_grid(which: str) -> list:
 
 
 def deform_latency(field, cam, device, size, rest: np.ndarray, angles=(4.0, 8.0, 12.0, 16.0, 20.0)) -> dict:
-    """What an artist waits for after a deformation (the issue's "first preview within one frame of
-    60 Hz"): new positions as the add-on hands them over (a host array) -> ``set_vertices`` (normals,
+    """What an artist waits for after a deformation (the goal: the first preview within one frame of
+    60 Hz): new positions as the add-on hands them over (a host array) -> ``set_vertices`` (normals,
     rotations, neighbour index, occupancy grid) -> the frame on the host, for bends of ``angles``
     degrees in turn (each a new pose). Medians of the seconds: posing, rendering, both."""
     import neumesh_core as nm

@@ -227,15 +227,15 @@ def tinted_render(field, K, c2w, w, h, vertices, tint=(1.0, 0.0, 1.0), amount=0.
     import neumesh_core as nm
 
     idx = torch.as_tensor(np.asarray(vertices, np.int64))
-    old = field.mod_colors.detach().clone()
+    old = field.mod_colours.detach().clone()
     try:
         with torch.no_grad():
-            field.mod_colors.sub_(dim)
-            field.mod_colors[idx] = old[idx] + amount * (torch.tensor(tint) - 0.5)
+            field.mod_colours.sub_(dim)
+            field.mod_colours[idx] = old[idx] + amount * (torch.tensor(tint) - 0.5)
         return nm.render_camera(field, K, c2w, w, h, background=(1, 1, 1)).rgb
     finally:
         with torch.no_grad():
-            field.mod_colors.copy_(old)
+            field.mod_colours.copy_(old)
 
 
 def _mark(img, xy, r=4, colour=(1.0, 0.0, 1.0)):
@@ -317,7 +317,7 @@ def blender_clicks(field_path: str, cams, clicks, threshold: float):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_options(ap, "field", "data",
-                field=dict(help="trained field (.neumesh); with --skip-distil, one with semantics"),
+                field=dict(help="trained field (.neumesh); with --skip-distill, one with semantics"),
                 data=dict(help="its dataset"))
     ap.add_argument("--make-multipart", action="store_true",
                     help="write the small multi-part scene to --data and train --field on it when missing")
@@ -336,8 +336,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=1500)
     ap.add_argument("--rays-per-view", type=int, default=4096)
     ap.add_argument("--threshold", type=float, default=0.75, help="selection similarity (default 0.75)")
-    ap.add_argument("--skip-distil", action="store_true", help="use the field's own semantic codes")
-    ap.add_argument("--save", help="write the distilled field here (reuse it with --skip-distil)")
+    ap.add_argument("--skip-distill", action="store_true", help="use the field's own semantic codes")
+    ap.add_argument("--save", help="write the distilled field here (reuse it with --skip-distill)")
     ap.add_argument("--pictures", help="PNG with one row per click (view | selection)")
     ap.add_argument("--picture-size", type=int, default=256, help="tile size in the picture (default 256)")
     ap.add_argument("--blender", action="store_true", help="also time the clicks through the add-on in bpy")
@@ -369,7 +369,7 @@ def main(argv=None) -> int:
     scene = nm.load_scene(args.data)
     result.update({"field": args.field, "data": args.data, "vertices": field.num_vertices})
     print(f"field {args.field}: {field.num_vertices} vertices")
-    if not args.skip_distil:
+    if not args.skip_distill:
         ex = make_extractor(args.extractor)
         cfg = DistillConfig(steps=args.steps, rays_per_view=args.rays_per_view, log_every=100)
 
@@ -377,7 +377,7 @@ def main(argv=None) -> int:
             if p.stage == "train" and p.step % 500 == 0:
                 print(f"  train {p.step}/{p.total} loss {p.loss:.4f} ({p.elapsed_s:.0f}s)", flush=True)
 
-        res = distill_semantics(field, scene, ex, cfg, callback=cb)
+        res = distill_semantics(field, scene, ex, cfg, progress=cb)
         result["distill"] = {"extractor": ex.name, "steps": res.steps_done, "loss": res.final_loss,
                              "seconds": res.seconds, "bank_rays": res.bank_rays, "bank_samples": res.bank_samples,
                              "views": len(scene.split(cfg.split)), **res.timings}
@@ -454,7 +454,7 @@ def main(argv=None) -> int:
         result["pictures"] = args.pictures
     if args.blender and clicks:
         path = args.field
-        if not args.skip_distil:   # the add-on reads the distilled field from a file
+        if not args.skip_distill:   # the add-on reads the distilled field from a file
             path = args.save or os.path.join(os.environ.get("TMPDIR", "/tmp"), "bench_semantics_field.neumesh")
             if not args.save:
                 nm.save_field(field, path)

@@ -1,4 +1,4 @@
-"""Issue 47: the automatic swap alignment, measured (no point pairs anywhere).
+"""The automatic swap alignment, measured (no point pairs anywhere).
 
     python benchmarks/bench/bench_swap_align.py --field /work/runs/lego/field.neumesh   # a trained field
     python benchmarks/bench/bench_swap_align.py --mesh /work/runs/lego/scaffold.ply     # untrained, on a mesh
@@ -12,11 +12,12 @@
    PSNR of renders from ``--views`` turntable cameras against the untouched field, over the whole
    frame and over the pixels the region affects (those that change when the region's codes are
    zeroed).
-2. **Cross-field swap of #47.** The multi-part scene's body (a field on its mesh) onto an 888-vertex
-   region of the 10,242-vertex blob: the aligned body's centroid offset in edge lengths (it was ~14
-   units away before) and the fit figures.
-3. **Refusal.** The alignment #47 reported (scale 0.67, translation (-9.95, -8.79, -5.73)) injected:
-   the fit figures and whether the swap is refused.
+2. **Cross-field swap.** The multi-part scene's body (a field on its mesh) onto an 888-vertex
+   region of the 10,242-vertex blob: the aligned body's centroid offset in edge lengths and the fit
+   figures.
+3. **Refusal.** A failed alignment (scale 0.67, translation (-9.95, -8.79, -5.73): the body ~14 units
+   off the blob) injected: the fit figures and whether the swap is refused (results key
+   ``issue_transform``).
 
 Without ``--field`` the field is an untrained one on ``--mesh`` or on the built-in blob (subdivision
 ``--subdiv``) with random texture codes and per-vertex modification colours (the swap moves codes; they need not be
@@ -43,7 +44,7 @@ from neumesh_core.errors import EditError  # noqa: E402
 from neumesh_core.metrics import psnr  # noqa: E402
 from benchmarks._results import add_options, use_threads, write_results  # noqa: E402
 
-ISSUE_TRANSFORM = Similarity(0.67, np.eye(3), np.array([-9.95, -8.79, -5.73]))
+OFF_TARGET = Similarity(0.67, np.eye(3), np.array([-9.95, -8.79, -5.73]))
 
 
 def _rotation(deg_z: float, deg_x: float) -> np.ndarray:
@@ -62,7 +63,7 @@ def textured(mesh, seed: int = 0):
         f.tex_codes.normal_(0, 0.5)
         f.geo_decoder[-1].bias.fill_(float(np.log(8.0 / f.radius)))
         x = f.rest_vertices[:, 0]
-        f.mod_colors.copy_(torch.where(x[:, None] > 0, torch.tensor([0.8, -0.3, -0.3]),
+        f.mod_colours.copy_(torch.where(x[:, None] > 0, torch.tensor([0.8, -0.3, -0.3]),
                                        torch.tensor([-0.3, -0.3, 0.8])))
     f.eval()
     return f
@@ -108,7 +109,7 @@ def similar_copy_figures(field, region: np.ndarray, views: int, resolution: int)
         out = _renders(work, cams)
         zeroed = copy.deepcopy(field)
         zeroed.tex_codes[torch.as_tensor(region)] = 0.0
-        zeroed.mod_colors[torch.as_tensor(region)] = 0.0
+        zeroed.mod_colours[torch.as_tensor(region)] = 0.0
         hole = _renders(zeroed, cams)
     mask = np.concatenate([(np.abs(h - r).max(-1) > 1 / 255).ravel() for h, r in zip(hole, ref)])
     a = np.concatenate([o.reshape(-1, 3) for o in out])
@@ -167,11 +168,11 @@ def cross_field_figures() -> dict:
     print(f"sweep: {len(sweep)} swaps (4 parts onto blob regions of 150-4,500 vertices and the whole blob): "
           f"overlap >= {out['sweep']['overlap_min']:.2f}, target residual <= "
           f"{out['sweep']['target_residual_max']:.2f} edge lengths, all pass: {out['sweep']['all_ok']}")
-    # the issue's alignment injected: caught
+    # a failed alignment injected: caught
     import neumesh_core.edit.swap as swap_mod
 
     saved = swap_mod.initial_alignment
-    swap_mod.initial_alignment = lambda *a, **k: ISSUE_TRANSFORM
+    swap_mod.initial_alignment = lambda *a, **k: OFF_TARGET
     try:
         region = _region_near(V, (0, 0, 1), 888)
         al = swap_alignment(blob, region, parts, body)
@@ -183,7 +184,7 @@ def cross_field_figures() -> dict:
     finally:
         swap_mod.initial_alignment = saved
     out["issue_transform"] = {"refused": refused, **al.figures.as_dict()}
-    print(f"#47's alignment injected: overlap {al.figures.overlap:.3f}, target residual "
+    print(f"failed alignment injected: overlap {al.figures.overlap:.3f}, target residual "
           f"{al.figures.target_residual:.1f} edge lengths: {'refused' if refused else 'NOT refused'}")
     return out
 

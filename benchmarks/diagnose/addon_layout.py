@@ -1,9 +1,9 @@
-"""Figures of the add-on's layout (issue 46): pairs of repeated code (`duplicates`), files over 400
+"""Figures of the add-on's layout: pairs of repeated code (`duplicates`), files over 400
 lines, import circles, modules per room, and back doors into the core. Prints them and writes
 benchmarks/results/log/addon_layout.json.
 
 Usage: .venv/bin/python benchmarks/diagnose/addon_layout.py [--rev REV]   (REV: measure a commit instead of the
-working tree, e.g. d28bebc for the flat add-on before issue 46)
+working tree, e.g. d28bebc for the flat add-on)
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Where a bake's error against its field lies (issue 50.3): per-pixel error maps split by region, and
+"""Where a bake's error against its field lies: per-pixel error maps split by region, and
 oracles that separate the mesh's geometry from the texture's colour.
 
 For each held-out view: the field's render (rgb, opacity, depth) and the baked mesh's raster; the

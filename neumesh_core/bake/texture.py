@@ -39,7 +39,7 @@ class BakeResult:
                                 # field's vertex, or the target mesh's with ``mesh=``)
     texture: np.ndarray         # (H,W,3) float32 in [0,1], padded
     mask: np.ndarray            # (H,W) bool: texels inside a chart triangle
-    vertex_colors: Optional[np.ndarray] = None   # (N,3) per mesh vertex (same rays at the vertices)
+    vertex_colours: Optional[np.ndarray] = None   # (N,3) per mesh vertex (same rays at the vertices)
     seconds: float = 0.0
     info: dict = dc_field(default_factory=dict)
 
@@ -160,19 +160,19 @@ def _target_mesh(field, mesh):
 
 
 FIELD_FACES = 0.2   # mesh="field" without an ExtractConfig: decimated to this x the scaffold's faces
-                    # (lego: the mesh oracle is 30.0 dB at 20% as at 50%, 29.6 at 10%; docs/baking.md)
+                    # (finer gains nothing on lego, coarser loses: docs/baking.md, the experiment log)
 
 
 def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Optional[float] = None,
-                 directions: int = 1, cone_deg: float = 30.0, vertex_colors: bool = True, chunk: int = 32768,
+                 directions: int = 1, cone_deg: float = 30.0, vertex_colours: bool = True, chunk: int = 32768,
                  progress: Optional[Callable[[float], bool]] = None, mesh="field", fit=None,
                  measure_texels: int = 65536, colours: str = "views", project=None,
                  extract=None) -> BakeResult:
     """Bake the field's view-independent appearance into a UV texture of a mesh.
 
-    Defaults (issue 50): ``mesh="field"`` decimated to ``FIELD_FACES`` x the scaffold's faces and
-    ``colours="views"`` (lego: 28.1 dB against the field instead of 24.3 for the scaffold with rays;
-    docs/baking.md); ``mesh=None, colours="rays"`` is the quicker scaffold bake of before.
+    Defaults: ``mesh="field"`` decimated to ``FIELD_FACES`` x the scaffold's faces and
+    ``colours="views"``, the bake closest to the field (figures in docs/benchmarks.md, "Baking lego");
+    ``mesh=None, colours="rays"`` is the quicker scaffold bake.
 
     ``mesh``: the mesh to bake onto: None = the field's scaffold in its current pose (edited,
     deformed); else an ``nm.Mesh`` or (vertices, faces) in world space lying near the field's surface,
@@ -184,7 +184,7 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
     (dilation), or with the mean colour.
     ``resolution``: texture size (square); ``padding``: texels between charts and dilation of their
     borders; ``offset``: ray start outside the surface, in field radii; ``directions``/``cone_deg``: rays
-    averaged per texel (1 = straight along -normal); ``vertex_colors``: also a colour per mesh vertex.
+    averaged per texel (1 = straight along -normal); ``vertex_colours``: also a colour per mesh vertex.
     ``mesh="field"``: a mesh extracted from the field's own density (marching cubes, then decimated:
     :func:`~neumesh_core.bake.extract.extract_surface` with ``extract``, an :class:`ExtractConfig`;
     None: the default config decimated to ``FIELD_FACES`` x the scaffold's face count; ``info["extract"]``).
@@ -237,18 +237,18 @@ def bake_texture(field, resolution: int = 1024, padding: int = 4, offset: Option
         off = surface_offsets(field, pts[pick], nrm[pick], search=max(1.5, 1.5 * float(offset)), level=level)
         info["surface_offset"] = offset_stats(off, float(field.radius))
     _cancel(progress, 0.15)
-    vspan = 0.1 if vertex_colors else 0.0
+    vspan = 0.1 if vertex_colours else 0.0
     rays = dict(offset=offset, directions=directions, cone_deg=cone_deg, chunk=chunk, progress=progress)
     cols, found = _texel_colours(field, V, F, pts, nrm, colours, project, rays, vspan, info)
     info["missed_texels"] = int((~found).sum())
     padded, mask, mean = _texture_image(texel, cols, found, resolution, padding)
     vc = None
-    if vertex_colors:
+    if vertex_colours:
         vc, vfound = surface_colours(field, V, N, offset, directions, cone_deg, chunk, progress,
                                      span=(0.85, 0.95), return_found=True)
         vc[~vfound] = mean
     res = BakeResult(vertices=V[vmap], faces=faces.astype(np.int32), uvs=uvs, vertex_index=vmap,
-                     texture=padded, mask=mask, vertex_colors=vc, info=info)
+                     texture=padded, mask=mask, vertex_colours=vc, info=info)
     res.seconds = time.perf_counter() - t0
     res.info.update({"resolution": resolution, "padding": int(padding), "offset": float(offset),
                      "directions": int(directions), "cone_deg": float(cone_deg), "seconds": res.seconds})

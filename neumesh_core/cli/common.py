@@ -17,6 +17,8 @@ def _fmt_time(s: float) -> str:
 
 
 _POSES_STAGES = {"extract": "features", "match": "matching", "map": "cameras"}
+_SEMANTICS_STAGES = {"features": ("2D features", "views"), "rays": ("marching rays", "views"),
+                     "train": ("training", "steps")}
 
 
 class Progress:
@@ -29,7 +31,8 @@ class Progress:
     when a stage starts, then one each time the stage passes another ``step`` of its work or
     ``every_s`` seconds after the last line, whichever comes first, and one when it ends.
     :meth:`say` prints a message between them. The adapters (:meth:`poses`, :meth:`scaffold`,
-    :meth:`training`, :meth:`fraction`, :meth:`count`) are the core's callbacks."""
+    :meth:`training`, :meth:`semantics`, :meth:`fraction`, :meth:`count`) are what the core's
+    functions take as ``progress``."""
 
     def __init__(self, stream=None, *, tty: bool | None = None, step: float = 0.1, every_s: float = 30.0,
                  redraw_s: float = 0.2, clock=time.monotonic):
@@ -47,7 +50,7 @@ class Progress:
         return self._stream if self._stream is not None else sys.stderr
 
     def update(self, stage: str, fraction: float, detail: str = "") -> bool:
-        """Report ``stage`` at ``fraction`` of its work; True (a progress callback that never cancels)."""
+        """Report ``stage`` at ``fraction`` of its work; True (a progress that never cancels)."""
         now = self.clock()
         fraction = min(max(float(fraction), 0.0), 1.0) if math.isfinite(fraction) else 0.0
         mark = int(fraction / self.step + 1e-9)
@@ -89,9 +92,9 @@ class Progress:
         self.stream.write(text)
         self.stream.flush()
 
-    # the core's callbacks
+    # what the core's functions take as progress
     def poses(self, p) -> None:
-        """``estimate_poses``' callback (a PosesProgress): one stage per pycolmap step."""
+        """``estimate_poses``' progress (a PosesProgress): one stage per pycolmap step."""
         self.update("poses: " + _POSES_STAGES.get(p.stage, p.stage), p.stage_fraction, p.message)
 
     def scaffold(self, stage: str, fraction: float) -> bool:
@@ -99,7 +102,7 @@ class Progress:
         return self.update(f"scaffold: {stage}", fraction)
 
     def training(self, p) -> None:
-        """The trainer's callback (a TrainProgress). The fraction, the total and the ETA are the
+        """The trainer's progress (a TrainProgress). The fraction, the total and the ETA are the
         budget's: its steps, or the time budget (``--max-minutes``) when that ends the run first."""
         if p.limit == "time":
             of = f"step {p.step} ({_fmt_time(p.elapsed_s + p.eta_s)} budget)"
@@ -109,12 +112,20 @@ class Progress:
                     f"{of}  loss {p.loss:.4f}  psnr {p.psnr:5.2f}  {p.rays_per_sec / 1000:.1f}k rays/s  "
                     f"{p.samples_per_ray:.1f} smp/ray  eta {_fmt_time(p.eta_s)}")
 
+    def semantics(self, p) -> None:
+        """``distill_semantics``' progress (a DistillProgress): one stage per part of the work."""
+        label, unit = _SEMANTICS_STAGES[p.stage]
+        detail = f"{p.step} of {p.total} {unit}"
+        if p.stage == "train":
+            detail += f"  loss {p.loss:.4f}  eta {_fmt_time(p.eta_s)}"
+        self.update(f"semantics: {label}", p.step / max(1, p.total), detail)
+
     def fraction(self, stage: str):
-        """A progress(fraction) -> True callback for ``stage`` (baking, edits)."""
+        """A progress(fraction) -> True for ``stage`` (baking, edits)."""
         return lambda fraction: self.update(stage, fraction)
 
     def count(self, stage: str, unit: str):
-        """A progress(done, total) -> True callback for ``stage`` (evaluation: views)."""
+        """A progress(done, total) -> True for ``stage`` (evaluation: views)."""
         return lambda done, total: self.update(stage, done / max(1, total), f"{done} of {total} {unit}")
 
 
@@ -262,9 +273,9 @@ def _print_eval(r: dict) -> None:
         print("lpips: unavailable (no local weights; see README 'Metrics')")
 
 
-def turntable_cameras(center, radius: float, n: int, width: int, height: int, fov_deg: float = 40.0,
+def turntable_cameras(centre, radius: float, n: int, width: int, height: int, fov_deg: float = 40.0,
                       elevation_deg: float = 25.0):
-    """n cameras on a circle around ``center`` (z up), OpenCV c2w."""
+    """n cameras on a circle around ``centre`` (z up), OpenCV c2w."""
     import neumesh_core as nm
     from ..data.synthetic import look_at_opencv
 
@@ -273,8 +284,8 @@ def turntable_cameras(center, radius: float, n: int, width: int, height: int, fo
     c2ws = []
     for i in range(n):
         az = 2 * np.pi * i / n
-        pos = np.asarray(center) + radius * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
-        c2ws.append(look_at_opencv(pos, center))
+        pos = np.asarray(centre) + radius * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        c2ws.append(look_at_opencv(pos, centre))
     return nm.Cameras(np.repeat(K[None], n, 0), np.stack(c2ws), width, height)
 
 

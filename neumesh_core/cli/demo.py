@@ -11,7 +11,7 @@ from .common import Progress, _held_out_split, _print_eval, _render_cameras, tur
 
 
 def _comparison_figure(images, renders_dir, result, path, n=4):
-    """Reference images (top row) above the field's renders (bottom row), PSNR per view in the log."""
+    """Ground-truth images (top row) above the field's renders (bottom row), PSNR per view in the log."""
     import neumesh_core as nm
 
     n = min(n, len(images))
@@ -29,7 +29,7 @@ def cmd_demo(args) -> int:
     t0 = time.perf_counter()
     os.makedirs(args.out, exist_ok=True)
     progress = Progress()
-    progress.say("1/4 making the built-in scene (procedural blob, reference ray tracer)...")
+    progress.say("1/4 making the built-in scene (procedural blob, ground-truth ray tracer)...")
     data = nm.default_scene_dir(small=args.small)
     scene = nm.load_scene(data)
     mesh = nm.load_mesh(scene.mesh_path)
@@ -38,7 +38,7 @@ def cmd_demo(args) -> int:
                  f"({mesh.num_vertices} scaffold vertices)...")
     path = os.path.join(args.out, "field.neumesh")
     cfg = nm.TrainConfig(steps=args.steps, rays_per_batch=args.rays, checkpoint_path=path)
-    res = nm.train(field, scene, cfg, callback=progress.training)
+    res = nm.train(field, scene, cfg, progress=progress.training)
     progress.end()
     if res.interrupted:
         print(f"interrupted; the field so far is in {path}", file=sys.stderr)
@@ -52,7 +52,7 @@ def cmd_demo(args) -> int:
     _print_eval(r)
     fig = os.path.join(args.out, "comparison.png")
     _comparison_figure(scene.split(split), renders, r, fig)
-    print(f"comparison figure (reference top, field bottom): {fig}", file=sys.stderr)
+    print(f"comparison figure (truth top, field bottom): {fig}", file=sys.stderr)
     write_json({"data": data, "split": split, "steps": res.steps_done, "train_s": res.seconds, **r},
                os.path.join(args.out, "eval.json"))
     progress.say("4/4 rendering a turntable...")

@@ -14,7 +14,7 @@ def _load(path, device):
 
 
 def _report(record, out: str, progress: Progress) -> None:
-    from ..edit.files import _jsonable
+    from ..edit.edited_files import _jsonable
 
     progress.end()
     print(json.dumps({"op": record.op, "vertices_changed": record.num_changed, "out": out,
@@ -24,7 +24,7 @@ def _report(record, out: str, progress: Progress) -> None:
 def _target_and_other(args, other_path):
     """Check the output path, then load the field to edit and the other field (source / template; the
     same object when ``other_path`` is empty or the field itself)."""
-    from ..edit.files import check_out_path
+    from ..edit.edited_files import check_out_path
 
     check_out_path(args.field, args.out)   # before the work, not only when saving
     target = _load(args.field, args.device)
@@ -33,13 +33,13 @@ def _target_and_other(args, other_path):
 
 
 def _save(field, parent, record, out):
-    from ..edit.files import save_edited
+    from ..edit.edited_files import save_edited
 
     return save_edited(field, parent, record, out_path=out)
 
 
 def cmd_swap(args) -> int:
-    from ..edit.io import read_pairs, read_region
+    from ..edit.inputs import read_pairs, read_region
     from ..edit.swap import SwapConfig, swap_texture
 
     target, source = _target_and_other(args, args.source)
@@ -60,7 +60,7 @@ def cmd_swap(args) -> int:
 def cmd_fill(args) -> int:
     from ..errors import EditError
     from ..edit.fill import fill_texture
-    from ..edit.io import read_region, read_uvs
+    from ..edit.inputs import read_region, read_uvs
 
     target, template = _target_and_other(args, args.template)
     region = read_region(args.region, target.num_vertices)
@@ -111,7 +111,7 @@ def cmd_paint(args) -> int:
     import neumesh_core as nm
 
     from ..errors import EditError
-    from ..edit.files import check_out_path
+    from ..edit.edited_files import check_out_path
     from ..edit.paint import paint_layer, paint_texture
 
     if not args.save_render:

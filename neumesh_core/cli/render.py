@@ -18,9 +18,9 @@ def cmd_render(args) -> int:
     else:
         w, h = (int(v) for v in args.resolution.lower().split("x"))
         bb = field.grid.aabb.cpu().numpy()
-        center = bb.mean(0)
+        centre = bb.mean(0)
         dist = float(np.linalg.norm(bb[1] - bb[0])) * 1.3
-        cams = turntable_cameras(center, dist, args.frames, w, h)
+        cams = turntable_cameras(centre, dist, args.frames, w, h)
     times = _render_cameras(field, cams, args.out, bg, _render_settings(args))
     print(f"wrote {len(times)} images to {args.out}; mean {np.mean(times):.2f}s per frame")
     return 0

@@ -1,15 +1,15 @@
-"""`neumesh semantics`: distil semantic codes into a field file (saved beside it as an edit)."""
+"""`neumesh semantics`: distill semantic codes into a field file (saved beside it as an edit)."""
 from __future__ import annotations
 
 import sys
 import time
 
-from .common import Progress, _fmt_time
+from .common import Progress
 
 
 def add_commands(sub) -> None:
     p = sub.add_parser(
-        "semantics", help="distil per-vertex semantic codes from 2D image features (for one-click selection)",
+        "semantics", help="distill per-vertex semantic codes from 2D image features (for one-click selection)",
         description="Extract 2D features from the training images, fit the field's semantic codes and "
                     "decoder to them (geometry and appearance stay frozen) and save the result beside the "
                     "field as <name>.edit-NNN.neumesh (or --out). Ctrl-C cancels without writing.")
@@ -35,20 +35,6 @@ def add_commands(sub) -> None:
     p.set_defaults(func=cmd_semantics)
 
 
-_STAGES = {"features": ("2D features", "views"), "rays": ("marching rays", "views"), "train": ("training", "steps")}
-
-
-def _distill_progress(progress: Progress):
-    """distill_semantics' callback (a DistillProgress) through the command line's printer."""
-    def callback(p):
-        label, unit = _STAGES[p.stage]
-        detail = f"{p.step} of {p.total} {unit}"
-        if p.stage == "train":
-            detail += f"  loss {p.loss:.4f}  eta {_fmt_time(p.eta_s)}"
-        progress.update(f"semantics: {label}", p.step / max(1, p.total), detail)
-    return callback
-
-
 def cmd_semantics(args) -> int:
     import neumesh_core as nm
     from ..edit import save_edited
@@ -71,7 +57,7 @@ def cmd_semantics(args) -> int:
     t0 = time.perf_counter()
     progress = Progress()
     try:
-        res = distill_semantics(field, scene, extractor, cfg, callback=_distill_progress(progress))
+        res = distill_semantics(field, scene, extractor, cfg, progress=progress.semantics)
     except KeyboardInterrupt:
         progress.say("interrupted; nothing written")
         return 130

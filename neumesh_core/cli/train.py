@@ -28,7 +28,7 @@ def cmd_train(args) -> int:
         print(f"scaffold {mesh_path}: {mesh.num_vertices} vertices, radius {field.radius:.4g}",
               file=sys.stderr)
     progress = Progress()
-    res = nm.train(field, scene, _train_config(args, args.out), callback=progress.training)
+    res = nm.train(field, scene, _train_config(args, args.out), progress=progress.training)
     progress.end()
     state = "interrupted (Ctrl-C)" if res.interrupted else ("stopped" if res.cancelled else "done")
     avg = f" (weights averaged over {res.averaged} snapshots)" if res.averaged else ""

@@ -6,7 +6,7 @@ Layout::
                                    "transform_matrix": 4x4 OpenGL camera-to-world}, ...]}
     root/transforms_val.json, root/transforms_test.json   (optional)
     root/train/r_0.png ...       RGBA PNGs (alpha becomes the mask)
-    root/mesh.ply                (optional reference mesh -> Scene.mesh_path)
+    root/mesh.ply                (optional true mesh -> Scene.mesh_path)
 
 Optional top-level (or per-frame) keys ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h`` override the
 intrinsics derived from ``camera_angle_x``; ``aabb`` / ``scene_bbox`` override the default bounds.

@@ -159,11 +159,11 @@ def read_colmap(root: str, images_dir: str | None = None, log=None) -> Capture:
     pts = rec.points3D
     if len(pts):
         points = np.array([p.xyz for p in pts.values()], dtype=np.float32)
-        colors = np.array([p.color for p in pts.values()], dtype=np.uint8)
+        colours = np.array([p.color for p in pts.values()], dtype=np.uint8)
     else:
-        points = colors = None
+        points = colours = None
     kept_names = [im.name.replace("\\", "/") for im in kept]
-    return Capture("colmap", root, kept_names, paths, lenses, c2w, None, points, colors, None,
+    return Capture("colmap", root, kept_names, paths, lenses, c2w, None, points, colours, None,
                    _named_splits(root, kept_names), missing, notes, {"model_dir": model_dir, "images_dir": img_dir})
 
 

@@ -1,8 +1,8 @@
-"""Ground truth for deformed renders of the built-in scene: a triangle-mesh mode of the reference tracer.
+"""Ground truth for deformed renders of the built-in scene: a triangle-mesh mode of the ground-truth tracer.
 
 A deformed copy of the built-in scene's mesh is ray traced exactly (primary rays only, vectorised
 Moeller-Trumbore over each triangle's pixel bounding box, nearest hit per sample: a z-buffer), with
-the same jittered sub-pixel samples as :func:`~neumesh_core.data.synthetic.render_reference`.  Each
+the same jittered sub-pixel samples as :func:`~neumesh_core.data.synthetic.render_truth`.  Each
 hit is coloured by the appearance its *rest-pose* point had, i.e. "the trained appearance carried
 with the surface":
 
@@ -143,7 +143,7 @@ def render_mesh_truth(K, c2w, width: int, height: int, vertices, faces, rest_ver
     built-in scene's :func:`~neumesh_core.data.synthetic.default_mesh`). Each sample's hit is mapped
     to its rest point (barycentric), moved radially onto the analytic surface when ``project`` and
     shaded there with the view direction rotated into the rest pose (module docstring). Same sample
-    pattern (``spp``, ``seed``) and return values as :func:`~neumesh_core.data.synthetic.render_reference`.
+    pattern (``spp``, ``seed``) and return values as :func:`~neumesh_core.data.synthetic.render_truth`.
     """
     W, H = int(width), int(height)
     V = np.asarray(vertices, np.float64)

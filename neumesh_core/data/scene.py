@@ -103,7 +103,7 @@ class Scene:
     background: RGB in [0,1] that images were composited on (None: images are not composited,
     e.g. DTU, whose background is real).  bbox: (2,3) float32 axis-aligned bounds of the object
     (min, max), used to place the occupancy grid / scaffold volume when no mesh is given.
-    mesh_path: a reference mesh shipped with the scene (the built-in scene has its true mesh).
+    mesh_path: the true mesh shipped with the scene, when there is one (the built-in scene has it).
     """
 
     splits: dict

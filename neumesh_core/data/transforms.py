@@ -166,15 +166,15 @@ def read_transforms(root: str, json_name: str = _FILE, log=None) -> Capture:
                 splits[k] = sorted(set(ids))
     extra = {k: meta[k] for k in ("scale", "offset", "aabb", "scene_bbox", "applied_transform", "ply_file_path")
              if k in meta}
-    points = colors = None
+    points = colours = None
     ply = meta.get("ply_file_path")
     if ply:  # nerfstudio writes the COLMAP points as a PLY beside the json
         ply_path = os.path.join(root, str(ply).replace("\\", "/"))
         if os.path.isfile(ply_path):
-            points, colors = _read_points_ply(ply_path)
+            points, colours = _read_points_ply(ply_path)
     aabb = meta.get("aabb_scale")
     return Capture("transforms", root, names, [r[1] for r in rows], [r[2] for r in rows], c2w,
-                   [r[4] for r in rows], points, colors, float(aabb) if aabb is not None else None, splits,
+                   [r[4] for r in rows], points, colours, float(aabb) if aabb is not None else None, splits,
                    missing, notes, extra)
 
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field as dc_field, replace
-from typing import Optional
+from typing import Literal, Optional
 
 import numpy as np
 
@@ -50,7 +50,7 @@ class ArapConfig:
     needs hundreds of them, and the cage provides the large scale cheaply (0: start from rest).
     ``energies``: record the energy after every iteration (``ArapResult.energies``; costs ~10%)."""
 
-    weights: str = "cotangent"
+    weights: Literal["cotangent", "uniform"] = "cotangent"
     iterations: int = 8
     tolerance: float = 1e-4
     cage_vertices: int = 0
@@ -236,10 +236,9 @@ def factorise_spd(A):
     """A factorisation of the sparse symmetric positive definite ``A`` (the free vertices' Laplacian) with
     a ``solve(b)`` method: scipy's SuperLU in symmetric mode (minimum-degree ordering of A + A^T, no
     pivoting, which SPD matrices do not need), so that U has the structure of L^T as in a Cholesky
-    factorisation.  On lego's scaffold (162k unknowns) that is half the fill of the unsymmetric COLAMD
-    factorisation (:func:`factorise_reference`), so a solve reads half the numbers; on its 30k cage it
-    factorises in 0.2 s.  Falls back to the reference where the symmetric factorisation fails (a
-    zero pivot: the matrix is not positive definite)."""
+    factorisation. On lego's scaffold (162k unknowns) that is half the fill of the unsymmetric COLAMD
+    factorisation (:func:`factorise_reference`), so a solve reads half the numbers. Falls back to the
+    reference where the symmetric factorisation fails (a zero pivot: the matrix is not positive definite)."""
     from scipy.sparse.linalg import splu
 
     try:

@@ -79,7 +79,7 @@ def polar_rotations(S: np.ndarray) -> np.ndarray:
     characteristic quartic (coefficients in closed form), found by Newton's method from an upper bound
     (monotone: the quartic is convex right of that root); its eigenvector is the
     best-conditioned column of adj(N - lambda I), all as elementwise arithmetic on arrays of the n
-    inputs (~15x faster than a batched 3x3 SVD at 200k matrices; the ARAP local step runs it every
+    inputs (an order of magnitude faster than a batched 3x3 SVD; the ARAP local step runs it every
     iteration).  Where the largest eigenvalue is (nearly) double, the maximiser is not unique (rank <= 1,
     e.g. collinear edges) and those rows go to the reference; a zero matrix gives the identity.  Runs in
     blocks of ``_BLOCK`` matrices so that its ~100 temporaries stay in the CPU cache."""

@@ -12,7 +12,7 @@ edited fields are saved beside the file they came from (:func:`save_edited`), ne
   the atlas image elsewhere (Blender's Texture Paint) is recorded by :func:`paint_image_record`.
 """
 from .align import Similarity, arap_icp, initial_alignment, rigid_icp, umeyama
-from .files import edit_info, next_edit_path, parent_of, root_of, save_edited
+from .edited_files import edit_info, next_edit_path, parent_of, root_of, save_edited
 from .fill import CornerUVs, FillConfig, fill_texture, planar_uvs
 from .paint import PaintConfig, paint_fields, paint_layer, paint_texture
 from .paint_atlas import AtlasRecord, create_paint_atlas, paint_atlas_from_view, paint_image_record

@@ -172,10 +172,9 @@ def initial_alignment(src: np.ndarray, dst: np.ndarray, icp_iterations: int = 10
     ``dst_normals`` are given).
 
     Why fixed centroids: a free translation is not constrained when the regions differ in shape; ICP
-    then slides the source along the target's surface and off it (measured: the multi-part scene's
-    body onto an 835-vertex cap of the blob ended 222 target radii away).  A free scale likewise
-    collapses onto a patch of the target (lego's bucket <- a cap of another object went to scale 4e-19),
-    so the scale is the extents' ratio.  Use point pairs (:func:`umeyama`) where the regions correspond only in part.
+    then slides the source along the target's surface and off it (docs/editing.md, "When the alignment
+    fails").  A free scale likewise collapses onto a patch of the target, so the scale is the extents'
+    ratio.  Use point pairs (:func:`umeyama`) where the regions correspond only in part.
     """
     src = np.asarray(src, np.float64)
     dst = np.asarray(dst, np.float64)

@@ -34,7 +34,7 @@ from .paint_view import PaintConfig, _cancel, _checked_layer, _rays, _render, pa
 from .record import EditRecord
 
 
-def _affected(field, points: np.ndarray, cam_center: np.ndarray, facing: bool) -> np.ndarray:
+def _affected(field, points: np.ndarray, cam_centre: np.ndarray, facing: bool) -> np.ndarray:
     from scipy.spatial import cKDTree
 
     v = field.vertices.astype(np.float64)
@@ -43,7 +43,7 @@ def _affected(field, points: np.ndarray, cam_center: np.ndarray, facing: bool) -
         np.zeros(0, np.int64)
     if facing and len(ids):
         n = field.scaffold.normals.detach().cpu().numpy().astype(np.float64)[ids]
-        ids = ids[(n * (cam_center[None] - v[ids])).sum(1) > 0]
+        ids = ids[(n * (cam_centre[None] - v[ids])).sum(1) > 0]
     return ids
 
 
@@ -161,11 +161,11 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
         if len(ids) == 0:
             records.append(None)
             continue
-        rec = EditRecord.begin("paint_texture", f, ids, ("mod_colors",))
+        rec = EditRecord.begin("paint_texture", f, ids, ("mod_colours",))
         with torch.no_grad():
-            idx = torch.as_tensor(ids, device=f.mod_colors.device)
-            f.mod_colors[idx] = f.mod_colors[idx] + torch.as_tensor(dd, dtype=f.mod_colors.dtype,
-                                                                     device=f.mod_colors.device)
+            idx = torch.as_tensor(ids, device=f.mod_colours.device)
+            f.mod_colours[idx] = f.mod_colours[idx] + torch.as_tensor(dd, dtype=f.mod_colours.dtype,
+                                                                     device=f.mod_colours.device)
         records.append(rec.finish(f, painted_pixels=int(len(painted)), hit_pixels=int(hit.sum()),
                                   ring_pixels=int(ring_rows.sum()), affected_vertices=int(len(ids)),
                                   predicted_rmse=float(np.sqrt(np.mean(fit_res ** 2))) if len(fit_res) else 0.0,

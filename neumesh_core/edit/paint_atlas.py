@@ -28,10 +28,8 @@ def create_paint_atlas(field, resolution: int = 2048, uvs=None, padding: int = 4
     onto the field's surface (per-vertex offsets along the normals from
     :func:`~neumesh_core.bake.surface.fit_to_field`, vertices only, one iteration; they follow
     deformations with the normals), so that nearby surface points map to nearby texels even where the
-    scaffold lies a radius or more off the surface; False (default): on the scaffold itself.  Measured
-    on lego's 5,000-pixel stroke (400 px): on_surface 27.55 dB in the stroke and 11 pixels farther than
-    2 px changed, against 30.63 dB and 5 on the scaffold, and the fit took 331 s on a loaded machine;
-    whether it carries paint to other views better is not measured yet.  A field that has
+    scaffold lies a radius or more off the surface; False (default): on the scaffold itself (docs/editing.md,
+    "Texel paint").  A field that has
     an atlas keeps its paint: remove it first (``field.paint_atlas = None``) to start over."""
     from ..field.paint_atlas import PaintAtlas
 

@@ -15,7 +15,7 @@ import torch
 from ..errors import EditError
 
 # per-vertex tables an edit may change (attribute names on NeuMeshField)
-TABLES = ("tex_codes", "mod_colors", "decoder_id", "tex_frame", "geo_codes", "sem_codes")
+TABLES = ("tex_codes", "mod_colours", "decoder_id", "tex_frame", "geo_codes", "sem_codes")
 
 
 def _table(field, name: str) -> torch.Tensor:

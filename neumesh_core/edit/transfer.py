@@ -84,7 +84,7 @@ def apply_transfer(op: str, target, plan: TransferPlan, source,
     """
     check_compatible(target, source)
     rows = np.asarray(plan.rows, np.int64)
-    tables = ("tex_codes", "mod_colors", "decoder_id", "tex_frame")
+    tables = ("tex_codes", "mod_colours", "decoder_id", "tex_frame")
     record = EditRecord.begin(op, target, rows, tables)
     if not np.array_equal(record.vertices, rows):
         raise EditError("the target region holds repeated vertices")
@@ -100,7 +100,7 @@ def apply_transfer(op: str, target, plan: TransferPlan, source,
         new_ids = np.array([mapping[int(d)] for d in b.decoder], np.int64)
         idx = torch.as_tensor(rows, device=dev)
         target.tex_codes[idx] = b.tables["tex_codes"].to(dev, target.tex_codes.dtype)
-        target.mod_colors[idx] = b.tables["mod_colors"].to(dev, target.mod_colors.dtype)
+        target.mod_colours[idx] = b.tables["mod_colours"].to(dev, target.mod_colours.dtype)
         target.decoder_id[idx] = torch.as_tensor(new_ids, device=dev, dtype=target.decoder_id.dtype)
         target.ensure_tex_frame()[idx] = torch.as_tensor(Q, dtype=torch.float32, device=dev)
     return record.finish(target, **info)

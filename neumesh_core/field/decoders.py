@@ -213,7 +213,7 @@ class RadianceDecoding:
             d, n = self._code_frame(vid, d)
             sh = sh_encoding(d, self.config.sh_degree)
         rad_in = [self.codes(("tex",), vid)[0], pe, wk[:, None], sh, n]
-        mod_k = self.rows(self.mod_colors, vid)
+        mod_k = self.rows(self.mod_colours, vid)
         c_k = torch.sigmoid(self._decode_rgb_rows(rad_in, vid)) + mod_k
         return sigma, reduce(c_k), reduce(mod_k)
 
@@ -262,7 +262,7 @@ class RadianceDecoding:
             d = (dk * w).sum(1)
             d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-        mod = wsum_rows(self.mod_colors)
+        mod = wsum_rows(self.mod_colours)
         shared = [pe, wi[:, None], sh_encoding(d, self.config.sh_degree), n]   # column blocks
         single = 0 if len(self.rad_decoders) == 1 else self._single_decoder(nb)
         if single is not None:   # one decoder for every neighbour: decode the interpolated code once

@@ -58,7 +58,7 @@ from .heads import SemanticsHead
 from .knn import vertex_neighbours
 from .params import FieldConfig, FieldParams
 from .regularisers import tv_loss as _tv_loss
-from .scaffold import Neighbourhood, Scaffold, reference_neighbours, take_rows, tangent_frames  # noqa: F401 (re-exported)
+from .scaffold import Neighbourhood, Scaffold, tangent_neighbours, take_rows, tangent_frames  # noqa: F401 (re-exported)
 
 
 class NeuMeshField(FieldParams, RadianceDecoding, SemanticsHead, nn.Module):
@@ -93,7 +93,7 @@ class NeuMeshField(FieldParams, RadianceDecoding, SemanticsHead, nn.Module):
         g = torch.Generator().manual_seed(0)
         self.geo_codes = nn.Parameter(torch.randn(n, cfg.geo_dim, generator=g) * cfg.code_init_std)
         self.tex_codes = nn.Parameter(torch.randn(n, cfg.tex_dim, generator=g) * cfg.code_init_std)
-        self.mod_colors = nn.Parameter(torch.zeros(n, 3))
+        self.mod_colours = nn.Parameter(torch.zeros(n, 3))
         self.sem_codes = nn.Parameter(torch.randn(n, cfg.sem_dim, generator=g) * cfg.code_init_std,
                                       requires_grad=False)   # trained by semantics.distill only
         # what made the semantic codes (extractor, feature width, ...): saved in the field file's header

@@ -53,8 +53,8 @@ class SemanticsHead:
             from ..errors import NoSemanticsError
 
             raise NoSemanticsError(
-                "this field has no semantic codes; distil them first: `neumesh semantics --field F "
-                "--data DIR` (or 'Distil semantics' in Blender's NeuMesh > Edit panel)")
+                "this field has no semantic codes; distill them first: `neumesh semantics --field F "
+                "--data DIR` (or 'Distill semantics' in Blender's NeuMesh > Edit panel)")
 
     def decode_semantics(self, nb: Neighbourhood) -> torch.Tensor:
         """Semantic features (M, sem_features) of samples: codes interpolated with the neighbours'

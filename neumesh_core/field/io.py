@@ -8,13 +8,15 @@ parent file it was made from, the training file at the root of the chain and the
 Versions: 1 (one radiance decoder ``rad_decoder``; scaffold buffers at the top level) and 2 (radiance
 decoders ``rad_decoders.<i>`` with a per-vertex ``decoder_id``, and ``tex_frame`` (N,3,3) when a
 texture edit rotated the frames of the codes it brought; scaffold buffers under ``scaffold.``).
-Version-1 files load as single-decoder fields with every vertex bound to decoder 0.
+Version-1 files load as single-decoder fields with every vertex bound to decoder 0.  Tensors a file
+holds under an earlier name (``param/mod_colors``, ``buffer/scaffold.tangent_ref``) load under the
+field's name for them.
 
 Semantics (optional in both versions): ``field_config.sem_dim``/``sem_features`` > 0 means the file
 holds ``param/sem_codes`` (N, sem_dim) and ``param/sem_decoder.*``; the header's ``semantics`` entry
 says how they were distilled.  A file without them loads as a field without semantics.
 
-Real captures (optional in version 2, issue 49): the header's ``object_box`` (centre, half_extents,
+Real captures (optional in version 2): the header's ``object_box`` (centre, half_extents,
 rotation) and ``background`` (the background model's configuration; its tensors are
 ``param/background.*``).  Files without them load as fields without a box or background.
 """
@@ -38,11 +40,30 @@ _V1_RENAMES = (("rad_decoder.", "rad_decoders.0."), ("faces", "scaffold.faces"),
                ("tv_neighbours", "scaffold.tv_neighbours"))
 
 
+# tensors saved under an earlier name (any version) -> the name the field has now
+_RENAMED = {"mod_colors": "mod_colours", "scaffold.tangent_ref": "scaffold.tangent_neighbour"}
+
+
 def _v1_to_v2_name(name: str) -> str:
     for old, new in _V1_RENAMES:
         if name == old or (old.endswith(".") and name.startswith(old)):
             return new + name[len(old):]
     return name
+
+
+def _current_names(tensors: dict) -> dict:
+    """``tensors`` with every parameter, buffer and optimiser entry saved under an earlier name
+    (:data:`_RENAMED`) under the field's name for it."""
+    out = {}
+    for k, v in tensors.items():
+        kind, _, rest = k.partition("/")
+        if kind in ("param", "buffer"):
+            k = f"{kind}/{_RENAMED.get(rest, rest)}"
+        elif kind == "optim":
+            pname, _, skey = rest.rpartition("/")
+            k = f"optim/{_RENAMED.get(pname, pname)}/{skey}"
+        out[k] = v
+    return out
 
 
 def _upgrade_v1(tensors: dict) -> dict:
@@ -84,7 +105,7 @@ def save_field(field, path: str, optimizer: Optional[torch.optim.Optimizer] = No
     With ``optimizer`` its moments are stored too, so training can resume exactly.  A field that trains
     with coarse code levels (``field.code_prior``) is written as a plain field: the levels are folded
     into the per-vertex codes it stores, and the field in memory is left as it was.  ``edit``: the
-    JSON-serialisable edit description stored in the header (see :mod:`neumesh_core.edit.files`);
+    JSON-serialisable edit description stored in the header (see :mod:`neumesh_core.edit.edited_files`);
     by default a field loaded from an edited file keeps its description.
     """
     prior = getattr(field, "code_prior", None)
@@ -188,7 +209,7 @@ def read_checkpoint(path: str):
                               f"neumesh ({VERSION}); update neumesh")
     if int(meta.get("version", 1)) < 2:
         tensors = _upgrade_v1(tensors)
-    return meta, tensors
+    return meta, _current_names(tensors)
 
 
 def _num_decoders(tensors: dict) -> int:

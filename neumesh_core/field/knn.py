@@ -1,11 +1,11 @@
 """K nearest scaffold vertices within a radius.
 
-Fast paths: :class:`VertexIndex` (pykdtree, multi-threaded C, on the CPU), :class:`HashGridIndex`
+Fast paths: :class:`KDTreeIndex` (pykdtree, multi-threaded C, on the CPU), :class:`HashGridIndex`
 (a uniform grid in plain torch, so it runs where the vertices are, a GPU included) and, on a GPU,
 :class:`~neumesh_core.kernels.knn.TritonKNNIndex` (the same grid searched by one Triton kernel).
 Reference: :func:`knn_radius_reference` (brute force in torch).  All return ``(idx, dist)`` of shape
 (M,K), sorted by distance, with ``idx == -1`` and ``dist == inf`` where fewer than K vertices lie within
-the radius.  :func:`make_index` picks one by name.
+the radius.  :func:`make_index` picks one by name ("auto": the device's own).
 """
 from __future__ import annotations
 
@@ -53,8 +53,8 @@ def kd_tree(points: np.ndarray):
     return KDTree(points, leafsize=16)
 
 
-class VertexIndex:
-    """KD-tree over scaffold vertices; rebuilt cheaply (~30 ms for 300k) when vertices move."""
+class KDTreeIndex:
+    """KD-tree over scaffold vertices, on the CPU; rebuilt cheaply when vertices move."""
 
     def __init__(self, vertices, k: int = 4, radius: float = float("inf")):
         v = vertices.detach().cpu().numpy() if torch.is_tensor(vertices) else np.asarray(vertices)
@@ -102,7 +102,7 @@ class HashGridIndex:
         radius = float(radius)
         if not (np.isfinite(radius) and radius > 0):
             raise ValueError(f"HashGridIndex needs a finite positive radius, got {radius}; "
-                             "use VertexIndex (KD-tree) for unbounded queries")
+                             "use KDTreeIndex (KD-tree) for unbounded queries")
         v = vertices.detach() if torch.is_tensor(vertices) else torch.as_tensor(np.asarray(vertices))
         self.v = v.float().contiguous()
         self.n = len(self.v)
@@ -182,19 +182,29 @@ class HashGridIndex:
         dist_out.copy_(kd)
 
 
-KNN_BACKENDS = ("kdtree", "hashgrid", "triton")
+KNN_BACKENDS = ("auto", "hashgrid", "triton")
+# older names of a backend, as saved field configs and scripts spell them ("kdtree" always meant "auto")
+KNN_ALIASES = {"kdtree": "auto"}
 
 
-def make_index(vertices, k: int, radius: float, backend: str = "kdtree"):
-    """The neighbour index for ``backend``: "kdtree" (:class:`VertexIndex`, CPU), "hashgrid"
-    (:class:`HashGridIndex`, plain torch on the vertices' device; needs a finite radius) or "triton"
-    (:class:`~neumesh_core.kernels.knn.TritonKNNIndex`, one kernel launch a query and no host
+def knn_backend(name: str) -> str:
+    """``name`` as one of :data:`KNN_BACKENDS` (an alias resolved); ValueError for an unknown one."""
+    backend = KNN_ALIASES.get(name, name)
+    if backend not in KNN_BACKENDS:
+        raise ValueError(f"unknown neighbour-search backend {name!r}; use one of {', '.join(KNN_BACKENDS)}")
+    return backend
+
+
+def make_index(vertices, k: int, radius: float, backend: str = "auto"):
+    """The neighbour index for ``backend``: "auto" (the device's own: :class:`KDTreeIndex` on the CPU;
+    for vertices on a GPU with a finite radius the Triton index where triton imports, else the hash
+    grid, both answering on the GPU, where a KD-tree would copy every query to the host and back),
+    "hashgrid" (:class:`HashGridIndex`, plain torch on the vertices' device; needs a finite radius) or
+    "triton" (:class:`~neumesh_core.kernels.knn.TritonKNNIndex`, one kernel launch a query and no host
     synchronisation; CUDA, or Triton's interpreter; elsewhere, e.g. a field saved so and loaded on a
-    CPU, what "kdtree" gives).  "kdtree" is the CPU's choice: for vertices on a
-    GPU with a finite radius it gives the Triton index where triton imports, else the hash grid; both
-    answer on the GPU (a KD-tree would copy every query to the host and back: twice the frame time on
-    an H200)."""
-    if backend == "kdtree":
+    CPU, what "auto" gives).  "kdtree" is accepted for "auto" (:data:`KNN_ALIASES`)."""
+    backend = knn_backend(backend)
+    if backend == "auto":
         on_gpu = torch.is_tensor(vertices) and vertices.device.type != "cpu"
         if on_gpu and np.isfinite(float(radius)) and float(radius) > 0:
             from ..kernels.knn import TritonKNNIndex, triton_runs_on
@@ -202,7 +212,7 @@ def make_index(vertices, k: int, radius: float, backend: str = "kdtree"):
             if triton_runs_on(vertices.device):
                 return TritonKNNIndex(vertices, k, radius)
             return HashGridIndex(vertices, k, radius)
-        return VertexIndex(vertices, k, radius)
+        return KDTreeIndex(vertices, k, radius)
     if backend == "hashgrid":
         return HashGridIndex(vertices, k, radius)
     if backend == "triton":
@@ -211,8 +221,7 @@ def make_index(vertices, k: int, radius: float, backend: str = "kdtree"):
         v = vertices if torch.is_tensor(vertices) else torch.as_tensor(np.asarray(vertices))
         if triton_runs_on(v.device) and np.isfinite(float(radius)) and float(radius) > 0:
             return TritonKNNIndex(v, k, radius)
-        return make_index(v, k, radius, "kdtree")   # a field saved so still loads where triton cannot run
-    raise ValueError(f"unknown neighbour-search backend {backend!r}; use one of {', '.join(KNN_BACKENDS)}")
+        return make_index(v, k, radius, "auto")   # a field saved so still loads where triton cannot run
 
 
 def vertex_neighbours(vertices, k: int) -> np.ndarray:

@@ -53,7 +53,7 @@ class BlendedRows:
     tables: dict
 
 
-def blend_rows(source, src: np.ndarray, w: np.ndarray, tables=("tex_codes", "mod_colors")) -> BlendedRows:
+def blend_rows(source, src: np.ndarray, w: np.ndarray, tables=("tex_codes", "mod_colours")) -> BlendedRows:
     """Blend rows of ``source``: row t is ``sum_j w[t,j] * table[src[t,j]]`` over the source vertices
     bound to the decoder holding the largest share of the row's weight (the others' weights are
     dropped and the rest renormalised, so codes of different decoders are never averaged)."""

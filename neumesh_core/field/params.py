@@ -1,6 +1,6 @@
 """What a field learns per vertex, and where: :class:`FieldConfig` (saved in every field file) and
 :class:`FieldParams`, the part of :class:`~neumesh_core.field.field.NeuMeshField` that holds the
-per-vertex tables (``geo_codes``, ``tex_codes``, ``mod_colors``, ``sem_codes``, ``decoder_id``,
+per-vertex tables (``geo_codes``, ``tex_codes``, ``mod_colours``, ``sem_codes``, ``decoder_id``,
 ``tex_frame``) on the scaffold (``field.scaffold``): the scaffold's geometry, row lookups (sparse
 gradients while training), the code tables with the training-time coarse levels.
 
@@ -10,13 +10,13 @@ The decoders that read these tables are :mod:`.decoders` (radiance and geometry)
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Optional
+from typing import Literal, Optional
 
 import numpy as np
 import torch
 
 from ..mesh import Mesh
-from .knn import KNN_BACKENDS
+from .knn import KNN_BACKENDS, knn_backend
 from .scaffold import Neighbourhood, take_rows
 
 
@@ -33,19 +33,22 @@ class FieldConfig:
     radius: float = 0.0         # neighbour search radius; 0 = auto (radius_scale x mean edge length)
     radius_scale: float = 2.5
     hidden: int = 64            # decoder width
-    interpolation: str = "post"  # "post" (paper default) or "early" (~3x cheaper, ~0.15 dB worse)
+    interpolation: Literal["post", "early"] = "post"   # post: the paper's default; early: cheaper, a little worse
     pos_freqs: int = 4          # frequencies of the encoding of p / radius
     sh_degree: int = 4          # spherical-harmonics degree of the view-direction encoding
     k_tv: int = 8               # neighbours per vertex in the total-variation loss
     grid_resolution: int = 128  # occupancy grid cells along the longest axis
     step_scale: float = 0.5     # marching step = radius x step_scale (training and rendering)
     code_init_std: float = 1e-2
-    knn: str = "kdtree"         # neighbour search: "kdtree" (pykdtree, CPU; on a GPU the Triton kernel, or the
-    #                             hash grid without triton), "hashgrid" (torch, any device) or "triton" (GPU)
+    knn: Literal["auto", "hashgrid", "triton"] = "auto"   # neighbour search: "auto" (pykdtree on the CPU; on
+    #                             a GPU the Triton kernel, or the hash grid without triton), "hashgrid" (torch,
+    #                             any device) or "triton" (GPU); "kdtree", the name older files saved, is "auto"
 
     def __post_init__(self) -> None:
-        if self.knn not in KNN_BACKENDS:
-            raise ValueError(f"knn must be one of {', '.join(KNN_BACKENDS)}, not {self.knn!r}")
+        try:
+            self.knn = knn_backend(self.knn)
+        except ValueError:
+            raise ValueError(f"knn must be one of {', '.join(KNN_BACKENDS)}, not {self.knn!r}") from None
         if self.interpolation not in ("post", "early"):
             raise ValueError(f"interpolation must be 'post' or 'early', not {self.interpolation!r}")
         if self.k < 1 or self.hidden < 1:

@@ -21,13 +21,13 @@ from torch import nn
 
 from ..errors import VertexMismatchError
 from ..mesh import Mesh, face_incidence, vertex_normals
-from .knn import VertexIndex, make_index, vertex_neighbours
+from .knn import KDTreeIndex, make_index, vertex_neighbours
 
 # builds neighbour indices beside the main thread (Scaffold.set_vertices)
 _INDEX_BUILDER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="neumesh-index")
 
 # persistent buffers of a Scaffold (saved in field files as ``buffer/scaffold.<name>``)
-PERSISTENT = ("faces", "tangent_ref", "rest_vertices", "tv_neighbours")
+PERSISTENT = ("faces", "tangent_neighbour", "rest_vertices", "tv_neighbours")
 
 
 def take_rows(table: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -64,14 +64,15 @@ class Neighbourhood:
         return Neighbourhood(*(torch.cat([getattr(i, f) for i in items]) for f in ("idx", "w", "p", "valid")))
 
 
-def tangent_frames(vertices: torch.Tensor, normals: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """(N,3,3) orthonormal frames with columns (t, b, n); t points towards vertex ``ref``.
+def tangent_frames(vertices: torch.Tensor, normals: torch.Tensor, towards: torch.Tensor) -> torch.Tensor:
+    """(N,3,3) orthonormal frames with columns (t, b, n); t points towards vertex ``towards`` (each
+    vertex's tangent neighbour, :func:`tangent_neighbours`).
 
-    t is the edge to ``ref`` projected on the tangent plane; where that edge is missing or within 1e-4
+    t is the edge to that vertex projected on the tangent plane; where that edge is missing or within 1e-4
     rad of the normal, a fixed axis projected instead.  Edges within 0.01 rad of the normal are
     projected twice, so float32 round-off cannot leave t off the plane.
     """
-    e = vertices.index_select(0, ref) - vertices
+    e = vertices.index_select(0, towards) - vertices
     t = e - (e * normals).sum(-1, keepdim=True) * normals
     tl = torch.linalg.vector_norm(t, dim=-1, keepdim=True)
     el = torch.linalg.vector_norm(e, dim=-1, keepdim=True)
@@ -94,9 +95,10 @@ def tangent_frames(vertices: torch.Tensor, normals: torch.Tensor, ref: torch.Ten
     return torch.stack([t, b, normals], -1)
 
 
-def reference_neighbours(n: int, edges: np.ndarray) -> torch.Tensor:
-    """For every vertex a fixed edge neighbour (defines its tangent); itself when isolated."""
-    ref = np.arange(n, dtype=np.int64)
+def tangent_neighbours(n: int, edges: np.ndarray) -> torch.Tensor:
+    """For every vertex a fixed edge neighbour, its tangent neighbour (its tangent points there);
+    itself when isolated."""
+    nb = np.arange(n, dtype=np.int64)
     if len(edges):
         # the smallest-index neighbour of each vertex: deterministic and topology-only
         a = np.concatenate([edges[:, 0], edges[:, 1]])
@@ -105,8 +107,8 @@ def reference_neighbours(n: int, edges: np.ndarray) -> torch.Tensor:
         a, b = a[order], b[order]
         first = np.ones(len(a), bool)
         first[1:] = a[1:] != a[:-1]
-        ref[a[first]] = b[first]
-    return torch.from_numpy(ref)
+        nb[a[first]] = b[first]
+    return torch.from_numpy(nb)
 
 
 class Scaffold(nn.Module):
@@ -124,7 +126,7 @@ class Scaffold(nn.Module):
         self.k = int(k)
         self.knn = knn
         self.register_buffer("faces", torch.as_tensor(mesh.faces, dtype=torch.long))
-        self.register_buffer("tangent_ref", reference_neighbours(n, edges))
+        self.register_buffer("tangent_neighbour", tangent_neighbours(n, edges))
         self.register_buffer("rest_vertices", verts.clone())
         self.register_buffer("tv_neighbours", torch.from_numpy(vertex_neighbours(mesh.vertices, k_tv)))
         self.register_buffer("vertices_", verts.clone(), persistent=False)
@@ -132,7 +134,7 @@ class Scaffold(nn.Module):
         self.register_buffer("rest_normals", torch.zeros_like(verts), persistent=False)
         self.register_buffer("rest_frames", torch.zeros(n, 3, 3), persistent=False)
         self.to_rest: Optional[torch.Tensor] = None  # (N,3,3) current->rest rotation; None at rest
-        self.index = None  # VertexIndex, HashGridIndex or TritonKNNIndex (knn backend, make_index)
+        self.index = None  # KDTreeIndex, HashGridIndex or TritonKNNIndex (knn backend, make_index)
         self.update_rest_geometry()
         from ..sampling.occupancy import OccupancyGrid
 
@@ -144,7 +146,7 @@ class Scaffold(nn.Module):
         """Recompute rest normals/frames and the index from ``rest_vertices`` (after loading them)."""
         with torch.no_grad():
             self.rest_normals.copy_(vertex_normals(self.rest_vertices, self.faces))
-            self.rest_frames.copy_(tangent_frames(self.rest_vertices, self.rest_normals, self.tangent_ref))
+            self.rest_frames.copy_(tangent_frames(self.rest_vertices, self.rest_normals, self.tangent_neighbour))
             self.vertices_.copy_(self.rest_vertices)
             self.normals.copy_(self.rest_normals)
         self.to_rest = None
@@ -189,7 +191,7 @@ class Scaffold(nn.Module):
                 normals, to_rest = self.rest_normals, None
             else:
                 normals = vertex_normals(v, self.faces, self._face_incidence())
-                frames = tangent_frames(v, normals, self.tangent_ref)
+                frames = tangent_frames(v, normals, self.tangent_neighbour)
                 # rotation current -> rest: R = F_rest F_cur^T
                 to_rest = self.rest_frames @ frames.transpose(1, 2)
             self.index = index.result()
@@ -225,10 +227,10 @@ class Scaffold(nn.Module):
                 self._rest_grid_state = self.grid.state()
                 self._grid_anchors = None
                 if self.grid.refined:
-                    centers = self.grid.occupied_centers()
-                    nearest, _ = VertexIndex(self.rest_vertices, 1).query(centers)
+                    centres = self.grid.occupied_centres()
+                    nearest, _ = KDTreeIndex(self.rest_vertices, 1).query(centres)
                     nearest = nearest[:, 0]
-                    self._grid_anchors = (nearest, centers - self.rest_vertices[nearest])
+                    self._grid_anchors = (nearest, centres - self.rest_vertices[nearest])
             carried = None
             if self._grid_anchors is not None:
                 vid, offset = self._grid_anchors

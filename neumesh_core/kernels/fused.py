@@ -78,7 +78,7 @@ class FieldTables:
         self.vtab = sc._vertex_table().contiguous()
         self.geo = field.geo_codes.detach().contiguous()
         self.tex = field.tex_codes.detach().contiguous()
-        self.mod = field.mod_colors.detach().contiguous()
+        self.mod = field.mod_colours.detach().contiguous()
         self.rest_n = field.rest_normals.contiguous()
         self.rot = None if sc.to_rest is None else sc.to_rest.reshape(-1, 9).contiguous()
         params = list(field.geo_decoder.parameters()) + list(field.rad_decoders[0].parameters())
@@ -92,11 +92,10 @@ class FieldTables:
 
 
 def default_block(device) -> int:
-    """Rays per program: 32 on a GPU (with 4 warps: on an H200 the fastest of the options timed by
-    ``benchmarks/bench/bench_render_gpu.py --sweep``, 37.7 ms for lego 800² against 44.7 ms for 64 rays x 8
-    warps, although the sm_90 build of 64 x 8 spills less: a smaller block waits less for its slowest
-    ray); in the interpreter (CPU) one big block, since there each operation costs about the same for any
-    block size."""
+    """Rays per program: 32 on a GPU (with 4 warps: the fastest of the options timed by
+    ``benchmarks/bench/bench_render_gpu.py --sweep``, docs/benchmarks.md "Fused Triton renderer"; a smaller
+    block waits less for its slowest ray); in the interpreter (CPU) one big block, since there each operation
+    costs about the same for any block size."""
     return 32 if torch.device(device).type == "cuda" else 1024
 
 
@@ -108,10 +107,9 @@ KERNEL_OPTIONS = {"block": None, "precision": "ieee", "num_warps": 4, "cells_per
 
 
 def default_cells(device) -> int:
-    """Neighbour-grid cells per radius: 1 on a GPU and in the interpreter (27 cells a radius wide; on an
-    H200 37.7 ms for lego 800² against 41.8 ms with 125 half-radius cells, which measured fewer vertices
-    but walked more cells -- before knn_keys read them nearest first and pruned them, which cuts their
-    rounds about threefold (benchmarks/diagnose/knn_merges.py); the GPU sweep times both again)."""
+    """Neighbour-grid cells per radius: 1 on a GPU and in the interpreter (27 cells a radius wide; 125
+    half-radius cells hold fewer vertices but take more cells to walk: the GPU sweep times both,
+    benchmarks/diagnose/knn_merges.py counts their work; docs/benchmarks.md)."""
     return 1
 
 
@@ -226,7 +224,7 @@ def render_rays_fused(field, origins: torch.Tensor, dirs: torch.Tensor, settings
             near, far, opts, out)
     opacity = out[:, 3]
     depth = torch.where(opacity > 1e-6, out[:, 4] / opacity.clamp_min(1e-6), torch.full_like(opacity, float("inf")))
-    return {"rgb": out[:, :3], "opacity": opacity, "depth": depth, "mod_rgb": out[:, 5:8],
+    return {"rgb": out[:, :3], "opacity": opacity, "depth": depth, "mod_colour": out[:, 5:8],
             "n_samples": out[:, 8]}
 
 

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence
+from typing import Callable, Literal, Optional, Sequence
 
 import numpy as np
 import torch
@@ -34,7 +34,7 @@ class RenderSettings:
     # which renderer marches and decodes: "auto" (the fused Triton kernel on CUDA when triton imports and
     # the field is covered; the torch path otherwise, the CPU included), "torch" (the reference) or
     # "triton" (the kernel, an error where it cannot run); kernels/path.render_path decides
-    backend: str = "auto"
+    backend: Literal["auto", "torch", "triton"] = "auto"
     # render_camera: a field's background model (real captures, field/background.py) composited behind
     # the field by its transmittance: on, the photo-like frame; off, the object alone with a true alpha
     background_model: bool = True
@@ -76,7 +76,7 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
     """Render rays (R,3) through one field or a list of fields (composited jointly, sorted by depth).
 
     Returns tensors: rgb (R,3), opacity (R,), depth (R,) (expected distance, normalised by opacity;
-    inf where empty), mod_rgb (R,3), n_samples (int).  With ``train`` the decoders run with autograd;
+    inf where empty), mod_colour (R,3), n_samples (int).  With ``train`` the decoders run with autograd;
     otherwise colours are decoded only for samples that survive marching.  With ``vertex_ids`` the
     output also lists, per field, the sorted unique scaffold vertices the samples looked up (for
     regularisers over the touched vertices; off by default, it costs a sort per call).  With
@@ -132,7 +132,7 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
         z = torch.zeros(n, device=origins.device)
         rgb = torch.zeros(n, 3, device=origins.device)
         out = {"rgb": rgb, "opacity": z, "depth": torch.full_like(z, float("inf")),
-               "mod_rgb": rgb.clone(), "n_samples": 0}
+               "mod_colour": rgb.clone(), "n_samples": 0}
         if semantics:
             out["sem"] = torch.zeros(n, sem_width, device=origins.device)
     else:
@@ -144,13 +144,13 @@ def render_rays(fields, origins: torch.Tensor, dirs: torch.Tensor, background=No
             order = order[torch.sort(cols[0][order], stable=True).indices]
             cols = [x[order] for x in cols]
         ri, ts, te, sig, rgb, mod = cols[:6]
-        values = {"rgb": rgb, "mod_rgb": mod}
+        values = {"rgb": rgb, "mod_colour": mod}
         if semantics:
             values["sem"] = cols[6]
         c = composite(ri, ts, te, sig, values, n)
         depth = torch.where(c["opacity"] > 1e-6, c["depth"] / c["opacity"].clamp_min(1e-6),
                             torch.full_like(c["depth"], float("inf")))
-        out = {"rgb": c["rgb"], "opacity": c["opacity"], "depth": depth, "mod_rgb": c["mod_rgb"],
+        out = {"rgb": c["rgb"], "opacity": c["opacity"], "depth": depth, "mod_colour": c["mod_colour"],
                "n_samples": int(ri.shape[0])}
         if semantics:
             out["sem"] = c["sem"]
@@ -215,7 +215,7 @@ def _render_fused(field, origins, dirs, settings, far, ranges) -> dict:
 def mod_colour_weights(fields, origins: torch.Tensor, dirs: torch.Tensor,
                        settings: Optional[RenderSettings] = None) -> list:
     """How each ray's colour depends on the modification colours: for every field a scipy sparse
-    (R, N_field) matrix W with ``rgb = rgb_without_mod + W @ field.mod_colors`` (each channel).
+    (R, N_field) matrix W with ``rgb = rgb_without_mod + W @ field.mod_colours`` (each channel).
 
     The modification colour enters a sample linearly as sum_k w_k mod_k (post- and early
     interpolation alike), and samples composite with weights that do not depend on it, so once the
@@ -280,7 +280,7 @@ class RenderOutput:
     rgb: np.ndarray       # (H,W,3), composited on the background
     opacity: np.ndarray   # (H,W)
     depth: np.ndarray     # (H,W) distance along the ray (inf where empty)
-    mod_rgb: np.ndarray   # (H,W,3) rendered modification colour
+    mod_colour: np.ndarray   # (H,W,3) rendered modification colour
     n_samples: int = 0
     seconds: float = 0.0
     sem: Optional[np.ndarray] = None   # (H,W,C) composited semantic features (render_camera(semantics=True))
@@ -316,7 +316,7 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     that matches photographs' area-averaged pixels.
     ``background`` None leaves rgb premultiplied (black).  ``progress(fraction)`` returning False
     cancels with :class:`Cancelled`.  ``semantics``: also composite the fields' semantic features
-    (``RenderOutput.sem``, premultiplied by opacity like ``mod_rgb``).
+    (``RenderOutput.sem``, premultiplied by opacity like ``mod_colour``).
     ``far``: None, or (H,W) distances along each pixel's centre ray (inf: no limit) past which nothing
     is sampled -- an opaque occluder in front of the field (supersampled rays use their pixel's value).
     """
@@ -384,7 +384,7 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
                     depth_w[rows] = out["depth"]
                 else:
                     depth_w[rows] += torch.where(op > 1e-6, out["depth"] * op, torch.zeros_like(op))
-                mod[rows] += out["mod_rgb"]
+                mod[rows] += out["mod_colour"]
                 if sem is not None:
                     sem[rows] += out["sem"]
                 n_samples += out["n_samples"]
@@ -431,8 +431,7 @@ def to_host(tensors: Sequence[torch.Tensor]) -> list:
     """float32 device tensors as numpy arrays of the same shapes, each contiguous.  On a GPU in one
     copy: the tensors packed end to end, copied into page-locked host memory (torch's caching host
     allocator, so no allocation after the first frame of a size), the arrays views of it; one copy of
-    ~20 MB instead of one pageable copy per output (the profile of a lego 800² frame: 4 copies,
-    9.9 ms).  On the CPU: the tensors themselves."""
+    ~20 MB instead of one pageable copy per output.  On the CPU: the tensors themselves."""
     if not tensors or tensors[0].device.type != "cuda":
         return [t.detach().cpu().float().numpy() for t in tensors]
     flat = torch.cat([t.detach().float().reshape(-1) for t in tensors])

@@ -121,9 +121,9 @@ class OccupancyGrid:
             carried = self.mask_from_vertices(carried_points, aabb, res, float(self.cell.max()))
             self.occ = self.mesh_mask & carried
 
-    def occupied_centers(self) -> torch.Tensor:
+    def occupied_centres(self) -> torch.Tensor:
         """(C,3) centres of occupied cells."""
-        return self.cell_centers(self.occ.reshape(-1).nonzero().squeeze(1))
+        return self.cell_centres(self.occ.reshape(-1).nonzero().squeeze(1))
 
     @property
     def refined(self) -> bool:
@@ -283,7 +283,7 @@ class OccupancyGrid:
         """Exact per-ray form of :meth:`camera_ranges` (slab test of every ray against every occupied
         cell; small grids only): (near, far) (R,) of the cells each ray meets (inf, -inf where none)."""
         idx = self.occ.reshape(-1).nonzero().squeeze(1)
-        lo = self.cell_centers(idx) - 0.5 * self.cell
+        lo = self.cell_centres(idx) - 0.5 * self.cell
         t_in, t_out = self._slab(origins[:, None], dirs[:, None], lo[None], (lo + self.cell)[None])
         t_in = t_in.clamp_min(0)
         hit = t_out >= t_in
@@ -291,7 +291,7 @@ class OccupancyGrid:
         far = torch.where(hit, t_out, torch.full_like(t_out, float("-inf"))).max(1).values
         return near, far
 
-    def cell_centers(self, flat_idx: torch.Tensor) -> torch.Tensor:
+    def cell_centres(self, flat_idx: torch.Tensor) -> torch.Tensor:
         ry, rz = int(self.resolution[1]), int(self.resolution[2])
         i = torch.div(flat_idx, ry * rz, rounding_mode="floor")
         j = torch.div(flat_idx, rz, rounding_mode="floor") % ry
@@ -320,7 +320,7 @@ class OccupancyGrid:
         for s in range(0, len(cand), chunk):
             c = cand[s:s + chunk]
             jitter = torch.rand(len(c), 3, device=draw_device(generator, c), generator=generator).to(c.device) - 0.5
-            x = self.cell_centers(c) + jitter * self.cell
+            x = self.cell_centres(c) + jitter * self.cell
             sigma = sigma_fn(x).float()
             old = dens[c]
             dens[c] = torch.where(old < 0, sigma, torch.maximum(old * decay, sigma))

@@ -1,4 +1,4 @@
-"""Semantic codes: distil 2D image features into per-vertex codes, and select parts from one click.
+"""Semantic codes: distill 2D image features into per-vertex codes, and select parts from one click.
 
 * :mod:`.extractors` - pluggable 2D feature extractors (weight-free "colour-texture"; DINO ViTs with
   local weights).

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, field as dc_field
-from typing import Callable, Optional, Union
+from typing import Callable, Literal, Optional, Union
 
 import numpy as np
 import torch
@@ -71,7 +71,7 @@ class DistillConfig:
 
 @dataclass
 class DistillProgress:
-    stage: str          # "features", "rays" or "train"
+    stage: Literal["features", "rays", "train"]
     step: int           # views done (features, rays) or optimisation steps done (train)
     total: int
     loss: float = float("nan")
@@ -122,7 +122,7 @@ class RayBank:
 def _images(data: Union[Scene, ImageSet], cfg: DistillConfig) -> ImageSet:
     images = data.split(cfg.split) if isinstance(data, Scene) else data
     if len(images) == 0:
-        raise ValueError(f"no images in split '{cfg.split}' to distil semantics from")
+        raise ValueError(f"no images in split '{cfg.split}' to distill semantics from")
     if cfg.max_views is not None and len(images) > cfg.max_views:
         keep = np.unique(np.linspace(0, len(images) - 1, cfg.max_views).round().astype(int))
         images = images.subset(keep)
@@ -181,7 +181,7 @@ def build_bank(field, images: ImageSet, fmaps: list, cfg: DistillConfig, gen: to
         pix.append((i, x, y))
         raw.append(sample_features(fmaps[i], x, y, cams.width, cams.height))
     if not pix:
-        raise ValueError("every view's mask is empty: there is no object to distil semantics from")
+        raise ValueError("every view's mask is empty: there is no object to distill semantics from")
     target, info = _fit_targets(torch.cat(raw), cfg, gen)
     K_all = torch.from_numpy(cams.K).to(device)
     c2w_all = torch.from_numpy(cams.c2w).to(device)
@@ -222,17 +222,21 @@ def build_bank(field, images: ImageSet, fmaps: list, cfg: DistillConfig, gen: to
     return bank, info
 
 
+DistillProgressFn = Callable[[DistillProgress], Optional[bool]]   # returns False to cancel
+
+
 def distill_semantics(field, data: Union[Scene, ImageSet], extractor: Optional[FeatureExtractor] = None,
-                      config: Optional[DistillConfig] = None,
-                      callback: Optional[Callable[[DistillProgress], Optional[bool]]] = None) -> DistillResult:
+                      config: Optional[DistillConfig] = None, progress: Optional[DistillProgressFn] = None, *,
+                      callback: Optional[DistillProgressFn] = None) -> DistillResult:
     """Give ``field`` a semantic branch distilled from 2D features of ``data``'s training images.
 
     ``extractor``: any :class:`FeatureExtractor` (default: the weight-free "colour-texture").
-    ``callback(progress)`` is called per view while extracting and marching, and every ``log_every``
-    steps while training; returning False cancels.  A cancel before training leaves the field as it
-    was; a cancel while training keeps what was learned (``DistillResult.cancelled``).
-    Only ``sem_codes`` and ``sem_decoder`` change.
+    ``progress(p)`` (a :class:`DistillProgress`) is called per view while extracting and marching, and
+    every ``log_every`` steps while training; returning False cancels (``callback``: its older name).  A
+    cancel before training leaves the field as it was; a cancel while training keeps what was learned
+    (``DistillResult.cancelled``).  Only ``sem_codes`` and ``sem_decoder`` change.
     """
+    progress = progress if progress is not None else callback
     cfg = config or DistillConfig()
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -252,7 +256,7 @@ def distill_semantics(field, data: Union[Scene, ImageSet], extractor: Optional[F
             p.eta_s = (time.perf_counter() - t_train) / step * (total - step)
         if stage == "train":
             history.append(p)
-        return callback(p) if callback is not None else None
+        return progress(p) if progress is not None else None
 
     # 1. 2D features
     fmaps = []

@@ -338,8 +338,9 @@ def crease_embedding(positions: np.ndarray, faces: np.ndarray, normals: np.ndarr
 
 # ------------------------------------------------------------------------------------------ the features
 def compute_geometric_features(vertices: np.ndarray, faces: np.ndarray, config: Optional[GeometryConfig] = None,
-                               progress: Optional[Callable[[str], None]] = None) -> GeometricFeatures:
-    """Geometric features of a scaffold (rest positions (N,3), faces (F,3)); see the module doc."""
+                               log: Optional[Callable[[str], None]] = None) -> GeometricFeatures:
+    """Geometric features of a scaffold (rest positions (N,3), faces (F,3)); see the module doc.  ``log``
+    gets the name of each stage as it starts."""
 
     cfg = config or GeometryConfig()
     v = np.asarray(vertices, np.float32)
@@ -349,7 +350,7 @@ def compute_geometric_features(vertices: np.ndarray, faces: np.ndarray, config: 
     if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
         raise GeometryUnavailable("geometric features need a triangle mesh: the scaffold has no faces")
     timings = {}
-    say = progress or (lambda s: None)
+    say = log or (lambda s: None)
     t0 = time.perf_counter()
     key = scaffold_key(v, f, cfg)
     say("normals")
@@ -435,7 +436,7 @@ def load_geometric_features(path: str, key: Optional[str] = None) -> Optional[Ge
 
 
 def geometric_features(field, config: Optional[GeometryConfig] = None, cache_dir: Optional[str] = None,
-                       progress: Optional[Callable[[str], None]] = None) -> GeometricFeatures:
+                       log: Optional[Callable[[str], None]] = None) -> GeometricFeatures:
     """Geometric features of ``field``'s scaffold in its rest pose, computed once: kept in memory by
     content key (the last two scaffolds) and, with ``cache_dir``, read from / written to
     ``<cache_dir>/neumesh-geometry-<key>.npz``."""
@@ -449,7 +450,7 @@ def geometric_features(field, config: Optional[GeometryConfig] = None, cache_dir
         return hit
     feats = load_geometric_features(cache_file(cache_dir, key), key) if cache_dir else None
     if feats is None:
-        feats = compute_geometric_features(v, f, cfg, progress)
+        feats = compute_geometric_features(v, f, cfg, log)
         if cache_dir:
             try:
                 save_geometric_features(feats, cache_file(cache_dir, key))

@@ -14,8 +14,8 @@ class RowSparseAdam(torch.optim.Adam):
     dense buffer (only the rows touched in the previous step are cleared) and Adam's own fused step
     runs; rows not looked up still move by their momentum, as with dense gradients.
     ``lazy=True``: only the rows looked up are updated, moments included (as ``torch.optim.SparseAdam``),
-    with bias correction by the parameter's step count.  Cheaper for huge tables; in 8-minute DTU fits
-    at 898k vertices both scored the same (25.64 / 25.66 dB), so the default stays exact Adam.
+    with bias correction by the parameter's step count.  Cheaper for huge tables; the default is exact
+    Adam.
 
     The state has Adam's keys and shapes (``step``, ``exp_avg``, ``exp_avg_sq``), so checkpoints written
     with either optimizer resume with the other.
@@ -101,9 +101,9 @@ def _summed_rows(g: torch.Tensor, p: torch.Tensor):
 class ParameterAverage:
     """Running mean of parameters (stochastic weight averaging).
 
-    On DTU scan24 the average of a run's 30-, 45- and 60-minute weights renders held-out views
-    0.11 dB better than the 60-minute weights alone: late in training the parameters wander around a
-    minimum, and their mean sits nearer its centre.  (Weights of two separate runs do not average:
+    Late in training the parameters wander around a minimum, and their mean sits nearer its centre, so
+    the average renders held-out views better than the last weights (DTU scan24: docs/benchmarks.md,
+    "Every full run").  (Weights of two separate runs do not average:
     they sit in different minima.)"""
 
     def __init__(self, params):

@@ -1,12 +1,12 @@
 """Training: photometric + modification-colour + mask BCE + total-variation losses, Adam, schedule,
-progress/cancel callback, periodic atomic checkpoints, resume, Ctrl-C safe."""
+progress/cancel, periodic atomic checkpoints, resume, Ctrl-C safe."""
 from __future__ import annotations
 
 import math
 import os
 import time
 from dataclasses import dataclass, field as dc_field
-from typing import Callable, Optional, Union
+from typing import Callable, Literal, Optional, Union
 
 import numpy as np
 import torch
@@ -30,11 +30,11 @@ class TrainConfig:
     lr_decoders: float = 2e-3
     lr_final_factor: float = 0.1      # exponential decay to lr * factor at the last step
     warmup_steps: int = 50
-    weight_mod: float = 0.01          # x mean squared rendered modification colour
+    weight_mod_colour: float = 0.01   # x mean squared rendered modification colour
     weight_mask: float = 0.05         # mask BCE (only when the scene has masks/alpha)
     weight_tv: float = 1e-3           # total variation between neighbouring vertex codes
     tv_samples: int = 8192            # vertices sampled per step for the TV loss ("random")
-    tv_vertices: str = "random"       # TV over "random" vertices or the ones the "batch" looked up
+    tv_vertices: Literal["random", "batch"] = "random"   # TV over random vertices or the batch's
     # coarse-to-fine codes while training (field.pyramid.CodePyramid): this many coarse levels, each
     # code_level_factor times sparser than the last; baked into the per-vertex codes at the end.  0 = off
     code_levels: int = 0
@@ -48,7 +48,7 @@ class TrainConfig:
     # full-frame colour; with masks it is left alone
     lr_background: float = 1e-2
     # K-Planes' plane total variation on that background model (its paper: 2e-4 for unbounded scenes;
-    # on fox it changed nothing at 15 minutes, 22.41 against 22.40 dB: off, docs/real_captures.md)
+    # off: no gain on fox, docs/real_captures.md)
     weight_background_tv: float = 0.0
     # per-image appearance (NeRF-W's remedy for exposure changes, here 6 numbers an image: colour x
     # exp(scale) + offset; their mean over the images is held at zero) applied to the rendered colour
@@ -108,7 +108,7 @@ class TrainProgress:
     # the budget, whichever part ends the run first: the steps, or the wall-clock budget
     # (TrainConfig.max_seconds, limit "time"; eta_s is then the time left of it)
     fraction: float = 0.0             # of the budget used, 0..1
-    limit: str = "steps"              # "steps" | "time": what ends the run
+    limit: Literal["steps", "time"] = "steps"   # what ends the run
 
 
 @dataclass
@@ -153,7 +153,7 @@ class _Batcher:
 
 def _make_optimizer(field, cfg: TrainConfig, extra_codes=(), background=None):
     groups = [
-        {"params": [field.geo_codes, field.tex_codes, field.mod_colors, *extra_codes], "lr": cfg.lr_codes,
+        {"params": [field.geo_codes, field.tex_codes, field.mod_colours, *extra_codes], "lr": cfg.lr_codes,
          "name": "codes"},
         {"params": list(field.geo_decoder.parameters()) + list(field.rad_decoder.parameters()),
          "lr": cfg.lr_decoders, "name": "decoders"},
@@ -196,13 +196,16 @@ def _lr_factor(step: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> float:
 
 
 def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = None,
+          progress: Optional[Callable[[TrainProgress], Optional[bool]]] = None, *,
           callback: Optional[Callable[[TrainProgress], Optional[bool]]] = None) -> TrainResult:
     """Train ``field`` in place on ``data`` (a Scene: its ``config.split``; or an ImageSet).
 
-    ``callback(progress)`` is called every ``log_every`` steps and at the end; returning False cancels
-    (the field keeps what it learned; a checkpoint is written when ``checkpoint_path`` is set).
+    ``progress(p)`` (a :class:`TrainProgress`) is called every ``log_every`` steps and at the end;
+    returning False cancels (the field keeps what it learned; a checkpoint is written when
+    ``checkpoint_path`` is set).  ``callback``: the same, under the name older scripts pass.
     Ctrl-C (KeyboardInterrupt) stops cleanly the same way and is reported in ``TrainResult.interrupted``.
     """
+    progress = progress if progress is not None else callback
     cfg = config or TrainConfig()
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -298,7 +301,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
                     f"the rendered opacity became NaN/inf at step {step}; lower lr_codes/lr_decoders and "
                     "resume from the last checkpoint")
             mse = torch.mean((out["rgb"] - target) ** 2)
-            loss = mse + cfg.weight_mod * torch.mean(out["mod_rgb"] ** 2)
+            loss = mse + cfg.weight_mod_colour * torch.mean(out["mod_colour"] ** 2)
             if mask is not None and cfg.weight_mask > 0:
                 op = out["opacity"].clamp(1e-4, 1 - 1e-4)
                 loss = loss + cfg.weight_mask * torch.nn.functional.binary_cross_entropy(op, mask)
@@ -338,7 +341,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
                                   samples_done / max(1, rays_done), field.grid.occupied_fraction,
                                   _progress(step, cfg, elapsed), limit)
                 history.append(p)
-                if callback is not None and callback(p) is False:
+                if progress is not None and progress(p) is False:
                     cancelled = True
                     break
             if cfg.checkpoint_path and step % cfg.checkpoint_every == 0 and not last:

@@ -119,7 +119,7 @@ def test_field_surface_bake_with_views_cancels_in_every_stage(shell, stop_at):
         return f < stop_at
 
     with one_thread(), pytest.raises(nm.Cancelled):
-        bake_texture(shell, resolution=32, mesh="field", colours="views", vertex_colors=False,
+        bake_texture(shell, resolution=32, mesh="field", colours="views", vertex_colours=False,
                      extract=ExtractConfig(voxel=0.8, faces=300, views=2, view_size=32),
                      project=ProjectConfig(views=2, size=32), progress=progress)
     assert seen[-1] >= stop_at
@@ -130,14 +130,14 @@ def test_field_surface_bake_with_views_cancels_in_every_stage(shell, stop_at):
 
 
 def test_bake_defaults_to_the_field_surface_with_projected_colours(shell):
-    """Issue 50's decision: ``bake_texture(field)`` bakes onto the field's own surface, decimated to
+    """By default ``bake_texture(field)`` bakes onto the field's own surface, decimated to
     FIELD_FACES x the scaffold's faces, with colours from the field's renders (the scaffold with rays is
     ``mesh=None, colours="rays"``)."""
     from neumesh_core.bake import bake_texture
     from neumesh_core.bake.texture import FIELD_FACES
 
     with one_thread():
-        b = bake_texture(shell, resolution=32, vertex_colors=False, measure_texels=0,
+        b = bake_texture(shell, resolution=32, vertex_colours=False, measure_texels=0,
                          project=ProjectConfig(views=2, size=32))
     assert b.info["mesh"] == "field" and "texels_unseen" in b.info and "fit" not in b.info
     target = FIELD_FACES * len(shell.faces)

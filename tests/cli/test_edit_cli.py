@@ -13,7 +13,7 @@ from neumesh_core.cli import main
 from ..conftest import textured_field
 from ..edit.helpers import render
 from ..edit.test_fill import _grid, _spherical_corner_uvs
-from ..edit.test_io import write_obj
+from ..edit.test_inputs import write_obj
 from ..edit.test_swap import _other_texture, _region
 
 

@@ -71,7 +71,7 @@ def test_scale_2_repeats_the_template_twice_across():
         i, j = ij[v]
         src = ((2 * i) % n) * (n + 1) + (2 * j) % n      # the template vertex at frac(2 u)
         assert torch.allclose(target.tex_codes[v], template.tex_codes[src], atol=1e-6), (i, j)
-        assert torch.allclose(target.mod_colors[v], template.mod_colors[src], atol=1e-6)
+        assert torch.allclose(target.mod_colours[v], template.mod_colours[src], atol=1e-6)
     # so the pattern repeats: vertex (i, j) equals vertex (i + n/2, j)
     a = target.tex_codes.view(n + 1, n + 1, -1)
     assert torch.allclose(a[: n // 2 + 1], a[n // 2:], atol=1e-6)
@@ -106,7 +106,7 @@ def test_a_vertex_on_a_uv_seam_takes_the_mean_of_its_uvs():
 
 def test_fill_changes_only_the_target_region(blob_mesh):
     f = textured_field(blob_mesh)
-    before = {n: getattr(f, n).detach().clone() for n in ("tex_codes", "mod_colors", "geo_codes")}
+    before = {n: getattr(f, n).detach().clone() for n in ("tex_codes", "mod_colours", "geo_codes")}
     img = render(f)
     region = np.nonzero(f.rest_vertices[:, 0].numpy() > 0.3)[0]
     uvs = _spherical_corner_uvs(f)

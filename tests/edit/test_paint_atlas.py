@@ -1,6 +1,6 @@
 """Painting from one view into the paint atlas (texel paint): the painted pixels reach the paint as
 sharp as painted (a one-pixel line stays one pixel), nothing 2 px away changes, another view sees the
-paint on the same surface, undo/redo are exact, the bake carries the paint, and the old per-vertex
+paint on the same surface, undo/redo are exact, the bake carries the paint, and per-vertex
 painting stays the default for fields without an atlas.  Untrained textured blob, 64 px views."""
 import numpy as np
 import pytest
@@ -62,8 +62,8 @@ def test_a_thin_line_and_a_block_paint_as_sharp_as_painted(blob4, method):
     row = np.abs(after.rgb[31, 20:44] - before.rgb[31, 20:44]).max(-1)
     assert np.median(row) < 0.1
     # the per-vertex colours did not move
-    np.testing.assert_allclose(f.mod_colors.detach().numpy(),
-                               textured_field(blob4, interpolation="early").mod_colors.detach().numpy(), atol=0)
+    np.testing.assert_allclose(f.mod_colours.detach().numpy(),
+                               textured_field(blob4, interpolation="early").mod_colours.detach().numpy(), atol=0)
     # undo and redo are exact
     rec.undo(f)
     np.testing.assert_allclose(nm.render_camera(f, K, c2w, S, S).rgb, before.rgb, atol=1e-6)

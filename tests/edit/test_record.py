@@ -28,15 +28,15 @@ def test_vertex_ids_are_validated_and_normalised():
 
 def test_undo_and_redo_restore_rows_and_decoders_exactly(blob_mesh):
     f = textured_field(blob_mesh)
-    before = {n: getattr(f, n).detach().clone() for n in ("tex_codes", "mod_colors", "decoder_id")}
+    before = {n: getattr(f, n).detach().clone() for n in ("tex_codes", "mod_colours", "decoder_id")}
     region = np.arange(10, 60)
-    rec = EditRecord.begin("test", f, region, ("tex_codes", "mod_colors", "decoder_id"))
+    rec = EditRecord.begin("test", f, region, ("tex_codes", "mod_colours", "decoder_id"))
     other = copy.deepcopy(f.rad_decoder)
     with torch.no_grad():
         other[0].bias.add_(1.0)
         d = f.add_decoder(other)
         f.tex_codes[region] = 1.5
-        f.mod_colors[region] = -0.25
+        f.mod_colours[region] = -0.25
         f.decoder_id[region] = d
     rec.finish(f, residual=0.5)
     after = {n: getattr(f, n).detach().clone() for n in before}

@@ -11,7 +11,7 @@ from neumesh_core.edit import SwapConfig, swap_texture
 from ..conftest import textured_field
 from .helpers import masked_psnr, only_touching, render, touched_pixels
 
-TABLES = ("tex_codes", "mod_colors", "decoder_id", "geo_codes")
+TABLES = ("tex_codes", "mod_colours", "decoder_id", "geo_codes")
 
 
 def _region(f, axis=0, above=0.2):
@@ -25,7 +25,7 @@ def _other_texture(f, seed=5):
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         g.tex_codes.normal_(0, 0.8, generator=gen)
-        g.mod_colors.copy_(torch.tensor([-0.4, 0.5, -0.4]).expand_as(g.mod_colors))
+        g.mod_colours.copy_(torch.tensor([-0.4, 0.5, -0.4]).expand_as(g.mod_colours))
         for p in g.rad_decoder.parameters():
             p.normal_(0, 0.6, generator=gen)
     return g
@@ -68,9 +68,7 @@ def test_swap_from_an_identical_copy_with_given_pairs(blob_mesh, interp):
 def test_the_source_decoder_travels_with_its_codes(blob_mesh, interp):
     """A region takes the texture of the same region of a field with another decoder.  Pixels that see
     only the region then render like the source field; pixels that see none of it are unchanged; and
-    without the source decoder (codes decoded by the target's own decoder) the region is wrong.
-    Measured (48 px): identical up to float rounding (139 dB early, exact post) with the decoder
-    travelling, 6.6 dB (early) and 8.5 dB (post) without."""
+    without the source decoder (codes decoded by the target's own decoder) the region is wrong."""
     f = textured_field(blob_mesh, interp)
     src = _other_texture(f)
     region = _region(f)
@@ -121,8 +119,7 @@ def test_a_swap_from_a_rotated_source_keeps_its_look(blob_mesh, interp):
     """The source is the other-texture field moved by a rotation and a shift; the swap finds the
     alignment by itself (no pairs).  The texture frames let the source decoder see normals and view
     directions as it was trained with, so the region renders like the unmoved source; without them
-    (``match_orientation=False``) the region's shading is off.  Measured: 116-119 dB with the frames
-    (float rounding of the recovered rotation), 9.8-14.0 dB without."""
+    (``match_orientation=False``) the region's shading is off."""
     f = textured_field(blob_mesh, interp)
     src = _other_texture(f)
     R, t = _rotation(), np.array([3.0, -1.0, 0.5])
@@ -163,7 +160,7 @@ def test_geometry_and_rows_outside_the_region_never_change(blob_mesh):
     verts = f.rest_vertices.clone()
     swap_texture(f, region, src, _region(src, 1, 0.1))
     out = np.setdiff1d(np.arange(f.num_vertices), region)
-    for n in ("tex_codes", "mod_colors", "decoder_id"):
+    for n in ("tex_codes", "mod_colours", "decoder_id"):
         assert torch.equal(getattr(f, n)[out], before[n][out]), n
     assert torch.equal(f.geo_codes, before["geo_codes"]) and torch.equal(f.rest_vertices, verts)
 

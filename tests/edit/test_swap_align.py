@@ -1,9 +1,8 @@
-"""Issue 47: the automatic swap alignment between fields, its fit check and the preview.
+"""The automatic swap alignment between fields, its fit check and the preview.
 
 A swap whose aligned source does not cover the target is refused (EditError saying what to do) and
-writes nothing; the multi-part scene's body lands on a region of the blob (it went ~14 units away
-before); a moved, rotated and scaled copy of a field is found without pairs; the record counts the
-rows whose values changed.
+writes nothing; the multi-part scene's body lands on a region of the blob; a moved, rotated and scaled
+copy of a field is found without pairs; the record counts the rows whose values changed.
 """
 import copy
 import os
@@ -24,8 +23,9 @@ from ..conftest import textured_field
 from .helpers import masked_psnr, render
 from .test_swap import _other_texture, _region, _rotation
 
-TABLES = ("tex_codes", "mod_colors", "decoder_id", "geo_codes")
-ISSUE_TRANSFORM = Similarity(0.67, np.eye(3), np.array([-9.95, -8.79, -5.73]))   # the failed alignment of #47
+TABLES = ("tex_codes", "mod_colours", "decoder_id", "geo_codes")
+# an alignment that places the multi-part body ~14 units from the 2-unit blob: a failed fit
+OFF_TARGET = Similarity(0.67, np.eye(3), np.array([-9.95, -8.79, -5.73]))
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +37,7 @@ def multipart():
     f = nm.NeuMeshField(mesh, nm.FieldConfig())
     with torch.no_grad():
         f.tex_codes.normal_(0, 0.5)
-        f.mod_colors.copy_(torch.tensor([0.5, -0.4, -0.4]).expand_as(f.mod_colors))
+        f.mod_colours.copy_(torch.tensor([0.5, -0.4, -0.4]).expand_as(f.mod_colours))
     f.eval()
     return f, labels
 
@@ -76,7 +76,7 @@ def test_fit_figures_of_a_perfect_and_a_lost_fit():
 
 def test_a_cross_field_swap_whose_alignment_fails_is_refused_and_changes_nothing(blob_mesh, multipart):
     """The multi-part scene's flat base onto the whole blob, rigid only: no similarity lays a slab over
-    a closed blob (measured: 44% of the blob within 2 edge lengths, 3.1 edge lengths on average)."""
+    a closed blob."""
     f = textured_field(blob_mesh)
     src, labels = multipart
     before = _snapshot(f)
@@ -94,10 +94,10 @@ def test_a_cross_field_swap_whose_alignment_fails_is_refused_and_changes_nothing
     assert rec.info["fit_ok"] is False and rec.info["overlap"] == pytest.approx(al.figures.overlap)
 
 
-def test_the_issues_failed_alignment_is_refused_and_no_file_is_written(blob_mesh, multipart, tmp_path,
+def test_an_alignment_off_the_target_is_refused_and_no_file_is_written(blob_mesh, multipart, tmp_path,
                                                                         monkeypatch, capsys):
-    """The alignment #47 reported (the body placed ~14 units from the 2-unit blob) is caught by the fit
-    check: `neumesh edit swap` fails with the message and writes no file."""
+    """An alignment that places the body ~14 units from the 2-unit blob is caught by the fit check:
+    `neumesh edit swap` fails with the message and writes no file."""
     f = textured_field(blob_mesh)
     src, labels = multipart
     tpath, spath = str(tmp_path / "blob.neumesh"), str(tmp_path / "parts.neumesh")
@@ -105,7 +105,7 @@ def test_the_issues_failed_alignment_is_refused_and_no_file_is_written(blob_mesh
     nm.save_field(src, spath)
     np.savetxt(tmp_path / "cap.txt", _cap(f, (0, 0, 1), 220), fmt="%d")
     np.savetxt(tmp_path / "body.txt", np.nonzero(labels == 0)[0], fmt="%d")
-    monkeypatch.setattr("neumesh_core.edit.swap.initial_alignment", lambda *a, **k: ISSUE_TRANSFORM)
+    monkeypatch.setattr("neumesh_core.edit.swap.initial_alignment", lambda *a, **k: OFF_TARGET)
     files = sorted(os.listdir(tmp_path))
     assert main(["edit", "swap", "--field", tpath, "--region", str(tmp_path / "cap.txt"), "--source", spath,
                  "--source-region", str(tmp_path / "body.txt")]) == 2
@@ -123,10 +123,9 @@ def test_the_issues_failed_alignment_is_refused_and_no_file_is_written(blob_mesh
 
 @pytest.mark.parametrize("direction", [(0, 0, 1), (0.6, -0.8, 0.0)])
 def test_the_multipart_body_onto_a_region_of_the_blob_aligns(multipart, direction):
-    """#47's swap: the body of the multi-part scene (another field) onto an 888-vertex region of the
-    10,242-vertex blob.  The aligned body's centroid lies within one mean edge of the region's (it lay
-    ~14 units away), the fit passes and the swap writes the region.  Measured: centroid 0.15-0.6
-    edge lengths off after the non-rigid step (exactly on it after the similarity), overlap >= 0.94."""
+    """The body of the multi-part scene (another field) swapped onto an 888-vertex region of the
+    10,242-vertex blob: the aligned body's centroid lies within one mean edge of the region's, the fit
+    passes and the swap writes the region."""
     from neumesh_core.data.synthetic import default_mesh
 
     blob = textured_field(default_mesh(subdiv=5))
@@ -179,9 +178,8 @@ def test_a_moved_rotated_scaled_copy_is_found_without_pairs(blob_mesh, interp):
 
 
 def test_the_record_counts_rows_whose_values_changed(blob_mesh):
-    """#47 point 7: a region swapped onto itself writes its rows with the values they held: nothing
-    changed (it reported every row).  A swap from another texture changes exactly the rows that
-    differ afterwards."""
+    """A region swapped onto itself writes its rows with the values they held: nothing changed.  A swap
+    from another texture changes exactly the rows that differ afterwards."""
     f = textured_field(blob_mesh)
     region = _region(f)
     rec = swap_texture(f, region, f, region)
@@ -189,12 +187,12 @@ def test_the_record_counts_rows_whose_values_changed(blob_mesh):
     before = _snapshot(f)
     src = _other_texture(f)
     with torch.no_grad():            # a few rows of the source already hold the target's values
-        for n in ("tex_codes", "mod_colors"):
+        for n in ("tex_codes", "mod_colours"):
             getattr(src, n)[region[:5]] = getattr(f, n)[region[:5]]
     src.rad_decoders[0] = copy.deepcopy(f.rad_decoders[0])
     rec = swap_texture(f, region, src, region)
     differ = np.zeros(f.num_vertices, bool)
-    for n in ("tex_codes", "mod_colors", "decoder_id"):
+    for n in ("tex_codes", "mod_colours", "decoder_id"):
         differ |= (getattr(f, n) != before[n]).reshape(f.num_vertices, -1).any(1).numpy()
     assert np.array_equal(rec.changed, np.nonzero(differ)[0]) and rec.num_changed == len(region) - 5
 
@@ -226,7 +224,7 @@ def test_automatic_alignment_of_a_differently_sampled_copy_with_near_equal_sprea
     """The whole blob (spreads 0.342, 0.344, 0.399 along its principal axes: their order is not
     determined by the shape) at subdivision 4 onto a rotated, scaled, shifted copy at subdivision 5
     (other vertices): the rotation search and point-to-plane ICP about the fixed centroids find the
-    pose.  Measured: 0.007 degrees off, scale within 4e-6."""
+    pose."""
     from neumesh_core.data.synthetic import default_mesh
     from neumesh_core.edit.align import initial_alignment
     from neumesh_core.mesh import vertex_normals

@@ -57,8 +57,8 @@ def test_a_target_vertex_is_bound_to_the_decoder_holding_most_of_its_weight(blob
     # row 1: decoder 0 holds 0.6 -> vertices 12, 13, 14 with 0.3, 0.2, 0.1 renormalised
     assert torch.allclose(tgt.tex_codes[1], (3 * src.tex_codes[12] + 2 * src.tex_codes[13] + src.tex_codes[14]) / 6,
                           atol=1e-6)
-    assert torch.allclose(tgt.mod_colors[1], (3 * src.mod_colors[12] + 2 * src.mod_colors[13] + src.mod_colors[14]) / 6,
-                          atol=1e-6)
+    assert torch.allclose(tgt.mod_colours[1],
+                          (3 * src.mod_colours[12] + 2 * src.mod_colours[13] + src.mod_colours[14]) / 6, atol=1e-6)
 
 
 def test_transfer_plans_average_several_queries_per_vertex():

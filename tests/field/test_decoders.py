@@ -49,7 +49,7 @@ def test_post_interpolation_decodes_each_neighbour_with_its_vertex_decoder(blob_
             pe = frequency_encoding(nb.p[m, k:k + 1] / f.radius, f.config.pos_freqs)[0]
             inp = torch.cat([f.tex_codes[i], pe, nb.w[m, k:k + 1], sh_encoding(d[m], f.config.sh_degree),
                              f.rest_normals[i]])
-            ref = ref + nb.w[m, k] * (torch.sigmoid(f.rad_decoders[int(ids[i])](inp)) + f.mod_colors[i])
+            ref = ref + nb.w[m, k] * (torch.sigmoid(f.rad_decoders[int(ids[i])](inp)) + f.mod_colours[i])
         mixed += len(dec_seen) > 1
         assert torch.allclose(rgb[m], ref, atol=1e-5), m
     assert mixed > 10  # the test covers samples whose neighbours use both decoders
@@ -70,7 +70,7 @@ def test_early_interpolation_never_mixes_codes_of_different_decoders(blob_mesh):
         shared = torch.cat([frequency_encoding(p[None] / f.radius, f.config.pos_freqs)[0], (w * w).sum()[None],
                             sh_encoding(d[m], f.config.sh_degree)])
         n = torch.nn.functional.normalize((f.rest_normals[nb.idx[m]] * w[:, None]).sum(0), dim=0)
-        ref = (f.mod_colors[nb.idx[m]] * w[:, None]).sum(0)
+        ref = (f.mod_colours[nb.idx[m]] * w[:, None]).sum(0)
         groups = {int(ids[nb.idx[m, k]]) for k in range(f.config.k) if nb.valid[m, k]}
         mixed += len(groups) > 1
         for dec in groups:

@@ -29,9 +29,8 @@ def _psnr_against_truth(field, vertices, rest, size=64):
 
 
 def test_moderate_bend_of_a_trained_field_stays_close_to_its_truth(small_scene_dir):
-    # 150 steps x 1024 rays, early interpolation (~12 s training on 2 cores). Measured: undeformed
-    # 23.75 dB, bent 45 deg 23.80 dB against the mesh truth (64 px, 3 views). A neighbour index left
-    # in the rest pose gives 21.44 dB and fails. Not caught at this budget: dropping the rest-frame
+    # 150 steps x 1024 rays, early interpolation; 64 px, 3 views against the mesh truth. A neighbour
+    # index left in the rest pose fails. Not caught at this budget: dropping the rest-frame
     # rotation of the view direction (the field has hardly learned highlights in 150 steps).
     # One torch thread: the small batches are faster so, and far faster on a busy 2-core machine.
     with one_thread():

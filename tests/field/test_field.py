@@ -72,7 +72,7 @@ def test_post_interpolation_is_weighted_mean_of_per_neighbour_decodes(blob_mesh)
             w = nb.w[m, k]
             s_k = trunc_exp(f.geo_decoder(torch.cat([f.geo_codes[i], pe, w[None]]))[0])
             c_k = torch.sigmoid(f.rad_decoder(torch.cat([f.tex_codes[i], pe, w[None], sh_encoding(d[m], 4),
-                                                         f.rest_normals[i]]))) + f.mod_colors[i]
+                                                         f.rest_normals[i]]))) + f.mod_colours[i]
             s_ref = s_ref + w * s_k
             c_ref = c_ref + w * c_k
         assert float(sigma[m].detach()) == pytest.approx(float(s_ref.detach()), rel=1e-4)

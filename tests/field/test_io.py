@@ -32,6 +32,36 @@ def test_round_trip_renders_identical_pixels(blob_mesh, tmp_path):
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".tmp")]
 
 
+def test_tensors_saved_under_earlier_names_load_under_the_current_ones(blob_mesh, tmp_path):
+    """A file whose modification colours (and their Adam moments) are stored as ``mod_colors``, whose
+    tangent neighbours are ``scaffold.tangent_ref`` and whose field config says ``knn="kdtree"`` loads as
+    the field it was: the same rows, the same tangent frames, the same neighbour search."""
+    import json
+
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    f = textured_field(blob_mesh)
+    with torch.no_grad():
+        f.mod_colours.copy_(torch.rand_like(f.mod_colours) - 0.5)
+    opt = torch.optim.Adam(f.parameters(), lr=1e-3)
+    f.mod_colours.sum().backward()
+    opt.step()
+    path, old = str(tmp_path / "new.neumesh"), str(tmp_path / "old.neumesh")
+    nm.save_field(f, path, optimizer=opt)
+    with safe_open(path, framework="pt") as fh:
+        meta = json.loads(fh.metadata()["neumesh"])
+        tensors = {k.replace("mod_colours", "mod_colors").replace("tangent_neighbour", "tangent_ref"): fh.get_tensor(k)
+                   for k in fh.keys()}
+    meta["field_config"]["knn"] = "kdtree"
+    assert {"param/mod_colors", "optim/mod_colors/exp_avg", "buffer/scaffold.tangent_ref"} <= set(tensors)
+    save_file(tensors, old, metadata={"neumesh": json.dumps(meta)})
+    g = nm.load_field(old)
+    assert torch.equal(g.mod_colours, f.mod_colours) and g.config.knn == "auto"
+    assert torch.equal(g.scaffold.tangent_neighbour, f.scaffold.tangent_neighbour)
+    assert torch.equal(g._checkpoint_optim["mod_colours/exp_avg"], opt.state[f.mod_colours]["exp_avg"])
+
+
 def test_saving_a_deformed_field_keeps_rest_pose(blob_mesh, tmp_path):
     f = textured_field(blob_mesh)
     rest = _render(f)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from neumesh_core.field.knn import (HashGridIndex, VertexIndex, knn_radius_reference, make_index,
+from neumesh_core.field.knn import (HashGridIndex, KDTreeIndex, knn_radius_reference, make_index,
                                    vertex_neighbours)
 
 
@@ -21,7 +21,7 @@ def test_kdtree_matches_brute_force(radius):
     g = torch.Generator().manual_seed(0)
     verts = torch.rand(3000, 3, generator=g)
     pts = torch.rand(2000, 3, generator=g) * 1.2 - 0.1
-    idx, dist = VertexIndex(verts, k=4, radius=radius).query(pts)
+    idx, dist = KDTreeIndex(verts, k=4, radius=radius).query(pts)
     ridx, rdist = knn_radius_reference(pts, verts, 4, radius)
     _assert_matches_reference(idx, dist, ridx, rdist, radius)
 
@@ -47,7 +47,7 @@ def test_hashgrid_matches_kdtree_on_a_surface(blob_mesh):
     g = torch.Generator().manual_seed(3)
     x = v[torch.randint(0, len(v), (5000,), generator=g)] + edge * torch.randn(5000, 3, generator=g)
     idx, dist = HashGridIndex(v, 4, 2.5 * edge).query(x)
-    kidx, kdist = VertexIndex(v, 4, 2.5 * edge).query(x)
+    kidx, kdist = KDTreeIndex(v, 4, 2.5 * edge).query(x)
     _assert_matches_reference(idx, dist, kidx, kdist, 2.5 * edge)
 
 
@@ -66,15 +66,23 @@ def test_hashgrid_edge_cases():
 
 def test_make_index_names_backends():
     v = torch.rand(50, 3)
-    assert isinstance(make_index(v, 4, 0.3, "kdtree"), VertexIndex)
+    assert isinstance(make_index(v, 4, 0.3, "auto"), KDTreeIndex)       # on the CPU: the KD-tree
+    assert isinstance(make_index(v, 4, 0.3, "kdtree"), KDTreeIndex)     # the name older files saved for auto
     assert isinstance(make_index(v, 4, 0.3, "hashgrid"), HashGridIndex)
-    with pytest.raises(ValueError, match="kdtree, hashgrid"):
+    with pytest.raises(ValueError, match="auto, hashgrid"):
         make_index(v, 4, 0.3, "octree")
+
+
+def test_field_config_reads_kdtree_as_auto():
+    """Field files saved with knn="kdtree" (what "auto" was called) load with the same neighbour search."""
+    from neumesh_core.field.params import FieldConfig
+
+    assert FieldConfig(knn="kdtree").knn == "auto" and FieldConfig().knn == "auto"
 
 
 def test_fewer_vertices_than_k():
     verts = torch.tensor([[0.0, 0, 0], [1.0, 0, 0]])
-    idx, dist = VertexIndex(verts, k=4).query(torch.tensor([[0.1, 0, 0]]))
+    idx, dist = KDTreeIndex(verts, k=4).query(torch.tensor([[0.1, 0, 0]]))
     assert idx.tolist() == [[0, 1, -1, -1]]
     assert torch.isinf(dist[0, 2:]).all()
 
@@ -93,4 +101,4 @@ def test_a_triton_index_asked_for_where_triton_cannot_run_is_the_devices_default
 
     monkeypatch.setattr(knn_triton, "triton_runs_on", lambda device: False)
     v = torch.rand(50, 3)
-    assert isinstance(make_index(v, 4, 0.3, "triton"), VertexIndex)
+    assert isinstance(make_index(v, 4, 0.3, "triton"), KDTreeIndex)

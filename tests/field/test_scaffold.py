@@ -8,14 +8,14 @@ from neumesh_core.field.field import NeuMeshField
 from neumesh_core.field.knn import knn_radius_reference
 
 
-def _frames_reference(v, n, ref):
-    """The plain per-row formula in float64: t = edge to the reference vertex projected on the tangent
+def _frames_reference(v, n, towards):
+    """The plain per-row formula in float64: t = edge to the tangent neighbour projected on the tangent
     plane, normalised; where that edge is missing or within 1e-4 rad of the normal, a fixed axis
     projected instead."""
     v, n = v.double(), n.double()
     out = torch.zeros(len(v), 3, 3, dtype=torch.float64)
     for i in range(len(v)):
-        e = v[ref[i]] - v[i]
+        e = v[towards[i]] - v[i]
         t = e - (e @ n[i]) * n[i]
         if t.norm() <= 1e-4 * e.norm():
             axis = torch.tensor([1.0, 0, 0]) if abs(n[i, 0]) < 0.9 else torch.tensor([0, 1.0, 0])
@@ -29,14 +29,14 @@ def test_tangent_frames_match_the_per_row_formula():
     g = torch.Generator().manual_seed(0)
     v = torch.randn(60, 3, generator=g)
     n = torch.nn.functional.normalize(torch.randn(60, 3, generator=g), dim=-1)
-    ref = torch.randint(0, 60, (60,), generator=g)
-    ref[:5] = torch.arange(5)                       # isolated vertices: no edge, fixed-axis fallback
-    v[ref[10]] = v[10] + 0.5 * n[10]                # an edge along the normal: fallback too
-    v[ref[30]] = v[30] + 0.5 * n[30] + 1e-3 * torch.linalg.cross(n[30], torch.tensor([0.0, 0, 1]))
+    towards = torch.randint(0, 60, (60,), generator=g)
+    towards[:5] = torch.arange(5)                       # isolated vertices: no edge, fixed-axis fallback
+    v[towards[10]] = v[10] + 0.5 * n[10]                # an edge along the normal: fallback too
+    v[towards[30]] = v[30] + 0.5 * n[30] + 1e-3 * torch.linalg.cross(n[30], torch.tensor([0.0, 0, 1]))
     n[:3] = torch.tensor([1.0, 0.0, 0.0])           # normal on the first fallback axis: the second axis
-    got = S.tangent_frames(v, n, ref)
+    got = S.tangent_frames(v, n, towards)
     # atol: row 30's 1e-3 edge carries float32 round-off of the positions (~1e-7) magnified 1e3 times
-    assert torch.allclose(got, _frames_reference(v, n, ref), atol=1e-4)
+    assert torch.allclose(got, _frames_reference(v, n, towards), atol=1e-4)
     eye = torch.eye(3).expand(60, 3, 3)
     assert torch.allclose(got.transpose(1, 2) @ got, eye, atol=1e-5)   # orthonormal, right-handed
     assert torch.allclose(torch.linalg.det(got), torch.ones(60), atol=1e-5)
@@ -57,7 +57,7 @@ def test_set_vertices_refreshes_index_normals_and_rotations(blob_mesh):
     from neumesh_core.mesh import vertex_normals
 
     assert torch.allclose(sc.normals, vertex_normals(v, sc.faces), atol=1e-5)
-    frames = S.tangent_frames(v, sc.normals, sc.tangent_ref)
+    frames = S.tangent_frames(v, sc.normals, sc.tangent_neighbour)
     assert torch.allclose(sc.to_rest @ frames, sc.rest_frames, atol=1e-5)   # current -> rest frames
 
 

@@ -53,7 +53,7 @@ def test_semantics_leave_colour_bit_identical(blob_mesh, interpolation):
     # bit-equal: the colour path is the same code on the same inputs in this process; semantics are
     # decoded beside it and composited into a separate output
     for a in (plain, both):
-        for k in ("rgb", "opacity", "depth", "mod_rgb"):
+        for k in ("rgb", "opacity", "depth", "mod_colour"):
             assert np.array_equal(getattr(a, k), getattr(before, k)), k
     assert plain.sem is None and both.sem.shape == (H, W, 5) and np.isfinite(both.sem).all()
     assert np.abs(both.sem).max() > 0

@@ -34,7 +34,7 @@ def test_fused_render_matches_the_torch_render(interpolation, deformed):
     assert ref.opacity.max() > 0.9 and ref.opacity.min() < 0.1   # the view sees the object and around it
     assert psnr(out.rgb, ref.rgb) >= 50.0, psnr(out.rgb, ref.rgb)
     assert np.abs(out.opacity - ref.opacity).max() < 1e-3
-    assert np.abs(out.mod_rgb - ref.mod_rgb).max() < 1e-3
+    assert np.abs(out.mod_colour - ref.mod_colour).max() < 1e-3
     hit = ref.opacity > 1e-3
     assert np.array_equal(np.isfinite(out.depth), np.isfinite(ref.depth))
     assert np.abs(out.depth[hit] - ref.depth[hit]).max() < 1e-3
@@ -143,7 +143,7 @@ def test_refill_schedule_renders_what_the_static_one_does(monkeypatch):
     assert ref.opacity.max() > 0.9 and ref.opacity.min() < 0.1
     assert psnr(out.rgb, ref.rgb) >= 50.0, psnr(out.rgb, ref.rgb)
     assert np.abs(out.opacity - ref.opacity).max() < 1e-3
-    assert np.abs(out.mod_rgb - ref.mod_rgb).max() < 1e-3
+    assert np.abs(out.mod_colour - ref.mod_colour).max() < 1e-3
     assert abs(out.n_samples - ref.n_samples) <= max(2, ref.n_samples // 100)
     if DEVICE == "cpu":   # the interpreter: 2 programs of 16 lanes for 144 rays, so lanes were refilled
         assert ft.refill_programs("cpu", 9, 1) == 2

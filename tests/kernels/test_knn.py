@@ -73,7 +73,7 @@ def test_knn_kernel_with_fewer_vertices_than_k_and_a_huge_box():
 
 def test_triton_neighbour_index_serves_the_torch_path():
     """FieldConfig(knn="triton"): the field's own neighbour queries (the torch marcher, edits, the
-    occupancy refresh) answered by the Triton kernel; on a GPU "kdtree" gives it too.  The same render as
+    occupancy refresh) answered by the Triton kernel; on a GPU "auto" gives it too.  The same render as
     the KD-tree's, and make_index names it."""
     from neumesh_core.data.synthetic import default_mesh
     from neumesh_core.field.knn import make_index
@@ -86,7 +86,7 @@ def test_triton_neighbour_index_serves_the_torch_path():
     ref_i, ref_d = knn_radius_reference(pts, verts, 4, 0.15)
     assert torch.equal(idx.cpu(), ref_i) and torch.allclose(dist.cpu(), ref_d, atol=1e-6, equal_nan=True)
     if DEVICE == "cuda":
-        assert isinstance(make_index(verts.cuda(), 4, 0.15, "kdtree"), knn_triton.TritonKNNIndex)
+        assert isinstance(make_index(verts.cuda(), 4, 0.15, "auto"), knn_triton.TritonKNNIndex)
     mesh = default_mesh(subdiv=2)
     kd = textured_field(mesh, "early", grid_resolution=32).to(DEVICE)
     tr = textured_field(mesh, "early", grid_resolution=32, knn="triton").to(DEVICE)

@@ -30,7 +30,7 @@ def test_supersample_is_the_box_average_of_a_finer_render(blob_mesh):
     box = lambda a: a.reshape(16, 2, 20, 2, *a.shape[2:]).mean((1, 3))  # noqa: E731
     np.testing.assert_allclose(ss.rgb, box(fine.rgb), atol=1e-5)
     np.testing.assert_allclose(ss.opacity, box(fine.opacity), atol=1e-5)
-    np.testing.assert_allclose(ss.mod_rgb, box(fine.mod_rgb), atol=1e-5)
+    np.testing.assert_allclose(ss.mod_colour, box(fine.mod_colour), atol=1e-5)
     # the silhouette edge is anti-aliased: supersampling gives partial coverage that one ray cannot
     assert ss.n_samples > one.n_samples
     edge = (ss.opacity > 0.05) & (ss.opacity < 0.95)
@@ -88,11 +88,11 @@ def test_mod_colour_weights_predict_the_render_of_changed_mod_colours(blob_mesh,
         deltas = [0.3 * torch.randn(x.num_vertices, 3, generator=gen) for x in fields]
         with torch.no_grad():
             for x, dl in zip(fields, deltas):
-                x.mod_colors.add_(dl)
+                x.mod_colours.add_(dl)
         after = render_rays(fields, o, d)["rgb"].numpy()
         with torch.no_grad():
             for x, dl in zip(fields, deltas):
-                x.mod_colors.sub_(dl)
+                x.mod_colours.sub_(dl)
         pred = sum(W @ dl.numpy() for W, dl in zip(Ws, deltas))
         assert np.abs(after - before).max() > 0.05
         assert np.allclose(after - before, pred, atol=1e-5)
@@ -123,7 +123,7 @@ def test_skipping_empty_pixels_and_distances_renders_the_same_image(blob_mesh, i
         assert a.opacity.max() > 0.5 and (a.opacity < 1e-6).mean() > 0.1, case   # object and empty pixels
         np.testing.assert_allclose(b.rgb, a.rgb, atol=1e-5)
         np.testing.assert_allclose(b.opacity, a.opacity, atol=1e-5)
-        np.testing.assert_allclose(b.mod_rgb, a.mod_rgb, atol=1e-5)
+        np.testing.assert_allclose(b.mod_colour, a.mod_colour, atol=1e-5)
         assert np.array_equal(np.isinf(a.depth), np.isinf(b.depth))
         fin = np.isfinite(a.depth)
         np.testing.assert_allclose(b.depth[fin], a.depth[fin], rtol=1e-4)

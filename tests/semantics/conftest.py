@@ -1,9 +1,9 @@
 """Session fixtures for the semantic tests: the small multi-part scene, a field trained on it briefly
 and a copy with semantics distilled by the weight-free extractor (about 40 s together).
 
-The fixtures run torch on one thread: on a 2-core machine that other jobs keep busy, two OpenMP
-threads spin against each other (measured: 272 s with two threads against ~40 s with one, load ~6);
-on an idle machine one thread costs little here (small batches)."""
+The fixtures run torch on one thread: on a 2-core machine that other jobs keep busy, two OpenMP threads spin
+against each other and take several times longer; on an idle machine one thread costs little here (small
+batches)."""
 import copy
 
 import numpy as np

@@ -53,7 +53,7 @@ def test_cancel_before_training_leaves_the_field_as_it_was(multipart_dir, multip
         stages.append(p.stage)
         return p.stage != "features"
 
-    res = distill_semantics(field, nm.load_scene(multipart_dir), config=DistillConfig(steps=5), callback=cb)
+    res = distill_semantics(field, nm.load_scene(multipart_dir), config=DistillConfig(steps=5), progress=cb)
     assert res.cancelled and res.steps_done == 0 and stages == ["features"]
     assert not field.has_semantics
 
@@ -63,7 +63,7 @@ def test_cancel_while_training_keeps_what_was_learned(multipart_dir, multipart_f
 
     field = copy.deepcopy(multipart_field)
     cfg = DistillConfig(steps=50, rays_per_view=128, rays_per_batch=256, log_every=2, max_views=4)
-    res = distill_semantics(field, nm.load_scene(multipart_dir), config=cfg,
+    res = distill_semantics(field, nm.load_scene(multipart_dir), config=cfg,   # callback=: the older name
                             callback=lambda p: not (p.stage == "train" and p.step >= 4))
     assert res.cancelled and res.steps_done == 4 and field.has_semantics
     assert field.semantics_info["cancelled"] is True

@@ -22,7 +22,7 @@ def test_click_on_background_is_a_clear_error(multipart_dir, semantic_field):
         select_region(field, cam, (64, 10))
 
 
-def test_selection_on_a_field_without_semantics_says_to_distil(multipart_dir, multipart_field):
+def test_selection_on_a_field_without_semantics_says_to_distill(multipart_dir, multipart_field):
     with pytest.raises(nm.NoSemanticsError, match="neumesh semantics"):
         select_region(multipart_field, _cam(multipart_dir, 0), (32, 32))
     with pytest.raises(nm.NoSemanticsError):

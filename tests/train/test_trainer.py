@@ -25,7 +25,7 @@ def test_training_learns_the_builtin_scene(small_scene_dir, tmp_path):
     seen = []
     res = nm.train(field, scene, nm.TrainConfig(steps=300, rays_per_batch=1024, log_every=50,
                                                 checkpoint_path=str(tmp_path / "f.neumesh")),
-                   callback=seen.append)
+                   progress=seen.append)
     after = _val_psnr(field, scene)
     print(f"held-out PSNR: untrained {before:.2f} dB -> trained {after:.2f} dB ({res.seconds:.0f}s)")
     assert before < 15
@@ -40,13 +40,13 @@ def test_cancel_and_resume(small_scene_dir, tmp_path):
     field = nm.create_field(nm.load_mesh(scene.mesh_path))
     path = str(tmp_path / "r.neumesh")
     cfg = nm.TrainConfig(steps=40, rays_per_batch=256, log_every=10, checkpoint_path=path)
-    res = nm.train(field, scene, cfg, callback=lambda p: p.step < 20)
+    res = nm.train(field, scene, cfg, callback=lambda p: p.step < 20)   # callback=: the older name
     assert res.cancelled and res.steps_done == 20
     g = nm.load_field(path)
     assert g._checkpoint_meta["train_state"]["step"] == 20
     assert g._checkpoint_optim  # Adam moments travel with the field
     steps = []
-    res2 = nm.train(g, scene, cfg, callback=lambda p: steps.append(p.step))
+    res2 = nm.train(g, scene, cfg, progress=lambda p: steps.append(p.step))
     assert steps[0] == 21 and res2.steps_done == 40 and not res2.cancelled
 
 
@@ -68,14 +68,14 @@ def test_ctrl_c_saves_and_returns_cleanly(small_scene_dir, tmp_path):
             raise KeyboardInterrupt
 
     res = nm.train(field, scene, nm.TrainConfig(steps=50, rays_per_batch=128, log_every=3,
-                                                checkpoint_path=path), callback=press_ctrl_c)
+                                                checkpoint_path=path), progress=press_ctrl_c)
     assert res.interrupted and res.steps_done == 6
     assert nm.load_field(path)._checkpoint_meta["train_state"]["step"] == 6
 
 
 def test_weight_averaging_gives_the_mean_of_the_late_weights(small_scene_dir, tmp_path):
     """average_from=0.5 of 40 steps, every 10: the result is the mean of the weights at steps 20, 30
-    and 40 (the callback sees them right after each joins the mean), and that is what gets saved."""
+    and 40 (progress sees them right after each joins the mean), and that is what gets saved."""
     import torch
 
     scene = nm.load_scene(small_scene_dir)
@@ -87,7 +87,7 @@ def test_weight_averaging_gives_the_mean_of_the_late_weights(small_scene_dir, tm
 
     path = str(tmp_path / "avg.neumesh")
     res = nm.train(field, scene, nm.TrainConfig(steps=40, rays_per_batch=512, log_every=10, average_from=0.5,
-                                                average_every=10, checkpoint_path=path), callback=cb)
+                                                average_every=10, checkpoint_path=path), progress=cb)
     assert res.averaged == 3
     for j, name in enumerate(("tex_codes", "rad_decoder")):
         mean = torch.stack([seen[s][j] for s in (20, 30, 40)]).mean(0)
@@ -133,7 +133,7 @@ def test_coarse_code_levels_train_and_leave_a_plain_field(small_scene_dir, tmp_p
     seen = []
     res = nm.train(field, scene, nm.TrainConfig(steps=60, rays_per_batch=512, log_every=20, code_levels=2,
                                                 code_level_factor=3.0, checkpoint_path=path),
-                   callback=lambda p: seen.append((p.step, field.code_prior,
+                   progress=lambda p: seen.append((p.step, field.code_prior,
                                                    float(field.code_prior.tex.detach().abs().sum()))))
     assert all(prior is not None for _, prior, _ in seen)   # attached while training ...
     assert seen[-1][2] > 0                                  # ... and learning
@@ -164,7 +164,7 @@ def test_code_levels_until_bakes_midway_and_trains_plain_codes_after(small_scene
 
     nm.train(field, scene, nm.TrainConfig(steps=60, rays_per_batch=512, log_every=1, code_levels=2,
                                           code_level_factor=3.0, code_levels_until=0.5, average_from=0.2,
-                                          average_every=1), callback=record)
+                                          average_every=1), progress=record)
     attached = [s for s, a, _ in seen if a]
     assert attached and max(attached) < 31 and min(s for s, a, _ in seen if not a) <= 31
     after = [c["tex"] for s, a, c in seen if not a]   # plain codes: what the field renders with
@@ -202,7 +202,7 @@ def test_uint8_photos_train_as_their_float32_reference(small_scene_dir):
         field = nm.create_field(nm.load_mesh(scene.mesh_path))
         hist = []
         nm.train(field, nm.Scene(splits={"train": iset}, background=scene.background),
-                 nm.TrainConfig(steps=12, rays_per_batch=256, log_every=1), callback=lambda p: hist.append(p.loss))
+                 nm.TrainConfig(steps=12, rays_per_batch=256, log_every=1), progress=lambda p: hist.append(p.loss))
         runs[key] = (np.array(hist), field.tex_codes.detach().clone())
     assert sets["uint8"].images.nbytes * 4 == sets["float32"].images.nbytes
     np.testing.assert_allclose(runs["uint8"][0], runs["float32"][0], rtol=1e-4, atol=1e-6)
@@ -231,7 +231,7 @@ def test_eta_is_the_time_left_of_the_budget_when_that_ends_the_run(small_scene_d
     field = nm.create_field(nm.load_mesh(scene.mesh_path))
     seen = []
     res = nm.train(field, scene, nm.TrainConfig(steps=10 ** 6, rays_per_batch=64, log_every=1, max_seconds=40),
-                   callback=seen.append)
+                   progress=seen.append)
     assert 3 <= res.steps_done < 40 and len(seen) == res.steps_done
     for p in seen:
         assert p.limit == "time" and p.total_steps == 10 ** 6
@@ -246,7 +246,7 @@ def test_eta_follows_the_steps_when_they_end_the_run_first(small_scene_dir, monk
     field = nm.create_field(nm.load_mesh(scene.mesh_path))
     seen = []
     nm.train(field, scene, nm.TrainConfig(steps=6, rays_per_batch=64, log_every=1, max_seconds=10 ** 6),
-             callback=seen.append)
+             progress=seen.append)
     assert [p.step for p in seen] == [1, 2, 3, 4, 5, 6]
     for p in seen:
         assert p.limit == "steps" and p.fraction == p.step / 6

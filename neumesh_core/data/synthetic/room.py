@@ -3,7 +3,7 @@
 The room is an inverted sphere of radius ``ROOM_RADIUS`` around the blob, coloured by a checker
 pattern of its direction (longitude x latitude cells) and lit by nothing (emissive), so the
 background has texture a background model must learn.  :func:`render_in_room` composites the
-reference tracer's blob (its anti-aliased alpha) over the room; :func:`make_room_scene` gives a
+ground-truth tracer's blob (its anti-aliased alpha) over the room; :func:`make_room_scene` gives a
 :class:`~neumesh_core.data.scene.Scene` with ``masks`` None and ``background`` None, as a phone
 capture would be (the true alpha is returned apart for checks).
 """

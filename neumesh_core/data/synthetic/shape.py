@@ -48,8 +48,8 @@ def _torch_single_thread():
     """Run torch ops single-threaded for the duration (restored afterwards).
 
     The tracer issues thousands of small ops; with intra-op threads each op synchronises the
-    OpenMP team, which costs milliseconds per op when other processes keep the cores busy (measured
-    5.5 s vs 0.07 s for a 64px image on a loaded 2-core machine). Callers render images in
+    OpenMP team, which costs milliseconds per op when other processes keep the cores busy. Callers
+    render images in
     parallel threads instead. Note: torch's thread count is process-wide.
     """
     with _THREAD_LOCK:

@@ -1,4 +1,4 @@
-"""The built-in scene's reference ray tracer: Lipschitz-safe marching + bisection on the analytic
+"""The built-in scene's ground-truth ray tracer: Lipschitz-safe marching + bisection on the analytic
 surface, analytic normals, Lambert + Blinn-Phong shading, jittered samples per pixel."""
 from __future__ import annotations
 
@@ -135,7 +135,7 @@ def _render_unpremultiplied(K, c2w, width: int, height: int, spp: int = 4, seed:
     return rgb.numpy(), alpha.numpy()
 
 
-def render_reference(K, c2w, width: int, height: int, background=(1.0, 1.0, 1.0), spp: int = 4, seed: int = 0):
+def render_truth(K, c2w, width: int, height: int, background=(1.0, 1.0, 1.0), spp: int = 4, seed: int = 0):
     """Ray-traced image of the analytic blob for one OpenCV camera (K 3x3, c2w 4x4).
 
     Returns ``(rgb (H,W,3) float32 composited on background, alpha (H,W) float32)``; alpha is the

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from neumesh_core.edit.io import read_pairs, read_region, read_uvs
+from neumesh_core.edit.inputs import read_pairs, read_region, read_uvs
 from neumesh_core.errors import EditError
 
 

@@ -12,9 +12,9 @@ from ..conftest import textured_field
 
 
 def _edit(f, value):
-    rec = EditRecord.begin("paint", f, np.arange(5), ("mod_colors",))
+    rec = EditRecord.begin("paint", f, np.arange(5), ("mod_colours",))
     with torch.no_grad():
-        f.mod_colors[:5] = value
+        f.mod_colours[:5] = value
     return rec.finish(f, note="x")
 
 
@@ -39,8 +39,8 @@ def test_edit_chain_names_parent_and_root(blob_mesh, tmp_path):
     assert info["history"][0]["vertices"] == 5 and info["history"][1]["info"]["note"] == "x"
     assert nm.load_field(e2)._checkpoint_meta["train_state"]["step"] == 3   # carried from the parent
     # the pixels of each file are what was saved
-    assert torch.allclose(nm.load_field(e1).mod_colors[:5], torch.full((5, 3), 0.5))
-    assert torch.allclose(nm.load_field(e2).mod_colors[:5], torch.full((5, 3), -0.5))
+    assert torch.allclose(nm.load_field(e1).mod_colours[:5], torch.full((5, 3), 0.5))
+    assert torch.allclose(nm.load_field(e2).mod_colours[:5], torch.full((5, 3), -0.5))
 
 
 def test_an_edit_never_overwrites_its_parent_or_the_trained_file(blob_mesh, tmp_path):
