@@ -191,6 +191,8 @@ STALE = {
     "paint_lego.json": "painting on lego (command 9)",
     "bake_lego.json": "baking lego (command 10)",
     "semantics_multipart.json": "one-click selection on the multi-part scene (command 6)",
+    "real_fox_ds4_60min_2threads_quiet.json": "fox with the found box and the fused scaffold, 15 and 60 minutes "
+                                              "(benchmarks/bench_real.py, docs/real_captures.md)",
     # the GPU kernels among the changes (restructured; not timed on a GPU since)
     "render_gpu_lego.json": "lego render speed on a GPU (command 12; a lent GPU)",
 }

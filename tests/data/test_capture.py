@@ -1,4 +1,4 @@
-"""Readers of real captures (issue 48): transforms.json, COLMAP (via pycolmap), lens undistortion.
+"""Readers of real captures: transforms.json, COLMAP (via pycolmap), lens undistortion.
 
 Every capture is made here: analytic photos (a smooth pattern of the normalised image coordinates, so
 a pinhole render of any K can be computed exactly), cameras on a ring, written in each format.

@@ -125,7 +125,7 @@ def test_reference_render_matches_mesh_silhouette_and_is_deterministic():
     K = _K(res)
     for pos in ([0.5, -3.9, 0.6], [-2.0, 1.0, -3.2]):
         c2w = S.look_at_opencv(np.array(pos, dtype=np.float64))
-        rgb, alpha = S.render_reference(K, c2w, res, res)
+        rgb, alpha = S.render_truth(K, c2w, res, res)
         assert rgb.shape == (res, res, 3) and alpha.shape == (res, res)
         sil = _mesh_silhouette(mesh, K, c2w, res)
         for a_mask in (alpha >= 0.5, alpha > 0):
@@ -134,15 +134,15 @@ def test_reference_render_matches_mesh_silhouette_and_is_deterministic():
         assert 0.1 < alpha.mean() < 0.6  # the object fills a good part of the frame
         assert ((alpha > 0) & (alpha < 1)).sum() > 20  # anti-aliased, soft edges
         np.testing.assert_allclose(rgb[alpha == 0], 1.0)  # white background
-        rgb2, alpha2 = S.render_reference(K, c2w, res, res)
+        rgb2, alpha2 = S.render_truth(K, c2w, res, res)
         # exact on purpose: determinism of one function called twice in one process on one machine
         np.testing.assert_array_equal(rgb, rgb2)
         np.testing.assert_array_equal(alpha, alpha2)
-        black, _ = S.render_reference(K, c2w, res, res, background=(0, 0, 0))
+        black, _ = S.render_truth(K, c2w, res, res, background=(0, 0, 0))
         np.testing.assert_allclose(black + (1 - alpha[..., None]), rgb, atol=1e-5)
     # a camera looking away sees nothing
     away = S.look_at_opencv(np.array([0.0, -4.0, 0.0]), target=(0.0, -8.0, 0.0))
-    _, a = S.render_reference(K, away, 16, 16)
+    _, a = S.render_truth(K, away, 16, 16)
     assert a.max() == 0
 
 
@@ -166,7 +166,7 @@ def test_small_scene_round_trip(small_scene):
     dmin = np.linalg.norm(va.cameras.centers[:, None] - tr.cameras.centers[None], axis=-1).min()
     assert dmin > 0.05  # held-out views are not training views
     # the stored images are the reference renders of the stored cameras (8-bit rounding)
-    rgb, alpha = S.render_reference(va.cameras.K[2], va.cameras.c2w[2], 64, 64, background=None,
+    rgb, alpha = S.render_truth(va.cameras.K[2], va.cameras.c2w[2], 64, 64, background=None,
                                     seed=0 * 100_003 + 10_000 + 2)
     png = read_image(os.path.join(path, "val", "r_2.png"))
     np.testing.assert_allclose(png[..., 3], alpha, atol=0.6 / 255)

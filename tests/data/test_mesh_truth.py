@@ -26,7 +26,7 @@ def test_undeformed_mesh_truth_matches_analytic_reference(subdiv, min_db):
     res = 96
     for pos in VIEWS:
         c2w = S.look_at_opencv(pos)
-        ref, a_ref = S.render_reference(_K(res), c2w, res, res)
+        ref, a_ref = S.render_truth(_K(res), c2w, res, res)
         mesh, a_mesh = render_mesh_truth(_K(res), c2w, res, res, m.vertices, m.faces, rest_vertices=m.vertices)
         assert psnr(mesh, ref) >= min_db
         assert np.abs(a_mesh - a_ref).mean() < 0.01

@@ -24,7 +24,6 @@ from .tracer import (AMBIENT, DIFFUSE, LIGHT_DIR, SHININESS, SPECULAR, _render_u
 from .scene import (CAMERA_ANGLE_X, CAMERA_RADIUS, SCENE_VERSION, SMALL_SCENE_KWARGS, _cache_base, _is_complete,
                     _rotation, camera_positions, default_scene_dir, look_at_opencv, make_default_scene)
 
-render_reference = render_truth   # the name tests/data/ still imports; goes when they say render_truth
 
 __all__ = ["AMBIENT", "AMPLITUDE", "CAMERA_ANGLE_X", "CAMERA_RADIUS", "DIFFUSE", "LIGHT_DIR", "SCENE_VERSION",
            "SHININESS", "SMALL_SCENE_KWARGS", "SPECULAR", "camera_positions", "default_mesh", "default_scene_dir",
