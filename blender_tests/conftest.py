@@ -55,11 +55,14 @@ def addon(addon_zip):
 
 
 @pytest.fixture(autouse=True)
-def fresh_scene(request):
-    """Empty factory scene for every test; the add-on (if installed) is enabled again."""
+def fresh_scene(request, tmp_path):
+    """Empty factory scene for every test; the add-on (if installed) is enabled again, and the scene's
+    Edits folder is the test's tmp_path (the .blend is unsaved: without a folder, edits refuse to
+    start; a test of that default sets it back to '')."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     if ADDON_MODULE in sys.modules:
         addon_utils.enable(ADDON_MODULE, default_set=True)
+        bpy.context.scene.neumesh.edits_dir = str(tmp_path)
     yield
 
 

@@ -232,9 +232,12 @@ class Recorder:
     context pointers set (rows, columns, boxes and splits record into the same lists), so a test can
     read what a panel draws without a window.  ``draw_panel(cls, context)`` runs ``cls.draw`` on one."""
 
-    def __init__(self, labels=None, operators=None):
+    def __init__(self, labels=None, operators=None, buttons=None, parent=None, props=None):
         self.labels = [] if labels is None else labels
         self.operators = [] if operators is None else operators
+        self.buttons = [] if buttons is None else buttons   # (idname, text, the layout it is in)
+        self.props = [] if props is None else props         # the property names drawn
+        self.parent = parent
         self.enabled = True
         self.alert = False
         self.scale_y = 1.0
@@ -244,7 +247,7 @@ class Recorder:
         self.pointers = {}
 
     def _child(self, *a, **k):
-        child = Recorder(self.labels, self.operators)
+        child = Recorder(self.labels, self.operators, self.buttons, self, self.props)
         child.pointers = self.pointers
         return child
 
@@ -258,13 +261,31 @@ class Recorder:
 
     def operator(self, idname, text="", **k):
         self.operators.append(idname)
+        self.buttons.append((idname, text, self))
         import types
         return types.SimpleNamespace()
 
+    def is_enabled(self) -> bool:
+        """Enabled as Blender draws it: this layout and every layout it is in."""
+        return self.enabled and (self.parent is None or self.parent.is_enabled())
+
+    def button(self, idname):
+        """(text, enabled) of the last button of operator ``idname`` (KeyError when none was drawn)."""
+        for name, text, layout in reversed(self.buttons):
+            if name == idname:
+                return text, layout.is_enabled()
+        raise KeyError(idname)
+
     def prop(self, *a, **k):
+        if len(a) > 1:
+            self.props.append(a[1])
+
+    prop_search = prop
+
+    def separator(self, *a, **k):
         pass
 
-    prop_search = separator = progress = template_list = prop_enum = menu = popover = prop
+    progress = template_list = prop_enum = menu = popover = separator
 
     @property
     def text(self):
@@ -274,6 +295,13 @@ class Recorder:
 def draw_panel(cls, context, rec=None):
     """(labels, operator idnames) that panel class ``cls`` draws in ``context`` (into ``rec``, a
     :class:`Recorder`, when given: its ``pointers`` are the context pointers the panel set)."""
+    rec = record_panel(cls, context, rec)
+    return rec.labels, rec.operators
+
+
+def record_panel(cls, context, rec=None) -> Recorder:
+    """The :class:`Recorder` panel class ``cls`` drew into in ``context`` (labels, buttons and whether
+    each is enabled, context pointers); a new one unless ``rec`` is given."""
     import types
 
     rec = Recorder() if rec is None else rec
@@ -286,4 +314,4 @@ def draw_panel(cls, context, rec=None):
             return types.MethodType(value, self) if isinstance(value, types.FunctionType) else value
 
     cls.draw(_Panel(), context)
-    return rec.labels, rec.operators
+    return rec

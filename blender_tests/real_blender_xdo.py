@@ -508,8 +508,9 @@ class Driver:
         cls.execute = execute
 
     def files(self):
-        d = os.path.dirname(bpy.path.abspath(bpy.data.objects["blob"].neumesh.field_path))
-        return sorted(n for n in os.listdir(d) if ".edit-" in n)
+        """The edited field files in the scene's edits folder (beside ui.blend, ui_neumesh/)."""
+        d = addon_module().scene.props.scene_edits_folder()
+        return sorted(n for n in os.listdir(d) if ".edit-" in n) if os.path.isdir(d) else []
 
     def prepare_object(self, obj, scene):
         me = obj.data

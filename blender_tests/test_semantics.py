@@ -151,8 +151,11 @@ def test_click_errors(addon, parts_data):
         bpy.ops.neumesh.select_by_click(pixel=(10, 10))
     assert "NeuMesh selection" not in obj.vertex_groups
     obj2, _ = _scene(plain)
-    with pytest.raises(RuntimeError, match="no semantic codes"):
+    with pytest.raises(RuntimeError, match="no semantic codes") as exc:
         bpy.ops.neumesh.select_by_click(camera="cam", pixel=_click_on(addon, cam, 1))
+    # the panel button that makes them, not a shell command
+    assert "press Distill semantics (Edit field > Semantics)" in str(exc.value)
+    assert "neumesh semantics --field" not in str(exc.value)
 
 
 def test_distill_semantics_operator_writes_an_edit(addon, parts_data, tmp_path):

@@ -3,7 +3,7 @@
 Public API (see README.md): load_scene, load_mesh, create_field, train, save_field, load_field,
 render_camera, evaluate, save_image, make_default_scene; edits: swap_texture, fill_texture,
 paint_texture (nm.edit); semantics: nm.semantics; baking: bake_texture (nm.bake: decimate, save_bake);
-scaffold building: build_scaffold, ScaffoldConfig; real captures: read_capture, undistorted_images,
+scaffold building: build_scaffold, ScaffoldConfig; real captures: read_capture, training_photos, undistorted_images,
 estimate_poses, frames_from_video; deformation: nm.deform (ArapSolver, arap); devices: resolve_device. The add-on reaches the core only through these names.
 """
 from __future__ import annotations
@@ -31,7 +31,7 @@ from . import semantics  # noqa: E402  (nm.semantics: distill_semantics, select_
 from . import bake  # noqa: E402  (nm.bake: bake_texture, decimate, save_bake)
 from .bake import bake_texture  # noqa: E402
 from .reconstruct import ScaffoldConfig, build_scaffold  # noqa: E402
-from .data.capture import Capture, capture_object_box, undistorted_images  # noqa: E402
+from .data.capture import Capture, capture_object_box, training_photos, undistorted_images  # noqa: E402
 from .data.loader import read_capture  # noqa: E402
 from .reconstruct.poses import PosesConfig, PosesError, PosesProgress, PosesReport, estimate_poses  # noqa: E402
 from .reconstruct.video import frames_from_video  # noqa: E402
@@ -54,7 +54,7 @@ __all__ = [
     "opengl_to_opencv", "paint_layer", "paint_texture", "pixel_rays", "read_image", "render_camera", "render_rays",
     "save_field", "save_image", "save_mesh", "swap_texture", "train",
     "Capture", "PosesConfig", "PosesError", "PosesProgress", "PosesReport", "estimate_poses", "frames_from_video",
-    "read_capture", "capture_object_box", "undistorted_images",
+    "read_capture", "capture_object_box", "training_photos", "undistorted_images",
     "ObjectBox", "SceneFrame", "object_box", "parse_box", "scene_frame", "BackgroundModel", "attach_background",
     "background_for", "background_of", "fit_background_for", "resolve_device", "capture_box", "is_unmasked_capture",
     "prepare_capture_field",

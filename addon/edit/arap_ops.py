@@ -9,6 +9,7 @@ from bpy.props import BoolProperty, IntProperty, PointerProperty, StringProperty
 from ..runtime._np import np
 from ..runtime import classes_factory
 from ..runtime.errors import UserError
+from ..runtime.text import labelled, labelled_search
 from .arap import (APPLIED_KEY, LIVE_KEY, TIMINGS, _DRAGS, _SHAPES, _SOLVERS, _apply_drags, _list, _rest,
                    on_depsgraph_update, on_frame_change, prepare_preview, read_groups, start,
                    wait_for_drags)
@@ -176,12 +177,12 @@ class NEUMESH_PT_arap(EditSubPanel, bpy.types.Panel):
 
     def draw_edit(self, context, col, obj):
         s = obj.neumesh_arap
-        col.prop_search(s, "anchor_group", obj, "vertex_groups", text="Anchor")
-        col.prop(s, "handle_prefix", text="Handles")
-        col.prop(s, "preview_vertices")
-        row = col.row(align=True)
-        row.prop(s, "iterations")
-        row.prop(s, "frame_iterations", text="Frame")
+        # the sidebar is narrow: names above their fields, one number a row
+        labelled_search(col, s, "anchor_group", obj, "vertex_groups", "Anchor group")
+        labelled(col, s, "handle_prefix", "Handle groups start with")
+        col.prop(s, "preview_vertices", text="Preview vertices")
+        col.prop(s, "iterations", text="Drag iterations")
+        col.prop(s, "frame_iterations")
         col.prop(s, "cage_in_renders")
         if not s.enabled:
             col.operator("neumesh.arap_add", icon="MOD_MESHDEFORM")

@@ -1,13 +1,15 @@
 """Edits in Blender: the shared plumbing of every edit operator, and Undo edit / Revert.
 
-An edit operator gets the object's field (:func:`field_for_edit`), calls a core edit function, and
-hands the result to :func:`commit_edit`, which saves the edited field *beside* the file it came from
-(``<name>.edit-NNN.neumesh``; the file training produced is never overwritten) and points the object
-at it.  The object's field path is an ordinary undoable property, so Blender's Ctrl+Z / Ctrl+Shift+Z
-step between the files, and the render cache reloads whichever file the object points to.  "Undo
-edit" steps to the file an edited field was made from; "Revert to trained field" to the root of the
-chain.  Edit operators declare ``bl_options = {"REGISTER", "UNDO"}`` and add their panel as a child of
-:class:`NEUMESH_PT_edit` (``bl_parent_id = "NEUMESH_PT_edit"``).
+An edit operator gets the object's field (:func:`field_for_edit`), calls a core edit function, and hands
+the result to :func:`commit_edit`, which saves the edited field in the scene's *Edits folder*
+(``<name>.edit-NNN.neumesh``; by default beside the .blend in ``<blend name>_neumesh/``, see
+:func:`props.edits_folder`: never the folder the field was read from unless the artist chose it; the
+file training produced is never overwritten) and points the object at it. The object's field path is an
+ordinary undoable property, so Blender's Ctrl+Z / Ctrl+Shift+Z step between the files, and the render
+cache reloads whichever file the object points to. "Undo edit" steps to the file an edited field was
+made from; "Revert to trained field" to the root of the chain. Edit operators declare ``bl_options =
+{"REGISTER", "UNDO"}`` and add their panel as a child of :class:`NEUMESH_PT_edit` (``bl_parent_id =
+"NEUMESH_PT_edit"``).
 
 Long edits run in a background thread (:class:`EditOperator`): invoked from the UI the operator is
 modal, shows progress in the status bar and the cursor, and Esc cancels (nothing changes); run from a
@@ -24,7 +26,7 @@ import bpy
 from ..runtime import core, jobs, quiet
 from ..runtime.errors import UserError
 from ..runtime.jobs import Job, JobModal, redraw
-from ..runtime.text import text_width, wrapped_label
+from ..runtime.text import file_size, labelled, text_width, wrapped_label
 from ..scene import identity, props, sync
 from ..scene.props import field_path_of
 from ..render import fields
@@ -56,12 +58,32 @@ def changed_rows(record, rtol: float = 1e-5, atol: float = 1e-6) -> int:
     return int(changed.sum())
 
 
-def commit_edit(obj, field, record, parent_path: str) -> str:
-    """Save ``field`` (edited in memory by ``record``) beside ``parent_path`` and point ``obj`` at the
-    new file; returns its path.  On failure the edit is undone in memory and the object is left as
-    it was."""
+def edit_out_path(parent_path: str, folder: str) -> str:
+    """The file an edit of ``parent_path`` is written to: the next free ``<name>.edit-NNN.neumesh`` in
+    ``folder`` (the edits folder, :func:`props.edits_folder`)."""
+    return core.get().edit.next_edit_path(os.path.join(folder, os.path.basename(parent_path)))
+
+
+def edits_folder_ready(folder: str) -> str:
+    """Create the edits folder if needed; :class:`UserError` saying what to do when it cannot be
+    written."""
     try:
-        out = core.get().edit.save_edited(field, parent_path, record)
+        os.makedirs(folder, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create the Edits folder {folder}: {exc.strerror}; choose another one "
+                        "(Edit field panel)") from exc
+    if not os.access(folder, os.W_OK):
+        raise UserError(f"the Edits folder {folder} cannot be written; choose another one (Edit field panel)")
+    return folder
+
+
+def commit_edit(obj, field, record, parent_path: str, folder: str | None = None) -> str:
+    """Save ``field`` (edited in memory by ``record``) in ``folder`` (default: the current scene's edits
+    folder) and point ``obj`` at the new file; returns its path.  On failure the edit is undone in
+    memory and the object is left as it was."""
+    try:
+        folder = edits_folder_ready(folder or props.scene_edits_folder())
+        out = core.get().edit.save_edited(field, parent_path, record, out_path=edit_out_path(parent_path, folder))
     except BaseException:
         record.undo(field)
         raise
@@ -141,6 +163,7 @@ class EditOperator(JobModal):
 
     bl_options = {"REGISTER", "UNDO"}
     edit_label = "edit"
+    writes_files = True   # False: the operator only reads fields (no edits folder needed)
 
     def prepare(self, context):  # pragma: no cover - abstract
         raise NotImplementedError
@@ -157,7 +180,7 @@ class EditOperator(JobModal):
 
     def _start(self, context):
         try:
-            targets, fn = self.prepare(context)
+            targets, fn = self._prepare(context)
         except (UserError, core.CoreUnavailable, ValueError) as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return None
@@ -169,6 +192,12 @@ class EditOperator(JobModal):
             return None
         self._targets = [(obj.name_full, field, parent) for obj, field, parent in targets]
         return Job(self.edit_label, fn)
+
+    def _prepare(self, context):
+        """The edits folder first (an unsaved .blend says so before any work), then :meth:`prepare`."""
+        if self.writes_files:
+            self._folder = edits_folder_ready(props.scene_edits_folder(context.scene))
+        return self.prepare(context)
 
     def _finish(self, context, job):
         if job.cancelled:
@@ -187,7 +216,8 @@ class EditOperator(JobModal):
                 continue
             obj = bpy.data.objects.get(name)
             try:
-                saved.append(os.path.basename(commit_edit(obj, field, record, parent)))
+                out = commit_edit(obj, field, record, parent, self._folder)
+                saved.append(f"{os.path.basename(out)} ({file_size(out)})")
             except Exception as exc:  # noqa: BLE001
                 self.report({"ERROR"}, f"NeuMesh: could not save the edited field of '{name}': {exc}")
                 return {"CANCELLED"} if not saved else {"FINISHED"}
@@ -200,7 +230,7 @@ class EditOperator(JobModal):
             self.report({"INFO"}, f"NeuMesh: {self.edit_label}: nothing changed{why}; no file written")
             return {"FINISHED"}
         self.report({"INFO"}, f"NeuMesh: {self.edit_label}: {changed} vertices changed; saved "
-                              f"{', '.join(saved)} ({self.summary(done[0]) if done else ''})")
+                              f"{', '.join(saved)} in {self._folder} ({self.summary(done[0]) if done else ''})")
         return {"FINISHED"}
 
     def summary(self, record) -> str:
@@ -331,6 +361,21 @@ class NEUMESH_PT_edit(_FieldPanel, bpy.types.Panel):
         row = col.row(align=True)
         row.operator("neumesh.undo_edit", icon="LOOP_BACK")
         row.operator("neumesh.revert_field", text="Revert", icon="FILE_REFRESH")
+        draw_edits_folder(context, col, width)
+
+
+def draw_edits_folder(context, col, width):
+    """The scene's *Edits folder*, and where edits go while it is empty (or why they cannot go)."""
+    s = context.scene.neumesh
+    labelled(col, s, "edits_dir", "Edits folder")
+    try:
+        folder = props.scene_edits_folder(context.scene)
+    except UserError:
+        wrapped_label(col, "Save the .blend first (edits go beside it), or choose a folder", width, icon="ERROR",
+                      context=context)
+        return
+    if not s.edits_dir.strip():
+        wrapped_label(col, f"Empty: the folder {os.path.basename(folder)} beside the .blend", width, context=context)
 
 
 class EditSubPanel(_FieldPanel):

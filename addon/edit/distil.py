@@ -1,8 +1,8 @@
 """Distill semantics: ``nm.semantics.distill_semantics`` on the active object's field (loaded afresh: the
 render cache's field is not touched) in a background :class:`jobs.Job`, with progress in the panel and
-the status bar; Cancel writes nothing. The result is saved beside the field as an edit
-(``<name>.edit-NNN.neumesh``) and the object points at it, so "Undo edit" / Ctrl+Z go back to the
-field without semantics."""
+the status bar; Cancel writes nothing. The result is saved in the edits folder as an edit
+(``<name>.edit-NNN.neumesh``, see ``props.edits_folder``) and the object points at it, so "Undo edit" /
+Ctrl+Z go back to the field without semantics."""
 from __future__ import annotations
 
 import os
@@ -13,7 +13,9 @@ from bpy.props import BoolProperty, IntProperty
 from ..runtime._np import np
 from ..runtime import core, jobs
 from ..runtime.errors import UserError
+from ..runtime.text import file_size
 from ..scene import props
+from .base import edits_folder_ready
 
 STAGES = {"features": "2D features", "rays": "Marching rays", "train": "Training"}
 
@@ -23,10 +25,11 @@ class DistillJob(jobs.Job):
 
     def __init__(self, *, object_name: str, field_path: str, dataset_path: str, downscale: int = 1,
                  background: str = "white", extractor: str = "colour-texture", steps: int = 1500,
-                 config=None):
+                 config=None, out_dir: str = ""):
         super().__init__("semantics")
         self.object_name = object_name
         self.field_path = field_path
+        self.out_dir = out_dir or os.path.dirname(os.path.abspath(field_path))
         self.dataset_path = dataset_path
         self.downscale = int(downscale)
         self.background = background
@@ -70,16 +73,20 @@ class DistillJob(jobs.Job):
         nm = core.get()
         sem = nm.semantics
         field = nm.load_field(self.field_path)   # a copy: the render cache's field is not touched
-        scene = nm.load_scene(self.dataset_path, downscale=self.downscale, background=self.background)
+        with core.CoreNotes() as notes:   # the core's warnings as plain lines, not Python warnings
+            scene = nm.load_scene(self.dataset_path, downscale=self.downscale, background=self.background)
+        for note in notes:
+            print(f"NeuMesh semantics: {note}")
         extractor = sem.make_extractor(self.extractor)
         cfg = sem.DistillConfig(steps=self.steps, **self.config)
         res = sem.distill_semantics(field, scene, extractor, cfg, progress=self._progress)
         if res.cancelled or self.cancel_requested:
             self.state, self.message = "CANCELLED", "nothing was written"
             return None
-        self.out_path = nm.edit.save_edited(field, self.field_path, sem.semantics_record(field, res))
+        out = nm.edit.next_edit_path(os.path.join(self.out_dir, os.path.basename(self.field_path)))
+        self.out_path = nm.edit.save_edited(field, self.field_path, sem.semantics_record(field, res), out_path=out)
         self.message = (f"{res.steps_done} steps in {res.seconds:.0f}s, loss {res.final_loss:.3f}; "
-                        f"saved {os.path.basename(self.out_path)}")
+                        f"saved {os.path.basename(self.out_path)} ({file_size(self.out_path)}) in {self.out_dir}")
         return self.out_path
 
 
@@ -101,7 +108,7 @@ def _point_at_result(job):
 
 class NEUMESH_OT_distill_semantics(bpy.types.Operator):
     """Distill semantic codes into the active object's field from 2D features of the dataset's training
-    images (background thread; the result is saved beside the field as an edit)"""
+    images (background thread; the result is saved in the Edits folder as an edit)"""
 
     bl_idname = "neumesh.distill_semantics"
     bl_label = "Distill semantics"
@@ -124,13 +131,14 @@ class NEUMESH_OT_distill_semantics(bpy.types.Operator):
             if _job is not None and _job.running:
                 raise UserError("a semantic distillation is already running; cancel it first")
             core.require("semantics")
+            out_dir = edits_folder_ready(props.scene_edits_folder(context.scene))
         except UserError as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
         cfg = {k: v for k, v in (("max_views", self.max_views), ("rays_per_view", self.rays_per_view)) if v}
         _job = DistillJob(object_name=obj.name, field_path=path, dataset_path=dataset,
                          downscale=context.scene.neumesh.downscale, extractor=s.extractor,
-                         steps=self.steps or s.steps, config=cfg).start()
+                         steps=self.steps or s.steps, config=cfg, out_dir=out_dir).start()
         if self.wait:
             _job.join()
             jobs.finish(_job, _point_at_result)

@@ -6,12 +6,14 @@ unpainted render beside it ("NeuMesh Paint (unpainted)") and the view (K, camera
 the image's custom properties, and opens it in an Image Editor in Paint mode: an Image Editor of the
 main window when there is one, else the largest 3D View is split and its new half becomes one (a new
 window only when neither can be done).  That editor's sidebar (tab NeuMesh) and header carry *Apply
-painting* and *Cancel painting*, where the painting happens; Cancel discards the paint image and closes
-the editor the add-on opened.  *Apply painting* reads
+painting* and *Cancel painting*, where the painting happens.  *Apply painting* reads
 the painted image, takes the pixels that differ from the unpainted render as paint, and changes the
 modification colours of the fields those pixels' rays hit (each field object that changes gets an
-edited file beside its own; undo as for every edit).  The camera and the image size must be those of
-the render.
+edited file in the edits folder; undo as for every edit).  The camera and the image size must be those
+of the render.  The image may be painted on and applied again; *Apply* is enabled only while it holds
+strokes not applied yet (:func:`paint_pending`).  *Cancel painting* discards the paint image and closes
+the editor the add-on opened; once paint was applied it is called *Close painting* and says that the
+applied paint stays in the fields (*Undo edit* takes it out).
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ from .paint_editor import OPENED_KEY, open_in_image_editor
 PAINT_IMAGE = "NeuMesh Paint"
 ORIGINAL_IMAGE = PAINT_IMAGE + " (unpainted)"
 _KEYS = ("neumesh_K", "neumesh_c2w", "neumesh_size", "neumesh_original", "neumesh_camera")
+APPLIED_KEY = "neumesh_applied"   # on the paint image: how many times its paint was applied
 
 
 def _image_pixels(img) -> np.ndarray:
@@ -223,6 +226,34 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
         i = record.info
         return f"{i.get('painted_pixels', 0)} painted pixels, {i.get('seconds', 0):.1f} s"
 
+    def _finish(self, context, job):
+        result = EditOperator._finish(self, context, job)
+        if "FINISHED" in result:
+            mark_applied(bpy.data.images.get(self.image))
+        return result
+
+
+def paint_pending(img) -> bool:
+    """Does the paint image hold strokes that were not applied yet?  Blender marks an image dirty when
+    its pixels change (a brush stroke, a script writing ``pixels``); packing it, as Paint on view and
+    every Apply do, clears that mark."""
+    return is_paint_image(img) and bool(img.is_dirty)
+
+
+def mark_applied(img) -> None:
+    """After an Apply: the image counts as applied (and packed, so its strokes stop being pending)."""
+    if not is_paint_image(img):
+        return
+    img[APPLIED_KEY] = int(img.get(APPLIED_KEY, 0)) + 1
+    try:
+        img.pack()
+    except RuntimeError as exc:  # the strokes then still count as pending: Apply stays enabled
+        print(f"NeuMesh: could not pack '{img.name}': {exc}")
+
+
+def applied(img) -> bool:
+    return is_paint_image(img) and int(img.get(APPLIED_KEY, 0)) > 0
+
 
 def _onto_source(nm, record, shown, source, ids):
     """Carry a paint record of a remapped field (``shown``, vertex i = ``source`` vertex ``ids[i]``,
@@ -259,12 +290,22 @@ class NEUMESH_PT_paint(EditSubPanel, bpy.types.Panel):
         wrapped_label(col, "2. Paint on it in the Image Editor", width, context=context)
         wrapped_label(col, "3. Apply the paint to the fields (here, or in the Image Editor's sidebar and header)",
                       width, context=context)
+        img = bpy.data.images.get(PAINT_IMAGE)
         row = col.row(align=True)
         row.operator("neumesh.apply_paint", icon="CHECKMARK")
-        row.enabled = is_paint_image(bpy.data.images.get(PAINT_IMAGE))
+        row.enabled = paint_pending(img)
         sub = col.row()
-        sub.enabled = row.enabled
-        sub.operator("neumesh.cancel_paint", icon="CANCEL")
+        sub.enabled = is_paint_image(img)
+        sub.operator("neumesh.cancel_paint", text=cancel_text(img), icon="CANCEL")
+        if applied(img) and not row.enabled:
+            wrapped_label(col, "Applied; paint more to apply again", width, icon="CHECKMARK", context=context)
+
+
+def cancel_text(img, short: bool = False) -> str:
+    """The Cancel button's text: what it does to this paint image."""
+    if applied(img):
+        return "Close" if short else "Close painting"
+    return "Cancel" if short else "Cancel painting"
 
 
 def is_paint_image(img) -> bool:
@@ -278,8 +319,8 @@ def _paint_space_image(context):
 
 
 class NEUMESH_OT_cancel_paint(bpy.types.Operator):
-    """Discard the Paint on view image (nothing is applied) and close the Image Editor Paint on view
-    opened"""
+    """Discard the Paint on view image and close the Image Editor Paint on view opened (paint applied
+    before stays in the fields; Undo edit takes it out)"""
 
     bl_idname = "neumesh.cancel_paint"
     bl_label = "Cancel painting"
@@ -293,6 +334,7 @@ class NEUMESH_OT_cancel_paint(bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: there is no paint image '{self.image}' to cancel")
             return {"CANCELLED"}
         opened = bool(img.get(OPENED_KEY, False))
+        message = cancel_message(img)
         closed = 0
         for window in context.window_manager.windows:
             for area in list(window.screen.areas):
@@ -308,15 +350,28 @@ class NEUMESH_OT_cancel_paint(bpy.types.Operator):
         bpy.data.images.remove(img)
         if orig is not None:
             bpy.data.images.remove(orig)
-        self.report({"INFO"}, "NeuMesh: painting cancelled; nothing was applied")
+        self.report({"INFO"}, f"NeuMesh: {message}")
         return {"FINISHED"}
+
+
+def cancel_message(img) -> str:
+    """What Cancel / Close painting did to this paint image and to the fields."""
+    pending = paint_pending(img)
+    if not applied(img):
+        return "painting cancelled; nothing was applied" if pending else \
+            "painting closed; nothing was painted, nothing was applied"
+    kept = "the paint applied before stays in the fields (Undo edit takes it out)"
+    return f"painting closed; the strokes not applied were discarded, {kept}" if pending else \
+        f"painting closed; {kept}"
 
 
 def _draw_actions(layout, img, header=False):
     box = layout.row(align=True) if header else layout.column(align=True)   # sidebar: one button a row
-    op = box.operator("neumesh.apply_paint", text="Apply" if header else "Apply painting", icon="CHECKMARK")
+    sub = box.row(align=True)
+    sub.enabled = paint_pending(img)   # Apply only while there are strokes to apply
+    op = sub.operator("neumesh.apply_paint", text="Apply" if header else "Apply painting", icon="CHECKMARK")
     op.image = img.name
-    op = box.operator("neumesh.cancel_paint", text="Cancel" if header else "Cancel painting", icon="CANCEL")
+    op = box.operator("neumesh.cancel_paint", text=cancel_text(img, short=header), icon="CANCEL")
     op.image = img.name
 
 
@@ -345,6 +400,8 @@ class NEUMESH_PT_paint_image(bpy.types.Panel):
             return
         wrapped_label(col, "Paint here, then apply the paint to the fields in view", width, context=context)
         _draw_actions(col, img)
+        if applied(img) and not paint_pending(img):
+            wrapped_label(col, "Applied; paint more to apply again", width, icon="CHECKMARK", context=context)
         wrapped_label(col, "Keep the camera and render size as they are", width, icon="INFO", context=context)
 
 

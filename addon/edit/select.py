@@ -43,18 +43,30 @@ _PREPARING: dict = {}   # object name -> thread building its SelectionContext (s
 
 
 def geometry_cache(obj):
-    """The folder of ``obj``'s field file: the core caches the scaffold's shape features there (one
-    file per scaffold, reused by every edited file beside it); None when the object has no field file."""
-    import os
-
-    path = props.field_abspath(obj)
-    return os.path.dirname(path) if path else None
+    """The edits folder (``props.edits_folder``): the core caches the scaffold's shape features there
+    (one file per scaffold, reused by every edited file of it); None when the object has no field file
+    or there is no edits folder yet (an unsaved .blend): the features are then kept in memory only."""
+    if not props.field_abspath(obj):
+        return None
+    try:
+        return props.scene_edits_folder()
+    except UserError:
+        return None
 
 
 def shape_note(info: dict) -> str:
     """'' when the selection used the shape; otherwise why it used colour alone (for the report)."""
     return "colour only: the shape features need robust-laplacian (Install in the Semantics panel)" \
         if info.get("geometry") else ""
+
+
+def core_message(exc, obj) -> str:
+    """A core error as the artist reads it here: a field without semantic codes names the panel button
+    that makes them (the core's own message names the command line)."""
+    if type(exc).__name__ == "NoSemanticsError":
+        return (f"'{obj.name}' has no semantic codes yet: press Distill semantics (Edit field > Semantics) "
+                "first; it learns them from the dataset's photos")
+    return str(exc)
 
 
 def _context_for(obj, field, nm):
@@ -270,8 +282,8 @@ class NEUMESH_OT_select_by_click(bpy.types.Operator):
         except (UserError, core.CoreUnavailable, camera.CameraError, sync.TopologyError) as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
-        except core.error_types() as exc:   # NoUserError, SelectionError, ... (messages say what to do)
-            self.report({"ERROR"}, f"NeuMesh: {exc}")
+        except core.error_types() as exc:   # NoSemanticsError, SelectionError, ... (messages say what to do)
+            self.report({"ERROR"}, f"NeuMesh: {core_message(exc, obj)}")
             return {"CANCELLED"}
         name = self.group_name.strip() or DEFAULT_GROUP
         picked = np.asarray(sel.vertices) if mesh_index is None else mesh_index[np.asarray(sel.vertices)]

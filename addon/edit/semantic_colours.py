@@ -9,6 +9,7 @@ from ..runtime import core
 from ..runtime.errors import UserError
 from ..scene import props
 from ..render import fields
+from .select import core_message
 
 COLOUR_ATTRIBUTE = "NeuMesh semantics"
 
@@ -36,7 +37,7 @@ class NEUMESH_OT_semantic_colours(bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
         except core.error_types() as exc:
-            self.report({"ERROR"}, f"NeuMesh: {exc}")
+            self.report({"ERROR"}, f"NeuMesh: {core_message(exc, obj)}")
             return {"CANCELLED"}
         if len(obj.data.vertices) != len(feats):
             self.report({"ERROR"}, f"NeuMesh: '{obj.name}' does not have its field's {len(feats)} vertices")

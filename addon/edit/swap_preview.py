@@ -81,6 +81,7 @@ class NEUMESH_OT_swap_preview(_FromPanel, bpy.types.Operator):
     bl_label = "Preview alignment"
     bl_options = {"REGISTER"}   # writes no field: nothing to undo; no redo panel (the Swap panel shows it)
     edit_label = "swap alignment"
+    writes_files = False
 
     target_group: StringProperty(name="Target group", default="")
     source_object: StringProperty(name="Source object", default="", description="Empty: the active object")

@@ -8,8 +8,8 @@ Image mode, that image as the canvas).  The artist paints on the object with Ble
 stencils and masks.
 
 The image is the truth while painting: :mod:`paint_sync` pushes its changed texels into the cached
-field's paint atlas and the Rendered viewports follow.  *Save paint* writes the field with its atlas as a new edit file beside the object's own (``nm.edit.paint_image_record`` +
-``save_edited``: atomic; Undo edit / Ctrl+Z go back as for every edit).
+field's paint atlas and the Rendered viewports follow.  *Save paint* writes the field with its atlas as a new edit file in the edits folder (``nm.edit.paint_image_record`` + :func:`base.commit_edit`:
+atomic; Undo edit / Ctrl+Z go back as for every edit).
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from bpy.props import IntProperty
 from ..runtime._np import np
 from ..runtime import core
 from ..runtime.errors import UserError
-from ..runtime.text import text_width, wrapped_label
+from ..runtime.text import file_size, text_width, wrapped_label
 from ..scene import props
 from ..render import engine, fields
 from .base import EditSubPanel, commit_edit
@@ -98,8 +98,8 @@ def unsaved_texels(obj) -> int:
 
 
 class NEUMESH_OT_save_paint(bpy.types.Operator):
-    """Save the field with the paint made in Texture Paint (a new file beside the object's own; Undo edit
-    goes back)"""
+    """Save the field with the paint made in Texture Paint (a new file in the Edits folder; Undo edit goes
+    back)"""
 
     bl_idname = "neumesh.save_paint"
     bl_label = "Save paint"
@@ -132,7 +132,7 @@ class NEUMESH_OT_save_paint(bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: cannot save the paint: {fields.user_message(exc)}")
             return {"CANCELLED"}
         engine.refresh_viewports(context)
-        self.report({"INFO"}, f"NeuMesh: paint saved ({rec.num_changed:,} texels) in {out}")
+        self.report({"INFO"}, f"NeuMesh: paint saved ({rec.num_changed:,} texels) in {out} ({file_size(out)})")
         return {"FINISHED"}
 
 

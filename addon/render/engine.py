@@ -317,17 +317,47 @@ class _PollRedraw:
 
     @classmethod
     def _tick(cls):
+        drawn = False
         for e in list(cls._engines):
             try:
                 if getattr(e, "_dirty", False):
                     e._dirty = False
                     e.tag_redraw()
+                    drawn = True
             except ReferenceError:
                 pass
+        if drawn:   # the sidebar says which pass the viewport shows (viewport_progress)
+            _tag_sidebars()
         if not len(cls._engines):
             cls._registered = False
             return None
         return 0.05
+
+
+def viewport_progress():
+    """The progressive passes of the Rendered viewport (the first with a preview):
+    ``PreviewRenderer.progress()`` = (shown divisor, finest divisor, busy, seconds), or None when no
+    viewport renders with NeuMesh."""
+    for e in list(_PollRedraw._engines):
+        try:
+            pv = getattr(e, "_preview", None)
+        except ReferenceError:
+            continue
+        if pv is not None:
+            return pv.progress()
+    return None
+
+
+def _tag_sidebars() -> None:
+    try:
+        for win in bpy.context.window_manager.windows:
+            for area in win.screen.areas:
+                if area.type == "VIEW_3D":
+                    for region in area.regions:
+                        if region.type == "UI":
+                            region.tag_redraw()
+    except Exception:  # noqa: BLE001 - no window manager in background mode
+        pass
 
 
 def compatible_panels():

@@ -81,6 +81,15 @@ class PreviewRenderer:
             time.sleep(0.002)
         return False
 
+    def progress(self):
+        """Where the progressive passes are: (shown, finest, busy, seconds) with ``shown`` the divisor of
+        the image shown now (None before the first), ``finest`` the last level's, ``busy`` whether a
+        finer pass (or a new request) is being rendered, ``seconds`` since the request of the shown one."""
+        latest, timings = self.latest, list(self.timings)
+        shown = latest[1] if latest is not None else None
+        seconds = timings[-1][1] if timings and timings[-1][0] == shown else None
+        return shown, self.divisors[-1], bool(self.busy), seconds
+
     def levels(self, width: int, height: int) -> tuple:
         """The divisors a request of ``width`` x ``height`` renders, coarsest first."""
         first = self.divisors[0]

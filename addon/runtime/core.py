@@ -227,3 +227,38 @@ def error_types():
         return ()
     names = ("NeuMeshError", "CheckpointError", "VertexMismatchError", "DataError", "Cancelled")
     return tuple(getattr(nm, n) for n in names if isinstance(getattr(nm, n, None), type))
+
+
+class CoreNotes(list):
+    """``with CoreNotes() as notes: <core calls>``: the warnings the core itself raises meanwhile (a
+    ``UserWarning`` such as "17 of 67 frames have no image and were skipped") are kept in ``notes`` as
+    plain messages instead of being printed with a Python source line, which reads like a crash; the
+    caller reports them (a Blender report, a job's message). Warnings from elsewhere (torch, numpy)
+    go on as usual. Other threads' warnings raised meanwhile are caught too (the warnings module keeps
+    one state per process): those of the core among them are reported here, the rest go on."""
+
+    def __enter__(self):
+        import warnings
+
+        self._cm = warnings.catch_warnings(record=True)
+        self._records = self._cm.__enter__()
+        warnings.simplefilter("always")
+        return self
+
+    def __exit__(self, *exc_info):
+        import os
+        import warnings
+
+        self._cm.__exit__(*exc_info)
+        # the core's files, and the add-on's (a core warning with stacklevel=2 names its caller)
+        roots = [os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep]
+        if _nm is not None:
+            roots.append(os.path.dirname(os.path.abspath(_nm.__file__)) + os.sep)
+        for w in self._records:
+            ours = os.path.abspath(w.filename).startswith(tuple(roots))
+            if ours and issubclass(w.category, UserWarning):
+                if str(w.message) not in self:
+                    self.append(str(w.message))
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        return False

@@ -185,7 +185,8 @@ class JobModal:
             job.cancel()
         if event.type == "TIMER":
             context.window_manager.progress_update(int(100 * job.fraction))
-            set_status(context, f"NeuMesh: {self.edit_label} {100 * job.fraction:.0f}% (Esc cancels)")
+            stage = f": {job.message}" if job.running and job.message else ""
+            set_status(context, f"NeuMesh: {self.edit_label} {100 * job.fraction:.0f}%{stage} (Esc cancels)")
             redraw(context, ("VIEW_3D", "IMAGE_EDITOR"))
         if job.running:   # the viewport stays usable while the work runs; Esc is ours
             return {"RUNNING_MODAL"} if event.type == "ESC" else {"PASS_THROUGH"}

@@ -76,12 +76,14 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
             statuses = refresh_paths_and_status()
         box = layout.box()
         box.label(text="Python dependencies (Blender's Python %d.%d)" % __import__("sys").version_info[:2])
-        for s in statuses:
-            row = box.row()
+        width = text.text_width(context)
+        for s in statuses:   # name | version or error; what an optional one is for on its own line
+            split = box.split(factor=0.4)
             icon = "CHECKMARK" if s.found else ("ERROR" if s.required else "INFO")
-            what = s.version if s.found else (s.error + ("" if s.required else f" (for {used_by(s.dist)})"))
-            row.label(text=f"{s.dist}", icon=icon)
-            row.label(text=what)
+            split.label(text=f"{s.dist}", icon=icon)
+            split.label(text=s.version if s.found else s.error)
+            if not s.found and not s.required:
+                text.wrapped_label(box, f"for {used_by(s.dist)}", width, icon="BLANK1", context=context)
         miss = [s.dist for s in statuses if s.required and not s.found]
         if miss:
             box.label(text="Missing: " + ", ".join(miss) + ". Install them or set an existing environment.",
@@ -114,13 +116,12 @@ class NEUMESH_AP_preferences(bpy.types.AddonPreferences):
         row = layout.row()
         row.prop(self, "torch_threads")
         row.label(text=f"{core.wanted_threads()} in use" + (" (all cores)" if self.torch_threads == 0 else ""))
-        row = layout.row()
-        row.prop(self, "device")
+        layout.prop(self, "device")
         if "torch" in __import__("sys").modules:   # never import torch just to draw the preferences
-            row.label(text=core.device_summary())
-        row = layout.row()
-        row.prop(self, "preview_start")
-        row.prop(self, "preview_final")
+            text.wrapped_label(layout, core.device_summary(), text.text_width(context), icon="BLANK1",
+                               context=context)
+        layout.prop(self, "preview_start")   # one a row: side by side their names are cut
+        layout.prop(self, "preview_final")
 
     def _draw_speed(self, layout, context):
         """Box 'Speed': torch's matrix-multiply rate and BLAS in this Blender, with the remedy if slow."""

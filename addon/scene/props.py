@@ -83,6 +83,39 @@ def set_field_path(obj, path: str):
     _record(obj.neumesh, path, _maybe_relative(path, bpy.data.filepath))
 
 
+EDITS_SUFFIX = "_neumesh"
+
+
+def edits_folder(chosen: str, blend_path: str) -> str:
+    """The folder edited field files are written to (pure: no Blender state, nothing created).
+
+    ``chosen``: the scene's *Edits folder* as the artist set it ('' = the default; '//' = relative to
+    the .blend); ``blend_path``: the saved .blend ('' when unsaved).  The default is a folder named
+    after the .blend beside it (``scene.blend`` -> ``scene_neumesh/``), so an edit never writes into the
+    folder a field was read from unless the artist chose that folder.  :class:`UserError` saying what to
+    do when neither a folder was chosen nor the .blend saved."""
+    chosen = (chosen or "").strip()
+    blend = (blend_path or "").strip()
+    if chosen.startswith("//"):
+        if not blend:
+            raise UserError(f"the Edits folder '{chosen}' is relative to the .blend ('//'), which is not saved; "
+                            "save the .blend first, or choose an absolute Edits folder (Edit field panel)")
+        return os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(blend)), chosen[2:]))
+    if chosen:
+        return os.path.normpath(os.path.abspath(os.path.expanduser(chosen)))
+    if not blend:
+        raise UserError("edits are saved beside the .blend, in a folder named after it, and this .blend is not "
+                        "saved: save the .blend first, or choose an Edits folder (Edit field panel)")
+    stem = os.path.splitext(os.path.basename(blend))[0] or "untitled"
+    return os.path.join(os.path.dirname(os.path.abspath(blend)), stem + EDITS_SUFFIX)
+
+
+def scene_edits_folder(scene=None) -> str:
+    """:func:`edits_folder` of ``scene`` (default: the current one) and the open .blend."""
+    scene = scene or bpy.context.scene
+    return edits_folder(getattr(scene.neumesh, "edits_dir", ""), bpy.data.filepath)
+
+
 def _maybe_relative(abspath: str, blend_path: str) -> str:
     if not blend_path:
         return abspath
@@ -153,6 +186,9 @@ class NeuMeshSceneSettings(bpy.types.PropertyGroup):
         name="Field scene", type=bpy.types.Scene,
         description="The companion scene that renders this scene's NeuMesh fields with the NeuMesh engine, "
                     "Z-combined with this scene's render in the compositor (Composite with Scene)")
+    edits_dir: StringProperty(name="Edits folder", subtype="DIR_PATH", default="", **_REL,
+                              description="Where edits write their field files (<name>.edit-NNN.neumesh). Empty: "
+                                          "beside the .blend, in a folder named after it (<blend name>_neumesh)")
     output_dir: StringProperty(name="Output folder", subtype="DIR_PATH", default="//neumesh_renders/", **_REL)
     render_cameras: EnumProperty(
         name="Cameras", items=[("ACTIVE", "Scene camera", "Render the scene camera"),

@@ -94,6 +94,7 @@ class CaptureJob(jobs.Job):
         self.stages: list = []   # every stage the run went through, in order
         self.registered = 0
         self.report = None
+        self.notes: list = []   # the core's warnings while reading the capture (reported, not printed)
 
     def _part(self, lo, hi, fraction) -> bool:
         return self.progress(lo + (hi - lo) * float(fraction))
@@ -133,7 +134,9 @@ class CaptureJob(jobs.Job):
             self.report = nm.estimate_poses(images, self.folder, cfg, on_poses, sequential=sequential)
             lo = 0.9
         self.stage, self.message = "read", ""
-        cap = nm.read_capture(self.folder)
+        with core.CoreNotes() as notes:
+            cap = nm.read_capture(self.folder)
+        self.notes = list(notes)
         if self.undistort and cap.is_distorted:
             self.stage, self.message = "undistort", f"{len(cap)} photos"
         Ks, paths = nm.undistorted_images(cap, progress=lambda f: self._part(lo, 1.0, f)) if self.undistort \
@@ -220,9 +223,27 @@ def box_object(coll, centre, half, source: str):
     return obj
 
 
+def held_out_photos(cap) -> list:
+    """Indices of the photos of ``cap`` that training holds out for evaluation (the core's rule,
+    ``nm.training_photos``: the capture's own split, else every 8th photo)."""
+    train = set(core.get().training_photos(cap).names)
+    return [i for i, name in enumerate(cap.names) if name not in train]
+
+
+def held_out_text(cap, held, most: int = 12) -> str:
+    """'training holds out 9 of the 67 photos for evaluation: a.jpg, b.jpg, ...' ('' when none)."""
+    if not held:
+        return "training uses every photo (none is held out)"
+    names = [os.path.basename(cap.names[i]) for i in held]
+    shown = ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
+    return (f"training holds out {len(held)} of the {len(cap)} photos for evaluation (their cameras have "
+            f"'neumesh_held_out'): {shown}")
+
+
 def build_capture(context, cap, Ks, paths, max_cameras: int = 0, background_images: bool = True):
     """Cameras, points and box of a capture in the scene. Returns (cameras, points object or None,
-    box object or None, warnings)."""
+    box object or None, warnings). Every photo gets a camera; those training holds out for evaluation
+    (:func:`held_out_photos`) carry ``neumesh_held_out`` = True."""
     scene = context.scene
     coll = _collection(scene)
     for o in list(coll.objects):
@@ -236,6 +257,7 @@ def build_capture(context, cap, Ks, paths, max_cameras: int = 0, background_imag
     scene.render.resolution_x, scene.render.resolution_y = W, H
     scene.render.resolution_percentage = 100
     scene.render.pixel_aspect_x = scene.render.pixel_aspect_y = 1.0
+    held = set(held_out_photos(cap))
     for i in range(n):
         lens = cap.lenses[i]
         base = os.path.splitext(os.path.basename(cap.names[i]))[0] or f"{i:04d}"
@@ -246,6 +268,7 @@ def build_capture(context, cap, Ks, paths, max_cameras: int = 0, background_imag
         worst = max(worst, camera.set_camera_from_K(co, Ks[i], cap.c2w[i], lens.width, lens.height))
         co["neumesh_index"] = i
         co["neumesh_photo"] = cap.names[i]
+        co["neumesh_held_out"] = i in held
         if background_images:
             try:
                 bg = cd.background_images.new()
@@ -287,10 +310,12 @@ class _CaptureOperator(jobs.JobModal):
         cams, pts, box, warnings = build_capture(context, cap, Ks, paths, self.max_cameras,
                                                  self.background_images)
         context.scene.neumesh.dataset_path = job.folder
-        for w in list(warnings) + list(getattr(cap, "notes", []) or []):
+        notes = list(getattr(cap, "notes", []) or [])
+        for w in list(warnings) + notes + [n for n in job.notes if n not in notes]:
             self.report({"WARNING"}, f"NeuMesh: {w}")
         npts = 0 if pts is None else len(pts.data.vertices)
-        self.report({"INFO"}, f"NeuMesh: imported {len(cams)} cameras and {npts} points from {job.folder}")
+        self.report({"INFO"}, f"NeuMesh: imported {len(cams)} cameras and {npts} points from {job.folder}; "
+                              + held_out_text(cap, held_out_photos(cap)))
         return {"FINISHED"}
 
 

@@ -1,4 +1,5 @@
-"""Operators: import a dataset as cameras, scaffold / mesh import, training, field loading."""
+"""Operators: import a dataset as cameras, build a scaffold, training (mesh import and field loading:
+imports.py)."""
 from __future__ import annotations
 
 import os
@@ -9,10 +10,12 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..runtime import core, jobs
 from ..runtime.errors import UserError
+from ..runtime.text import text_width, wrapped_label
 from ..scene import camera, identity, props, sync
 from ..render import fields
 from ..render.images import DATASET_COLLECTION, dataset_cameras  # noqa: F401 (ui, tests)
 from . import capture, worker
+from .imports import make_active
 
 def _report_exc(op, exc, what):
     msg = f"NeuMesh: {what}: {exc}" if not isinstance(exc, core.CoreUnavailable) else f"NeuMesh: {exc}"
@@ -49,14 +52,37 @@ def _image_from_array(name: str, img: np.ndarray):
 def _is_capture(path: str) -> bool:
     """A real capture (COLMAP or transforms.json) as the core detects it: ``nm.read_capture`` reads it
     (cameras only, no pixels); any other folder (NeRF-synthetic, DTU, not a dataset) is not one. A
-    folder with sparse/ is one even when pycolmap is missing (Import Cameras then says to install it)."""
+    folder with sparse/ is one even when pycolmap is missing (Import Cameras then says to install it).
+    The core's warnings while reading are dropped here: the import reads the capture again and
+    reports them."""
     if os.path.isdir(os.path.join(path, "sparse")):
         return True
     try:
-        core.get().read_capture(path)
+        with core.CoreNotes():
+            core.get().read_capture(path)
     except Exception:  # noqa: BLE001 - load_scene below says what is wrong with the folder
         return False
     return True
+
+
+def looks_like_capture(folder: str) -> bool:
+    """What the file browser shows while the artist picks a folder (cheap, no file read): a folder
+    with sparse/ (COLMAP) or transforms.json (instant-ngp, nerfstudio) and no NeRF-synthetic split
+    files is a capture; :func:`_is_capture` decides on import."""
+    if not folder or not os.path.isdir(folder):
+        return False
+    if os.path.isfile(os.path.join(folder, "transforms_train.json")):
+        return False
+    return os.path.isdir(os.path.join(folder, "sparse")) or os.path.isfile(os.path.join(folder, "transforms.json"))
+
+
+def _browsed_folder(context, fallback: str) -> str:
+    """The folder the file browser shows now (the operator's ``directory`` is set only on confirm)."""
+    params = getattr(getattr(context, "space_data", None), "params", None)
+    d = getattr(params, "directory", None)
+    if isinstance(d, bytes):
+        d = d.decode("utf-8", "replace")
+    return bpy.path.abspath(d or fallback or "")
 
 
 class NEUMESH_OT_import_dataset(bpy.types.Operator):
@@ -65,13 +91,14 @@ class NEUMESH_OT_import_dataset(bpy.types.Operator):
     also its sparse points and a box around the object)"""
 
     bl_idname = "neumesh.import_dataset"
-    bl_label = "Import dataset cameras"
+    bl_label = "Import Cameras"   # also the file browser's button: short enough for its default width
     bl_options = {"REGISTER", "UNDO"}
 
     directory: StringProperty(subtype="DIR_PATH")
-    split: EnumProperty(items=[("train", "Train", ""), ("val", "Validation", ""), ("test", "Test", "")],
-                        default="train")
-    downscale: IntProperty(default=1, min=1, max=16)
+    split: EnumProperty(name="Split", items=[("train", "Train", ""), ("val", "Validation", ""), ("test", "Test", "")],
+                        default="train", description="Which of the dataset's splits becomes cameras (NeRF-synthetic, "
+                                                     "DTU; a capture imports all its photos)")
+    downscale: IntProperty(name="Downscale", default=1, min=1, max=16)
     max_cameras: IntProperty(name="Max cameras", default=0, min=0, description="0 = all")
     background_images: BoolProperty(name="Background images", default=True)
 
@@ -79,6 +106,20 @@ class NEUMESH_OT_import_dataset(bpy.types.Operator):
         self._invoked = True
         context.window_manager.fileselect_add(self)
         return {"RUNNING_MODAL"}
+
+    def draw(self, context):
+        """The file browser's options: a capture has no split to choose (every photo is imported, and
+        the report names those training holds out), so it is not offered there."""
+        col = self.layout.column()
+        if looks_like_capture(_browsed_folder(context, self.directory)):
+            wrapped_label(col, "A capture: every photo becomes a camera. Training holds out every 8th (or "
+                               "the capture's own split) for evaluation; the report names them",
+                          text_width(context), icon="INFO", context=context)
+        else:
+            col.prop(self, "split")
+            col.prop(self, "downscale")
+        col.prop(self, "max_cameras")
+        col.prop(self, "background_images")
 
     def execute(self, context):
         path = bpy.path.abspath(self.directory or context.scene.neumesh.dataset_path)
@@ -88,9 +129,12 @@ class NEUMESH_OT_import_dataset(bpy.types.Operator):
                                                   background_images=self.background_images)
         try:
             nm = core.get()
-            ds = nm.load_scene(path, downscale=self.downscale, background="white")
+            with core.CoreNotes() as notes:
+                ds = nm.load_scene(path, downscale=self.downscale, background="white")
         except Exception as exc:  # noqa: BLE001
             return _report_exc(self, exc, f"cannot load dataset {path}")
+        for note in notes:
+            self.report({"WARNING"}, f"NeuMesh: {note}")
         splits = ds.splits
         iset = splits.get(self.split) or splits.get("train") or next(iter(splits.values()))
         cams = iset.cameras
@@ -140,41 +184,6 @@ class NEUMESH_OT_import_dataset(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NEUMESH_OT_import_mesh(bpy.types.Operator):
-    """Import a mesh (.ply/.obj/...) as the scaffold, the mesh the field is stored on (read by the core's
-    loader, so the vertex order is exactly the file's)"""
-
-    bl_idname = "neumesh.import_mesh"
-    bl_label = "Import scaffold mesh"
-    bl_options = {"REGISTER", "UNDO"}
-
-    filepath: StringProperty(subtype="FILE_PATH")
-
-    def invoke(self, context, event):
-        context.window_manager.fileselect_add(self)
-        return {"RUNNING_MODAL"}
-
-    def execute(self, context):
-        path = bpy.path.abspath(self.filepath)
-        try:
-            mesh = core.get().load_mesh(path)
-        except Exception as exc:  # noqa: BLE001
-            return _report_exc(self, exc, f"cannot load mesh {path}")
-        name = os.path.splitext(os.path.basename(path))[0] or "scaffold"
-        obj = sync.new_mesh_object(name, np.asarray(mesh.vertices), np.asarray(mesh.faces))
-        _make_active(context, obj)
-        context.scene.neumesh.train_object = obj
-        self.report({"INFO"}, f"NeuMesh: imported {len(mesh.vertices)} vertices, {len(mesh.faces)} faces")
-        return {"FINISHED"}
-
-
-def _make_active(context, obj):
-    for o in context.view_layer.objects:
-        o.select_set(False)
-    obj.select_set(True)
-    context.view_layer.objects.active = obj
-
-
 class NEUMESH_OT_build_scaffold(bpy.types.Operator):
     """Build the scaffold from the dataset's photos: the mesh the field is stored on, each vertex keeping
     the learned codes of the surface around it (visual hull from the masks, refined by stereo or a
@@ -191,7 +200,7 @@ class NEUMESH_OT_build_scaffold(bpy.types.Operator):
         s = context.scene.neumesh
         path = bpy.path.abspath(s.dataset_path)
         if not path or not os.path.isdir(path):
-            self.report({"ERROR"}, "NeuMesh: set the dataset folder first (Import dataset cameras)")
+            self.report({"ERROR"}, "NeuMesh: set the dataset folder first (Import Cameras)")
             return {"CANCELLED"}
         try:
             nm = core.get()
@@ -203,7 +212,10 @@ class NEUMESH_OT_build_scaffold(bpy.types.Operator):
         wm = context.window_manager
         wm.progress_begin(0, 100)
         try:
-            ds = nm.load_scene(path, downscale=s.downscale, background="white")
+            with core.CoreNotes() as notes:
+                ds = nm.load_scene(path, downscale=s.downscale, background="white")
+            for note in notes:
+                self.report({"WARNING"}, f"NeuMesh: {note}")
             box = capture.scene_box(context.scene)   # the NeuMesh Box as the artist left it, if any
             nm.capture_box(ds, None if box is None else nm.ObjectBox(*box))   # the scaffold is built inside
 
@@ -230,7 +242,7 @@ class NEUMESH_OT_build_scaffold(bpy.types.Operator):
         finally:
             wm.progress_end()
         obj = sync.new_mesh_object("NeuMesh Scaffold", np.asarray(mesh.vertices), np.asarray(mesh.faces))
-        _make_active(context, obj)
+        make_active(context, obj)
         s.train_object = obj
         secs = getattr(report, "timings", {}).get("total", float("nan")) if report is not None else float("nan")
         self.report({"INFO"}, f"NeuMesh: scaffold with {len(mesh.vertices)} vertices, {len(mesh.faces)} faces "
@@ -341,48 +353,7 @@ class NEUMESH_OT_train_cancel(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NEUMESH_OT_load_field(bpy.types.Operator):
-    """Attach a trained field file to the active mesh (same vertex count), or create its scaffold mesh"""
-
-    bl_idname = "neumesh.load_field"
-    bl_label = "Load field"
-    bl_options = {"REGISTER", "UNDO"}
-
-    filepath: StringProperty(subtype="FILE_PATH")
-    filter_glob: StringProperty(default="*.neumesh", options={"HIDDEN"})
-    new_object: BoolProperty(name="New object", default=False,
-                             description="Create a mesh object from the field's scaffold")
-
-    def invoke(self, context, event):
-        context.window_manager.fileselect_add(self)
-        return {"RUNNING_MODAL"}
-
-    def execute(self, context):
-        path = os.path.abspath(bpy.path.abspath(self.filepath))
-        try:
-            field = core.get().load_field(path)
-        except Exception as exc:  # noqa: BLE001
-            return _report_exc(self, exc, f"cannot load field {path}")
-        obj = context.active_object
-        if self.new_object or obj is None or obj.type != "MESH":
-            V = np.asarray(field.rest_vertices, np.float32)
-            F = np.asarray(field.faces, np.int64)
-            name = os.path.splitext(os.path.basename(path))[0]
-            obj = sync.new_mesh_object(name, V, F)
-            _make_active(context, obj)
-        elif len(obj.data.vertices) != int(field.num_vertices):
-            self.report({"ERROR"}, f"NeuMesh: '{obj.name}' has {len(obj.data.vertices)} vertices but the field "
-                                   f"has {field.num_vertices}; enable 'New object' to create its mesh")
-            return {"CANCELLED"}
-        identity.attach(context, obj, field, path)   # path, vertex ids (topology edits keep the field)
-        obj.neumesh.enabled = True
-        context.scene.neumesh.train_object = obj  # Training > Scaffold mesh: the mesh this field is on
-        self.report({"INFO"}, f"NeuMesh: field {os.path.basename(path)} on '{obj.name}'")
-        return {"FINISHED"}
-
-
-classes = (NEUMESH_OT_import_dataset, NEUMESH_OT_import_mesh, NEUMESH_OT_build_scaffold, NEUMESH_OT_train,
-           NEUMESH_OT_train_cancel, NEUMESH_OT_load_field)
+classes = (NEUMESH_OT_import_dataset, NEUMESH_OT_build_scaffold, NEUMESH_OT_train, NEUMESH_OT_train_cancel)
 
 
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)

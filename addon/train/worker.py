@@ -83,7 +83,10 @@ class TrainJob(Job):
 
     def run(self):
         nm = core.get()
-        scene = nm.load_scene(self.dataset_path, downscale=self.downscale, background=self.background)
+        with core.CoreNotes() as notes:   # the core's warnings as plain lines, not Python warnings
+            scene = nm.load_scene(self.dataset_path, downscale=self.downscale, background=self.background)
+        for note in notes:
+            print(f"NeuMesh training: {note}")
         box = nm.capture_box(scene, None if self.box is None else nm.ObjectBox(*self.box))
         if self.cancel_requested:
             self.state, self.message = "CANCELLED", "before training started"

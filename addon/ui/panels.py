@@ -9,14 +9,52 @@ from __future__ import annotations
 
 import bpy
 
-from ..render import colour, images
-from ..runtime import prefs
+from ..render import colour, engine, images
+from ..runtime import jobs, prefs
 from ..train import capture, worker
 from ..runtime.text import job_status, labelled as _labelled, text_width, wrapped_label
 
 SCAFFOLD_HELP = ("The scaffold is the mesh the field is stored on: every vertex keeps the learned codes "
                  "of the surface around it, so moving or bending the mesh moves the field with it. Build "
                  "it from the dataset's photos, or import a mesh of the object")
+
+
+def _fraction(divisor: int) -> str:
+    return "full" if divisor <= 1 else f"1/{divisor}"
+
+
+def viewport_level_text(progress) -> str:
+    """What the Rendered viewport's progressive preview shows, from ``engine.viewport_progress()``
+    ((shown divisor, finest divisor, busy, seconds) or None): '' when no viewport renders."""
+    if progress is None:
+        return ""
+    shown, finest, busy, seconds = progress
+    if shown is None:
+        return "Viewport preview: rendering its first pass" if busy else ""
+    after = f" ({seconds:.1f} s)" if seconds is not None else ""
+    now = f"Viewport preview: {_fraction(shown)} resolution{after}"
+    if busy and shown > finest:
+        return f"{now}, finest {_fraction(finest)} to come"
+    if busy:
+        return f"{now}, rendering the changed view"
+    if shown <= finest:
+        return f"{now}, the finest (Preferences > Preview ends at)"
+    return now
+
+
+def _job_progress(col, label: str, context) -> bool:
+    """The running job of the operator labelled ``label`` (Import Mesh, Load Field): its stage and
+    percentage, Esc cancels. False when none runs."""
+    job = jobs.active(label)
+    if job is None:
+        return False
+    text = f"{100 * job.fraction:.0f}% {job.message} (Esc cancels)"
+    if hasattr(col, "progress"):
+        col.progress(factor=job.fraction, text=f"{100 * job.fraction:.0f}%")
+        wrapped_label(col, f"{job.message} (Esc cancels)", text_width(context), context=context)
+    else:
+        wrapped_label(col, text, text_width(context), icon="SORTTIME", context=context)
+    return True
 
 
 # ---------------------------------------------------------------------------------------- sidebar
@@ -71,7 +109,8 @@ class NEUMESH_PT_scaffold(_Step, bpy.types.Panel):
     def draw_step(self, context, col, s):
         prefs.draw_missing(col, "scaffold", context)
         col.operator("neumesh.build_scaffold", text="Build from Photos", icon="MESH_ICOSPHERE")
-        col.operator("neumesh.import_mesh", text="Import Mesh", icon="IMPORT")
+        if not _job_progress(col, "Import scaffold mesh", context):
+            col.operator("neumesh.import_mesh", text="Import Mesh", icon="IMPORT")
 
 
 class NEUMESH_PT_train(_Step, bpy.types.Panel):
@@ -99,7 +138,11 @@ class NEUMESH_PT_field(_Sidebar, bpy.types.Panel):
         if obj is not None and obj.type == "MESH":
             _labelled(col, obj.neumesh, "field_path", f"Field of '{obj.name}'")
             col.prop(obj.neumesh, "enabled")
-        col.operator("neumesh.load_field", text="Load Field", icon="FILE_FOLDER")
+        if not _job_progress(col, "Load field", context):
+            col.operator("neumesh.load_field", text="Load Field", icon="FILE_FOLDER")
+        level = viewport_level_text(engine.viewport_progress())
+        if level:
+            wrapped_label(col, level, text_width(context), icon="SHADING_RENDERED", context=context)
         s = context.scene.neumesh
         col.separator()
         _labelled(col, s, "render_cameras", "Render cameras")
