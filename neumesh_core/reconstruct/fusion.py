@@ -32,7 +32,8 @@ from ..mesh import Mesh
 
 @dataclass
 class FusionConfig:
-    """resolution: TSDF cells on the box's longest side. truncation: in cells. min_views: views that
+    """resolution: TSDF cells on the box's longest side (fewer where a photo's pixel at the box spans
+    more than two such cells: a cell is never finer than half a pixel). truncation: in cells. min_views: views that
     must observe a cell (surface, or free space through it) before it counts. surface_opacity /
     free_opacity: a pixel's grid opacity at least the first gives a surface depth, below the second
     says its ray crossed the box empty (between them the pixel says nothing). max_slope: a pixel's depth
@@ -70,16 +71,20 @@ def fuse_depths(depths: np.ndarray, opacities: np.ndarray, cameras: Cameras, lo,
     """TSDF of per-view median depths (ray distances; inf where the view saw no surface) over the box
     ``lo``..``hi`` (the cameras' frame), ``config.resolution`` cells on its longest side."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    voxel = float((hi - lo).max() / config.resolution)
+    # no cell finer than half the photos' pixels at the box (their footprint): many cells under one
+    # pixel would each take its depth from a different place than its centre, and fall on the wrong side
+    footprint = float(np.median(np.linalg.norm(np.asarray(cameras.c2w)[:, :3, 3] - 0.5 * (lo + hi), axis=1)
+                                / np.asarray(cameras.K)[:, 0, 0])) if len(cameras) else 0.0
+    voxel = max(float((hi - lo).max() / config.resolution), 0.5 * footprint)
     dims = tuple(int(max(2, math.ceil((hi[a] - lo[a]) / voxel) + 1)) for a in range(3))
     axes = [torch.arange(n, dtype=torch.float32) * voxel + float(lo[a]) for a, n in enumerate(dims)]
     X = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     total = torch.zeros(X.shape[0])
     weight = torch.zeros(X.shape[0])
-    trunc = config.truncation * voxel
     N, H, W = len(cameras), cameras.height, cameras.width
     K = torch.as_tensor(cameras.K, dtype=torch.float32)
     c2w = torch.as_tensor(cameras.c2w, dtype=torch.float32)
+    trunc = config.truncation * voxel
     dep = torch.as_tensor(depths, dtype=torch.float32).reshape(N, -1)
     opa = torch.as_tensor(opacities, dtype=torch.float32).reshape(N, -1)
     # a pixel says "empty" only when its neighbours do too: a cell near the object's outline can

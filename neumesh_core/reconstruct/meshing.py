@@ -25,8 +25,11 @@ def marching_cubes(values: np.ndarray, level: float, lo, voxel: float, mask: np.
     if mask is not None:
         if not (mask.any() and v[mask].max() > level and v[mask].min() < level):
             return Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64))
-        verts, faces, _, _ = _mc(v, level=level, spacing=(voxel, voxel, voxel), allow_degenerate=False,
-                                 mask=_cube_mask(mask))
+        try:
+            verts, faces, _, _ = _mc(v, level=level, spacing=(voxel, voxel, voxel), allow_degenerate=False,
+                                     mask=_cube_mask(mask))
+        except RuntimeError:   # no cube wholly in the mask crosses the level
+            return Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64))
         return Mesh((verts + np.asarray(lo, np.float32)[None]).astype(np.float32), faces.astype(np.int64))
     outside = np.float32(min(float(v.min()), level) - 1.0)
     v = np.pad(v, 1, mode="constant", constant_values=outside)

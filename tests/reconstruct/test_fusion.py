@@ -1,6 +1,7 @@
 """Fused depths (neumesh_core/reconstruct/fusion.py): the TSDF of exact per-view depths of a ball in a
 box gives one surface on the ball, nothing on the box's walls, and the parts no view saw stay open."""
 import numpy as np
+import pytest
 import torch
 
 from neumesh_core.data.cameras import Cameras, pixel_rays
@@ -26,7 +27,8 @@ def _ball_views(n=40, size=48, upper_only=False):
     eyes = [3.0 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])
             for a, e in zip(np.linspace(0, 2 * np.pi, n, endpoint=False) * 3, elev)]
     c2w = np.stack([_look_at(e) for e in eyes]).astype(np.float32)
-    K = np.array([[40.0, 0, size / 2], [0, 40.0, size / 2], [0, 0, 1]], np.float32)
+    f = 40.0 * size / 48   # the same field of view at any size
+    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]], np.float32)
     cams = Cameras(np.repeat(K[None], n, 0), c2w, size, size)
     depths, opac = [], []
     for i in range(n):
@@ -100,3 +102,20 @@ def test_a_mask_leaves_open_every_cube_with_a_node_outside_it():
             V = np.asarray(marching_cubes(values, 0.0, np.zeros(3), 1.0, mask=mask).vertices)
             assert len(V) > 50
             assert (V[:, axis].max() <= 9 + 1e-6) if keep_low else (V[:, axis].min() >= 10 - 1e-6)
+
+
+def test_cells_are_no_finer_than_half_a_pixel_at_the_box():
+    """Small photos (a pixel at the ball spans many requested cells) still fuse into the ball."""
+    cams, depths, opac = _ball_views(size=24)
+    box = ObjectBox([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+    cfg = FusionConfig(resolution=256)
+    tsdf = fuse_depths(depths, opac, local_cameras(cams, box), -box.half_extents, box.half_extents, cfg)
+    footprint = 3.0 / cams.K[0, 0, 0]
+    assert tsdf.voxel == pytest.approx(0.5 * footprint, rel=1e-3)
+    mesh, _ = extract_surface(tsdf, cfg.min_views, 0, 0.01, 256 ** 3)
+    V = np.asarray(mesh.vertices, np.float64)
+    assert len(V) > 300 and np.abs(np.linalg.norm(V, axis=1) - RADIUS).max() < 2 * tsdf.voxel
+    dirs = np.random.default_rng(1).normal(size=(500, 3))
+    near = np.min(np.linalg.norm(V[None] - (RADIUS * dirs / np.linalg.norm(dirs, axis=1, keepdims=True))[:, None],
+                                 axis=2), axis=1)
+    assert (near < 2 * tsdf.voxel).mean() > 0.85   # the ball all round, not scattered bits
