@@ -175,12 +175,18 @@ def undistort_image(image: np.ndarray, lens: Lens, K_new: np.ndarray | None = No
     return out, K_new
 
 
-def default_cache_dir() -> str:
+def cache_folder(name: str) -> str:
+    """The folder ``name`` of NeuMesh's cache: under ``$NEUMESH_CACHE``, else ``$XDG_CACHE_HOME/neumesh``
+    or ``~/.cache/neumesh`` (never a dataset folder)."""
     base = os.environ.get("NEUMESH_CACHE")
     if not base:
         xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
         base = os.path.join(xdg, "neumesh")
-    return os.path.join(base, "undistorted")
+    return os.path.join(base, name)
+
+
+def default_cache_dir() -> str:
+    return cache_folder("undistorted")
 
 
 def _cache_key(path: str, lens: Lens, reduce: float, kind: str) -> str:

@@ -21,6 +21,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..data.capture import Capture
+from ..data.undistort import cache_folder
 from .colmap_run import _is_cancelled, _run_stage, colmap_log, import_pycolmap
 from .poses import PosesError
 
@@ -59,11 +60,7 @@ class SparsePoints:
 
 
 def cache_dir() -> str:
-    base = os.environ.get("NEUMESH_CACHE")
-    if not base:
-        xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        base = os.path.join(xdg, "neumesh")
-    return os.path.join(base, "points")
+    return cache_folder("points")
 
 
 def _cache_key(capture: Capture, cfg: PointsConfig) -> str:

@@ -4,17 +4,8 @@ clutter is outside, and a capture with too few points gets the cube around the c
 import numpy as np
 import pytest
 
+from neumesh_core.data.synthetic.scene import look_at_opencv
 from neumesh_core.data.frame import find_object, object_box, support_plane
-
-
-def _look_at(eye, target):
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    m = np.eye(4)
-    m[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-    m[:3, 3] = eye
-    return m
 
 
 def _wall_scene(seed=0):
@@ -32,7 +23,7 @@ def _wall_scene(seed=0):
                            for i, s in enumerate((-1, 1))])
     frame = np.c_[rng.uniform(2.2, 2.8, 300), rng.uniform(0.05, 0.1, 300), rng.uniform(-0.3, 0.3, 300)]
     eyes = np.array([[4 * np.sin(a), 4 * np.cos(a), 0.3 * np.cos(3 * a)] for a in np.linspace(-0.9, 0.9, 20)])
-    c2w = np.stack([_look_at(e, np.array([0.0, 0.4, 0.0])) for e in eyes])
+    c2w = np.stack([look_at_opencv(e, (0.0, 0.4, 0.0)) for e in eyes])
     points = np.concatenate([wall, plaque, head, ears, frame])
     parts = {"wall": slice(0, 3000), "plaque": slice(3000, 3400), "head": slice(3400, 4900),
              "ears": slice(4900, 4928), "frame": slice(4928, 5228)}
@@ -73,7 +64,7 @@ def test_a_face_of_the_object_is_not_its_support():
     sides = [np.c_[np.ones(300), u[i, :, 0], u[i, :, 1] * 0.5 + 0.5] for i in (1, 2)]
     P = np.concatenate([top, top + [0, 0, 1e-3], *sides])
     eyes = np.array([[4 * np.cos(a), 4 * np.sin(a), 3.0] for a in np.linspace(-0.6, 0.6, 12)])
-    c2w = np.stack([_look_at(e, np.zeros(3)) for e in eyes])
+    c2w = np.stack([look_at_opencv(e) for e in eyes])
     found = find_object(c2w, P)
     assert found.support is None and found.box.source.startswith("the sparse points of the object")
     assert found.box.contains(P).all() and np.all(found.box.half_extents < 1.5)

@@ -6,19 +6,10 @@ import torch
 
 from neumesh_core.data.cameras import Cameras, pixel_rays
 from neumesh_core.data.frame import ObjectBox
+from neumesh_core.data.synthetic.scene import look_at_opencv
 from neumesh_core.reconstruct.fusion import FusionConfig, extract_surface, fuse_depths, local_cameras
 
 RADIUS = 0.6
-
-
-def _look_at(eye):
-    z = -eye / np.linalg.norm(eye)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    m = np.eye(4)
-    m[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-    m[:3, 3] = eye
-    return m
 
 
 def _ball_views(n=40, size=48, upper_only=False):
@@ -26,7 +17,7 @@ def _ball_views(n=40, size=48, upper_only=False):
     elev = np.linspace(1.0, 1.3, n) if upper_only else np.linspace(-1.0, 1.0, n)
     eyes = [3.0 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])
             for a, e in zip(np.linspace(0, 2 * np.pi, n, endpoint=False) * 3, elev)]
-    c2w = np.stack([_look_at(e) for e in eyes]).astype(np.float32)
+    c2w = np.stack([look_at_opencv(e) for e in eyes]).astype(np.float32)
     f = 40.0 * size / 48   # the same field of view at any size
     K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]], np.float32)
     cams = Cameras(np.repeat(K[None], n, 0), c2w, size, size)
