@@ -183,7 +183,7 @@ def _points_modifier(obj, radius: float):
     return mod
 
 
-def points_object(coll, points, colors, radius: float):
+def points_object(coll, points, colours, radius: float):
     """The sparse points as a mesh of loose vertices, colours (sRGB uint8) as the point colour
     attribute "Color" (linear float, as Blender stores colours)."""
     _replace(POINTS_NAME)
@@ -191,9 +191,9 @@ def points_object(coll, points, colors, radius: float):
     me = bpy.data.meshes.new(POINTS_NAME)
     me.vertices.add(len(pts))
     me.vertices.foreach_set("co", pts.ravel())
-    if colors is not None:
+    if colours is not None:
         rgba = np.ones((len(pts), 4), np.float32)
-        rgba[:, :3] = srgb_to_linear(np.asarray(colors, np.float32)[:, :3] / 255.0)
+        rgba[:, :3] = srgb_to_linear(np.asarray(colours, np.float32)[:, :3] / 255.0)
         attr = me.color_attributes.new("Color", "FLOAT_COLOR", "POINT")
         attr.data.foreach_set("color", rgba.ravel())
         try:
@@ -286,7 +286,7 @@ def build_capture(context, cap, Ks, paths, max_cameras: int = 0, background_imag
     pts_obj = None
     if cap.points is not None and len(cap.points):
         radius = 0.004 * float(np.linalg.norm(box.half_extents))
-        pts_obj = points_object(coll, cap.points, cap.point_colors, max(radius, 1e-4))
+        pts_obj = points_object(coll, cap.points, cap.point_colours, max(radius, 1e-4))
     return cams, pts_obj, box_obj, warnings
 
 

@@ -68,7 +68,7 @@ class Cameras:
         return Cameras(K, self.c2w.copy(), int(round(self.width * factor)), int(round(self.height * factor)))
 
     @property
-    def centers(self) -> np.ndarray:
+    def centres(self) -> np.ndarray:
         return self.c2w[:, :3, 3]
 
 

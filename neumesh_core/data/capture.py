@@ -38,7 +38,7 @@ IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 class Capture:
     """A real capture without its pixels. ``c2w`` (N,4,4) float64 OpenCV camera-to-world; ``lenses[i]``
     the camera of photo i at the size stored on disk; ``points`` (P,3) float32 world-space sparse points
-    (``point_colors`` (P,3) uint8) or None; ``splits``: name -> indices when the data names its splits."""
+    (``point_colours`` (P,3) uint8) or None; ``splits``: name -> indices when the data names its splits."""
 
     kind: str
     source: str
@@ -48,7 +48,7 @@ class Capture:
     c2w: np.ndarray
     mask_paths: list = field(default_factory=list)
     points: Optional[np.ndarray] = None
-    point_colors: Optional[np.ndarray] = None
+    point_colours: Optional[np.ndarray] = None
     aabb_scale: Optional[float] = None
     splits: Optional[dict] = None
     skipped: list = field(default_factory=list)  # listed frames whose image is missing
@@ -80,7 +80,7 @@ class Capture:
         idx = [int(i) for i in np.atleast_1d(idx)]
         return Capture(self.kind, self.source, [self.names[i] for i in idx], [self.image_paths[i] for i in idx],
                        [self.lenses[i] for i in idx], self.c2w[idx], [self.mask_paths[i] for i in idx],
-                       self.points, self.point_colors, self.aabb_scale, None, list(self.skipped),
+                       self.points, self.point_colours, self.aabb_scale, None, list(self.skipped),
                        list(self.notes), dict(self.extra))
 
 

@@ -123,7 +123,7 @@ def build_scaffold(scene_or_imageset, config: ScaffoldConfig | None = None,
         dom_lo, dom_hi = bbox[0], bbox[1]
     else:
         c, r = axes_meeting_point(cams)
-        dmin = float(np.linalg.norm(cams.centers - c[None], axis=1).min())
+        dmin = float(np.linalg.norm(cams.centres - c[None], axis=1).min())
         half = 0.75 * dmin if dmin > 1e-6 else r
         dom_lo, dom_hi = c - half, c + half
     common, frac = common_view_volume(views, dom_lo, dom_hi, min_views)
@@ -326,6 +326,6 @@ def one_sided_capture(cams, threshold: float = 0.7) -> bool:
     (like NeRF-synthetic): the mean unit direction from the cameras' meeting point to the camera
     centres is long (~0 all around, ~0.5 for a hemisphere, ~0.9 for a 50-degree cone)."""
     c, _ = axes_meeting_point(cams)
-    d = cams.centers.astype(np.float64) - c[None]
+    d = cams.centres.astype(np.float64) - c[None]
     d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
     return bool(np.linalg.norm(d.mean(0)) > threshold)

@@ -41,7 +41,7 @@ def mask_sdf(masks: np.ndarray, threshold: float = 0.5) -> np.ndarray:
 
 def axes_meeting_point(cams: Cameras) -> tuple[np.ndarray, float]:
     """Least-squares point nearest to all optical axes and the largest camera distance to it."""
-    c = cams.centers.astype(np.float64)
+    c = cams.centres.astype(np.float64)
     d = cams.c2w[:, :3, 2].astype(np.float64)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     A = np.zeros((3, 3))

@@ -76,7 +76,7 @@ def _grey(images: np.ndarray) -> torch.Tensor:
 def select_sources(cams: Cameras, centre: np.ndarray, n: int, max_angle_deg: float) -> list[list[int]]:
     """For every view, up to ``n`` other views with the smallest angle between their directions to
     ``centre`` (above 1 degree: a baseline is needed; below ``max_angle_deg``)."""
-    d = cams.centers.astype(np.float64) - centre[None]
+    d = cams.centres.astype(np.float64) - centre[None]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     ang = np.degrees(np.arccos(np.clip(d @ d.T, -1.0, 1.0)))
     out = []

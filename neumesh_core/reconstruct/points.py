@@ -49,7 +49,7 @@ class SparsePoints:
     in pixels and track lengths (P,): how many photos see each one."""
 
     points: np.ndarray
-    colors: np.ndarray
+    colours: np.ndarray
     errors: np.ndarray
     track_lengths: np.ndarray
     seconds: float = 0.0
@@ -110,7 +110,8 @@ def triangulate_capture(capture: Capture, config: Optional[PointsConfig] = None,
     path = os.path.join(cache_dir(), key + ".npz")
     if use_cache and os.path.isfile(path):
         with np.load(path) as z:
-            pts = SparsePoints(z["points"], z["colors"], z["errors"], z["track_lengths"], float(z["seconds"]), True)
+            colours = z["colours"] if "colours" in z else z["colors"]   # caches written under the older name
+            pts = SparsePoints(z["points"], colours, z["errors"], z["track_lengths"], float(z["seconds"]), True)
         say(f"sparse points: {len(pts)} read back from the cache ({path})")
         if progress is not None:
             progress(1.0)
@@ -149,7 +150,7 @@ def triangulate_capture(capture: Capture, config: Optional[PointsConfig] = None,
         os.makedirs(cache_dir(), exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=".tmp_", suffix=".npz", dir=cache_dir())
         with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, points=pts.points, colors=pts.colors, errors=pts.errors,
+            np.savez(fh, points=pts.points, colours=pts.colours, errors=pts.errors,
                      track_lengths=pts.track_lengths, seconds=pts.seconds)
         os.replace(tmp, path)
     if progress is not None:

@@ -311,7 +311,7 @@ def test_colmap_camera_models_load(tmp_path, model):
         err = np.abs(tr.float_view(0) - pinhole_render(tr.cameras.K[0].astype(np.float64)))[3:-3, 3:-3]
         assert err.mean() < 0.01
     np.testing.assert_allclose(np.sort(scene.capture.points, 0), np.sort(xyz, 0).astype(np.float32), atol=1e-6)
-    assert (scene.capture.point_colors == [10, 20, 30]).all()
+    assert (scene.capture.point_colours == [10, 20, 30]).all()
 
 
 @pytest.mark.parametrize("text,legacy", [(True, False), (False, True), (True, True)])

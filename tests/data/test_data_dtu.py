@@ -144,10 +144,10 @@ def test_real_scan24_geometry():
         s = scene.split(name)
         cams = s.cameras
         assert (cams.width, cams.height) == (200, 150) and s.masks is not None
-        dist = np.linalg.norm(cams.centers, axis=1)
+        dist = np.linalg.norm(cams.centres, axis=1)
         assert (dist > 1.5).all()  # outside the unit sphere
         fwd = cams.c2w[:, :3, 2]
-        assert ((fwd * -cams.centers).sum(1) / dist > 0.9).all()  # looking at the origin
+        assert ((fwd * -cams.centres).sum(1) / dist > 0.9).all()  # looking at the origin
         np.testing.assert_allclose(np.linalg.det(cams.c2w[:, :3, :3]), 1.0, atol=1e-4)
         for i in range(len(s)):
             w2c = np.linalg.inv(cams.c2w[i].astype(np.float64))

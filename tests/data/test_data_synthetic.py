@@ -160,10 +160,10 @@ def test_small_scene_round_trip(small_scene):
     assert (len(tr), len(va), len(te)) == (30, 4, 4)
     assert tr.images.shape == (30, 64, 64, 3) and tr.masks.shape == (30, 64, 64)
     np.testing.assert_allclose(tr.cameras.K[0], _K(64), rtol=1e-5)
-    z = np.concatenate([s.cameras.centers[:, 2] for s in (tr, va, te)])
+    z = np.concatenate([s.cameras.centres[:, 2] for s in (tr, va, te)])
     assert (z > 0.5).any() and (z < -0.5).any()  # both hemispheres
-    np.testing.assert_allclose(np.linalg.norm(tr.cameras.centers, axis=1), S.CAMERA_RADIUS, rtol=1e-5)
-    dmin = np.linalg.norm(va.cameras.centers[:, None] - tr.cameras.centers[None], axis=-1).min()
+    np.testing.assert_allclose(np.linalg.norm(tr.cameras.centres, axis=1), S.CAMERA_RADIUS, rtol=1e-5)
+    dmin = np.linalg.norm(va.cameras.centres[:, None] - tr.cameras.centres[None], axis=-1).min()
     assert dmin > 0.05  # held-out views are not training views
     # the stored images are the reference renders of the stored cameras (8-bit rounding)
     rgb, alpha = S.render_truth(va.cameras.K[2], va.cameras.c2w[2], 64, 64, background=None,
