@@ -36,8 +36,8 @@ from .synthetic import (AMBIENT, DIFFUSE, LIGHT_DIR, SHININESS, SPECULAR, _sampl
                         _torch_single_thread as _single_thread, camera_positions, look_at_opencv)
 
 PART_NAMES = ("body", "head", "arm", "base")
-CENTER = np.array([0.25, 0.0, 0.3])          # middle of the object: cameras look here
-BOUND_RADIUS = 1.75                          # a sphere around CENTER holding every part
+CENTRE = np.array([0.25, 0.0, 0.3])          # middle of the object: cameras look here
+BOUND_RADIUS = 1.75                          # a sphere around CENTRE holding every part
 CAMERA_RADIUS = 3.6
 CAMERA_ANGLE_X = 0.9
 _BODY = (np.array([0.0, 0.0, 0.0]), 0.75)
@@ -123,7 +123,7 @@ def trace(origins: torch.Tensor, dirs: torch.Tensor, max_iters: int = 200, eps: 
     o = origins.to(torch.float64)
     d = dirs.to(torch.float64)
     d = d / d.norm(dim=-1, keepdim=True)
-    cen = torch.as_tensor(CENTER, dtype=torch.float64)
+    cen = torch.as_tensor(CENTRE, dtype=torch.float64)
     oc = o - cen
     bb = (oc * d).sum(-1)
     disc = bb * bb - ((oc * oc).sum(-1) - BOUND_RADIUS ** 2)
@@ -210,8 +210,8 @@ def multipart_mesh(grid: int = 56) -> tuple:
     part id of every vertex: (Mesh, labels (V,) int64)."""
     from skimage.measure import marching_cubes
 
-    lo = CENTER - BOUND_RADIUS * np.array([0.75, 0.65, 0.75])
-    hi = CENTER + BOUND_RADIUS * np.array([0.75, 0.65, 0.75])
+    lo = CENTRE - BOUND_RADIUS * np.array([0.75, 0.65, 0.75])
+    hi = CENTRE + BOUND_RADIUS * np.array([0.75, 0.65, 0.75])
     h = float((hi - lo).max()) / grid
     axes = [np.arange(lo[i], hi[i] + h, h) for i in range(3)]
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
@@ -241,7 +241,7 @@ def make_multipart_scene(out_dir: str, resolution: int = 96, n_train: int = 40, 
         os.makedirs(os.path.join(out_dir, split), exist_ok=True)
         frames = []
         for i, c in enumerate(centres):
-            c2w = look_at_opencv(c + CENTER, CENTER)
+            c2w = look_at_opencv(c + CENTRE, CENTRE)
             rgb, alpha = render(K, c2w, resolution, resolution, seed=seed * 100_003 + 10_000 * s_i + i,
                                 same_colour=same_colour)
             save_image(os.path.join(out_dir, split, f"r_{i}.png"), np.concatenate([rgb, alpha[..., None]], -1))

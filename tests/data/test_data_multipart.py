@@ -25,7 +25,7 @@ def test_trace_hits_the_surface_and_labels_follow_albedo():
     K = nm.intrinsics_from_fov(mp.CAMERA_ANGLE_X, 32, 32)
     from neumesh_core.data.synthetic import look_at_opencv
 
-    c2w = look_at_opencv(mp.CENTER + np.array([mp.CAMERA_RADIUS, 0, 0.5]), mp.CENTER)
+    c2w = look_at_opencv(mp.CENTRE + np.array([mp.CAMERA_RADIUS, 0, 0.5]), mp.CENTRE)
     lab = mp.label_image(K, c2w, 32, 32)
     assert (lab == -1).any() and {0, 1, 2}.issubset(set(np.unique(lab)))
     rgb, alpha = mp.render(K, c2w, 32, 32, spp=1)
@@ -48,7 +48,7 @@ def test_same_colour_variant_paints_every_part_alike(tmp_path):
     K = nm.intrinsics_from_fov(mp.CAMERA_ANGLE_X, 48, 48)
     from neumesh_core.data.synthetic import look_at_opencv
 
-    c2w = look_at_opencv(mp.CENTER + np.array([mp.CAMERA_RADIUS, 0.4, 0.8]), mp.CENTER)
+    c2w = look_at_opencv(mp.CENTRE + np.array([mp.CAMERA_RADIUS, 0.4, 0.8]), mp.CENTRE)
     lab = mp.label_image(K, c2w, 48, 48)
     pts = torch.rand(2000, 3, dtype=torch.float64) * 2 - 1
     parts = torch.arange(2000) % 4
