@@ -218,7 +218,7 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
                 elif plan == "skip":
                     out.append(None)
                 else:
-                    out.append(_onto_source(nm, rec, shown, *plan))
+                    out.append(nm.edit.paint_onto_source(rec, shown, *plan))
             return out
         return targets, run
 
@@ -253,28 +253,6 @@ def mark_applied(img) -> None:
 
 def applied(img) -> bool:
     return is_paint_image(img) and int(img.get(APPLIED_KEY, 0)) > 0
-
-
-def _onto_source(nm, record, shown, source, ids):
-    """Carry a paint record of a remapped field (``shown``, vertex i = ``source`` vertex ``ids[i]``,
-    or a new vertex where -1) onto the source field: each painted source vertex takes the mean of the
-    painted colours of its copies; new vertices have no colour of their own and are left out."""
-    import torch
-
-    rows = np.asarray(record.vertices)
-    src = ids[rows]
-    keep = src >= 0
-    if not keep.any():
-        return None
-    new = shown.mod_colours.detach().cpu().numpy()[rows[keep]]
-    uniq, inv = np.unique(src[keep], return_inverse=True)
-    acc = np.zeros((len(uniq), 3))
-    np.add.at(acc, inv, new)
-    acc /= np.bincount(inv, minlength=len(uniq))[:, None]
-    rec = nm.edit.EditRecord.begin("paint_texture", source, uniq, ("mod_colours",))
-    with torch.no_grad():
-        source.mod_colours[torch.as_tensor(uniq)] = torch.as_tensor(acc, dtype=source.mod_colours.dtype)
-    return rec.finish(source, **record.info)
 
 
 class NEUMESH_PT_paint(EditSubPanel, bpy.types.Panel):

@@ -203,3 +203,29 @@ def paint_texture(field, K, c2w, width: int, height: int, paint_rgba: np.ndarray
 
 __all__ = ["AtlasRecord", "PaintConfig", "create_paint_atlas", "paint_atlas_from_view", "paint_fields", "paint_layer",
            "paint_texture"]
+
+
+def paint_onto_source(record: EditRecord, shown, source, ids: np.ndarray) -> Optional[EditRecord]:
+    """Carry a paint record of a remapped field onto the field it was remapped from.
+
+    ``shown`` is the painted remapped field (its vertex i is ``source`` vertex ``ids[i]``, or a new
+    vertex where ``ids[i]`` is -1, as :func:`~neumesh_core.field.remap.resolve_ids` gives).  Each
+    painted source vertex takes the mean of the painted modification colours of its copies; new
+    vertices have no colour of their own and are left out.  Returns the record of the change to
+    ``source`` (its ``info`` is the paint record's), or None when no painted vertex has a source.
+    """
+    rows = np.asarray(record.vertices)
+    src = np.asarray(ids)[rows]
+    keep = src >= 0
+    if not keep.any():
+        return None
+    new = shown.mod_colours.detach().cpu().numpy()[rows[keep]]
+    uniq, inv = np.unique(src[keep], return_inverse=True)
+    acc = np.zeros((len(uniq), 3))
+    np.add.at(acc, inv, new)
+    acc /= np.bincount(inv, minlength=len(uniq))[:, None]
+    rec = EditRecord.begin("paint_texture", source, uniq, ("mod_colours",))
+    with torch.no_grad():
+        source.mod_colours[torch.as_tensor(uniq, device=source.mod_colours.device)] = \
+            torch.as_tensor(acc, dtype=source.mod_colours.dtype, device=source.mod_colours.device)
+    return rec.finish(source, **record.info)
