@@ -12,7 +12,7 @@ from .data.cameras import (Cameras, axis_to_ray_depth, intrinsics_from_fov, open
                            pixel_rays, ray_to_axis_depth)
 from .data.scene import ImageSet, Scene
 from .errors import (CheckpointError, DataError, DeformError, EditError, NeuMeshError, NoSemanticsError,
-                     SelectionError, VertexMismatchError, WeightsUnavailableError)
+                     PaintMissError, SelectionError, VertexMismatchError, WeightsUnavailableError)
 from .mesh import Mesh, load_mesh, save_mesh
 from .device import resolve_device
 from .field.field import FieldConfig, NeuMeshField, create_field
@@ -46,7 +46,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "Cameras", "ScaffoldConfig", "axis_to_ray_depth", "bake", "deform", "bake_texture", "build_scaffold", "depth_buffer",
-    "field_key", "ray_to_axis_depth", "remap_field", "resolve_ids", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "DeformError", "EditError", "FieldConfig", "ImageSet",
+    "field_key", "ray_to_axis_depth", "remap_field", "resolve_ids", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "DeformError", "EditError", "PaintMissError", "FieldConfig", "ImageSet",
     "Mesh", "NeuMeshError", "NeuMeshField", "NoSemanticsError", "RenderOutput", "RenderSettings", "Scene",
     "SelectionError", "TrainConfig", "TrainProgress", "TrainResult", "VertexMismatchError",
     "WeightsUnavailableError", "create_field", "default_scene_dir", "evaluate", "fill_texture",

@@ -30,6 +30,11 @@ class EditError(NeuMeshError, ValueError):
     Nothing was changed."""
 
 
+class PaintMissError(EditError):
+    """The paint lies on no part of the field (only background, or no scaffold vertex or atlas texel
+    under it). Nothing was changed; paint over the object."""
+
+
 class NoSemanticsError(NeuMeshError):
     """A semantic operation (selection, semantic render) on a field without semantic codes."""
 

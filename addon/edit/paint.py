@@ -197,9 +197,8 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
                 if plan == "atlas":
                     try:
                         recs[i] = nm.edit.paint_atlas_from_view(shown, K, c2w, W, H, layer, surface=surface)
-                    except nm.EditError as exc:
-                        if "background" not in str(exc) and "no texel" not in str(exc):
-                            raise
+                    except nm.PaintMissError:   # this field is not under the paint: the others may be
+                        pass
             rest = [i for i, plan in enumerate(plans) if plan != "atlas"]
             if rest:
                 try:

@@ -28,7 +28,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 import torch
 
-from ..errors import EditError
+from ..errors import EditError, PaintMissError
 from .paint_atlas import AtlasRecord, create_paint_atlas, paint_atlas_from_view
 from .paint_view import PaintConfig, _cancel, _checked_layer, _rays, _render, paint_layer
 from .record import EditRecord
@@ -53,8 +53,8 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
     """Paint on the view (K, c2w, width, height) of ``fields`` (rendered jointly, as in a scene).
 
     Returns one :class:`EditRecord` per field, or None for a field the painted rays do not reach.
-    Raises :class:`EditError` (nothing changed) when nothing is painted or the paint covers only
-    background, and ``Cancelled`` when ``progress`` returns False.
+    Raises :class:`EditError` (nothing changed) when nothing is painted, its :class:`PaintMissError`
+    when the paint covers only background, and ``Cancelled`` when ``progress`` returns False.
     """
     from ..render.renderer import RenderSettings, mod_colour_weights
 
@@ -83,14 +83,14 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
     timing["render_s"] = time.perf_counter() - t
     hit = (op_p >= cfg.hit_opacity).numpy() & np.isfinite(depth_p.numpy())
     if not hit.any():
-        raise EditError(f"the paint covers only background ({len(painted)} painted pixels, none on a field); "
+        raise PaintMissError(f"the paint covers only background ({len(painted)} painted pixels, none on a field); "
                         "paint over the object")
     t = time.perf_counter()
     pts = (o[hit] + d[hit] * depth_p[hit, None].to(o.device)).cpu().numpy().astype(np.float64)
     affected = [_affected(f, pts, cam, cfg.facing) for f in fl]
     timing["surface_s"] = time.perf_counter() - t
     if sum(len(a) for a in affected) == 0:
-        raise EditError("no scaffold vertex lies near the painted surface; paint over the object")
+        raise PaintMissError("no scaffold vertex lies near the painted surface; paint over the object")
     _cancel(progress, 0.2)
 
     # 2. the pixels the affected vertices can change: look around the stroke, as far as the influence

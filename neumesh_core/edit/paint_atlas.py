@@ -9,7 +9,7 @@ from typing import Callable, NamedTuple, Optional
 import numpy as np
 import torch
 
-from ..errors import EditError, NeuMeshError
+from ..errors import EditError, NeuMeshError, PaintMissError
 from .paint_view import PaintConfig, _cancel, _checked_layer, _checked_surface, _rays, _render_pixels
 from .record import EditRecord
 
@@ -177,8 +177,8 @@ def paint_atlas_from_view(field, K, c2w, width: int, height: int, paint_rgba: np
        nothing farther than 2 px from the paint changes in the painted view.
     5. Each painted texel takes its paint composited over the atlas's paint with the layer's alpha.
 
-    Raises :class:`EditError` (nothing changed) when nothing is painted or the paint covers only
-    background.
+    Raises :class:`EditError` (nothing changed) when nothing is painted, its :class:`PaintMissError`
+    when the paint covers only background or no texel.
     """
     from ..render.renderer import RenderSettings
 
@@ -277,7 +277,7 @@ def _lookups(field, atlas, view, layer, box, op, depth, given, hit_opacity: floa
     near_stroke = binary_dilation(stroke, iterations=2)       # "within 2 px" as the figures count it
     hit = (op >= hit_opacity) & np.isfinite(depth)
     if not (hit & stroke.reshape(-1)[box]).any():
-        raise EditError(f"the paint covers only background ({int(stroke.sum())} painted pixels, none on the "
+        raise PaintMissError(f"the paint covers only background ({int(stroke.sum())} painted pixels, none on the "
                         "field); paint over the object")
     pix = box[hit]
     zpix = depth[hit].astype(np.float32)
@@ -343,7 +343,7 @@ def _paint_texels(field, atlas, K, layer, look: _Lookups):
     keep = ~np.isin(idx, protected, assume_unique=False)
     idx, rgba = idx[keep], rgba[keep]
     if len(idx) == 0:
-        raise EditError("no texel of the paint atlas lies under the paint; paint over the object")
+        raise PaintMissError("no texel of the paint atlas lies under the paint; paint over the object")
     return idx, rgba, protected, touched
 
 

@@ -123,7 +123,7 @@ def test_bad_input_changes_nothing(blob5):
     K, c2w, _ = _view(f, 0.0)
     with pytest.raises(nm.EditError, match="nothing is painted"):
         paint_texture(f, K, c2w, S, S, np.zeros((S, S, 4), np.float32))
-    with pytest.raises(nm.EditError, match="only background"):
+    with pytest.raises(nm.PaintMissError, match="only background"):
         paint_texture(f, K, c2w, S, S, _stroke((1, 0, 0), rows=(0, 3), cols=(0, 4)))
     with pytest.raises(nm.EditError, match="size changed|camera or the image size"):
         paint_texture(f, K, c2w, S, S, np.zeros((S // 2, S, 4), np.float32))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import neumesh_core as nm
-from neumesh_core.errors import EditError
+from neumesh_core.errors import EditError, PaintMissError
 from neumesh_core.edit.paint import create_paint_atlas, paint_atlas_from_view, paint_texture
 from neumesh_core.metrics import psnr
 
@@ -149,7 +149,7 @@ def test_without_an_atlas_paint_goes_to_the_vertex_colours_and_bad_input_is_refu
         paint_atlas_from_view(f, K, c2w, S, S, np.zeros((S, S, 4), np.float32))
     sky = np.zeros((S, S, 4), np.float32)
     sky[0:3, 0:3] = (*RED, 1.0)
-    with pytest.raises(EditError, match="background"):
+    with pytest.raises(PaintMissError, match="background"):
         paint_atlas_from_view(f, K, c2w, S, S, sky)
     with pytest.raises(EditError, match="RGBA"):
         paint_atlas_from_view(f, K, c2w, S, S, np.zeros((S, S, 3), np.float32))
