@@ -216,8 +216,8 @@ def test_a_region_swapped_onto_itself_changes_nothing_and_writes_no_file(addon, 
     nm = addon.runtime.core.get()
     work = addon.edit.base.edit_copy(field)
     rec = nm.swap_texture(work, region, work, region)
-    # the record holds every row it wrote; num_changed (core) and changed_rows count none of them
-    assert len(rec.vertices) == len(region) and rec.num_changed == 0 and addon.edit.base.changed_rows(rec) == 0
+    # the record holds every row it wrote; num_changed and count_changed count none of them
+    assert len(rec.vertices) == len(region) and rec.num_changed == 0 and rec.count_changed() == 0
     other = addon.edit.base.edit_copy(field)
     import torch
 
@@ -225,7 +225,7 @@ def test_a_region_swapped_onto_itself_changes_nothing_and_writes_no_file(addon, 
     with torch.no_grad():
         other.mod_colours[torch.as_tensor(region[:2])] += 0.25
     rec2.finish(other)
-    assert addon.edit.base.changed_rows(rec2) == 2   # the rows whose values moved, not all it wrote
+    assert rec2.count_changed() == 2   # the rows whose values moved, not all it wrote
     assert bpy.ops.neumesh.swap_texture(target_group="region", source_object="", source_group="region",
                                         nonrigid=False) == {"FINISHED"}
     assert addon.scene.props.field_abspath(target) == tgt_path

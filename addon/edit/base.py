@@ -40,24 +40,6 @@ def field_for_edit(obj):
     return fields.get_field(obj.name_full, path), path
 
 
-def changed_rows(record, rtol: float = 1e-5, atol: float = 1e-6) -> int:
-    """How many of the rows an edit wrote hold other values than before (a region swapped onto itself
-    writes every row and changes none). Values are compared with a tolerance, never bit for bit."""
-    if not record.new:
-        return int(record.num_changed)
-    import torch
-
-    changed = torch.zeros(len(record.vertices), dtype=torch.bool)
-    for t, old in record.old.items():
-        new = record.new[t]
-        if old.dtype.is_floating_point:
-            diff = ~torch.isclose(new, old, rtol=rtol, atol=atol)
-        else:
-            diff = new != old
-        changed |= diff.reshape(len(changed), -1).any(1)
-    return int(changed.sum())
-
-
 def edit_out_path(parent_path: str, folder: str) -> str:
     """The file an edit of ``parent_path`` is written to: the next free ``<name>.edit-NNN.neumesh`` in
     ``folder`` (the edits folder, :func:`props.edits_folder`)."""
@@ -210,7 +192,7 @@ class EditOperator(JobModal):
         for (name, field, parent), record in zip(self._targets, job.result):
             if record is None:
                 continue
-            n = changed_rows(record)
+            n = record.count_changed()
             if n == 0:   # nothing to save: the object keeps its file (the edit ran on a copy)
                 unchanged.append(name)
                 continue

@@ -112,6 +112,23 @@ class EditRecord:
         """How many rows the edit changed (rows written with the values they held do not count)."""
         return int(len(self.vertices if self.changed is None else self.changed))
 
+    def count_changed(self, rtol: float = 1e-5, atol: float = 1e-6) -> int:
+        """How many of the rows the edit wrote hold other values than before, floats compared with a
+        tolerance (never bit for bit: a row written back with a rounding difference is unchanged).
+        :attr:`num_changed` when there are no new values to compare (before :meth:`finish`, or a record
+        of something other than per-vertex rows)."""
+        if not self.new:
+            return self.num_changed
+        changed = torch.zeros(len(self.vertices), dtype=torch.bool)
+        for t, old in self.old.items():
+            new = self.new[t]
+            if old.dtype.is_floating_point:
+                diff = ~torch.isclose(new, old, rtol=rtol, atol=atol)
+            else:
+                diff = new != old
+            changed |= diff.reshape(len(changed), -1).any(1)
+        return int(changed.sum())
+
     def _write(self, field, values: Dict[str, torch.Tensor]) -> None:
         idx = torch.as_tensor(self.vertices, device=field.geo_codes.device)
         with torch.no_grad():

@@ -72,3 +72,17 @@ def test_undo_out_of_order_is_refused(blob_mesh):
     second.undo(f)
     first.undo(f)
     assert f.num_decoders == 1 and int(f.decoder_id.abs().sum()) == 0
+
+
+def test_count_changed_counts_rows_whose_values_moved_beyond_rounding(blob_mesh):
+    f = textured_field(blob_mesh)
+    region = np.arange(10, 20)
+    rec = EditRecord.begin("test", f, region, ("mod_colours", "decoder_id"))
+    assert rec.count_changed() == len(region)   # nothing to compare yet: every row written counts
+    with torch.no_grad():
+        f.mod_colours[10:12] += 0.25             # moved
+        f.mod_colours[12:14] *= 1.0 + 1e-7       # a rounding difference: not a change
+        f.decoder_id[14] = 1                     # an integer table: any difference is a change
+    rec.finish(f)
+    assert rec.count_changed() == 3
+    assert rec.count_changed(rtol=0.0, atol=0.0) >= 3
