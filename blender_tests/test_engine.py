@@ -235,7 +235,7 @@ def test_field_lookups_do_not_wait_for_a_render_holding_the_cache_lock(addon, tr
     held, release = threading.Event(), threading.Event()
 
     def hold():
-        with render._LOCK:
+        with render.LOCK:
             held.set()
             release.wait(60)
 

@@ -184,8 +184,7 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
                 plans.append("skip")
                 continue
             source = edit_copy(fields.get_field(obj.name_full, own))
-            d = fields._DERIVED[it.key]
-            ids = nm.resolve_ids(source, d.vid, d.rest)
+            ids = fields.source_ids(it.key, source)
             targets.append((obj, source, own))
             plans.append((source, ids))
 

@@ -18,8 +18,8 @@ from ..runtime import core
 from ..runtime.errors import UserError
 from ..scene import camera, identity, props, sync
 
-_LOCK = threading.RLock()  # guards every field in the cache (set_vertices + render are not re-entrant)
-_LOAD_LOCK = threading.Lock()  # one load per file at a time (get_field); taken after _LOCK, never before
+LOCK = threading.RLock()  # guards every field in the cache (set_vertices + render are not re-entrant)
+_LOAD_LOCK = threading.Lock()  # one load per file at a time (get_field); taken after LOCK, never before
 
 
 def user_message(exc) -> str:
@@ -58,7 +58,7 @@ def get_field(key: str, path: str):
     if not os.path.isfile(path):
         raise FileNotFoundError(f"object '{key}': NeuMesh field file not found: {path}")
     stamp = _stamp(path)
-    # Not under _LOCK: a render in another thread (the viewport's preview) holds it for a whole level,
+    # Not under LOCK: a render in another thread (the viewport's preview) holds it for a whole level,
     # seconds on a big field, and the main thread asks here on every depsgraph update and after every
     # undo. Waiting there would freeze Blender until the level ended before the viewport could even ask
     # for the new image, which cancels that render.
@@ -89,14 +89,14 @@ def cached_field(key: str, path: str):
 def adopt(key: str, path: str, field):
     """Make the cache hold ``field`` (already in memory, just saved to ``path``) for object ``key``, so
     an edit shows at once without reloading the file it wrote."""
-    with _LOCK:
+    with LOCK:
         e = _CACHE.get(key)
         last = e.last_vertices if e is not None and e.field is field else None
         _CACHE[key] = _Entry(path, _stamp(path), field, last)
 
 
 def clear_cache():
-    with _LOCK:
+    with LOCK:
         _CACHE.clear()
         _MIRRORS.clear()
         _DERIVED.clear()
@@ -138,7 +138,7 @@ def _source(path: str):
     if not os.path.isfile(path):
         raise FileNotFoundError(f"NeuMesh field file not found: {path}")
     stamp = _stamp(path)
-    with _LOCK:
+    with LOCK:
         e = _SOURCES.get(path)
         if e is None or e.stamp != stamp:
             e = _SOURCES[path] = _Entry(path, stamp, nm.load_field(path), None)
@@ -149,7 +149,7 @@ def _source(path: str):
 def _derived(name: str, source, vid, rest, signature, faces_fn):
     """The cached remapped field for ``name``, rebuilt when its source or vertex identity changed."""
     nm = core.get()
-    with _LOCK:
+    with LOCK:
         d = _DERIVED.get(name)
         if d is not None and d.source is source and d.signature == signature and \
                 np.array_equal(d.vid, vid) and np.array_equal(d.rest, rest):
@@ -224,6 +224,15 @@ def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
     return items
 
 
+def source_ids(key: str, source):
+    """For the remapped field of item ``key`` (an ``"object#key"`` item), the vertex of ``source`` each
+    of its vertices came from (-1 for a new vertex), as ``nm.resolve_ids`` gives."""
+    with LOCK:
+        d = _DERIVED[key]
+        vid, rest = d.vid, d.rest
+    return core.get().resolve_ids(source, vid, rest)
+
+
 def _memo_items(name: str, own, path: str, ident, signature, verts, scene):
     """The items of the last frame for ``verts`` when the mesh's ids, its counts and every field they
     came from are unchanged (deformation only); None when they must be worked out again."""
@@ -258,10 +267,10 @@ def object_field(obj, depsgraph):
     items = _object_items(ob, obj, path, depsgraph, True)
     own = [it for it in items if it.field is None or it.path == path]
     it = own[0] if own else items[0]
-    with _LOCK:
+    with LOCK:
         if it.field is None:
             get_field(it.key, it.path)
-        field = _apply_vertices(it)
+        field = posed_field(it)
     return field, it.mesh_index
 
 
@@ -277,7 +286,7 @@ def collect(depsgraph, for_render: bool = True) -> list[Item]:
         orig = ob.original
         if not props.has_field(orig):
             continue
-        if for_render and _is_holdout(orig, depsgraph):   # an occluder (holdout_meshes), not a field
+        if for_render and is_holdout(orig, depsgraph):   # an occluder (holdout_meshes), not a field
             continue
         path = props.field_abspath(orig)
         if not os.path.isfile(path):
@@ -286,14 +295,17 @@ def collect(depsgraph, for_render: bool = True) -> list[Item]:
     return items
 
 
-def _is_holdout(obj, depsgraph) -> bool:
+def is_holdout(obj, depsgraph) -> bool:
+    """Is ``obj`` a holdout in the depsgraph's view layer (an occluder, not a field)?"""
     try:
         return bool(obj.holdout_get(view_layer=depsgraph.view_layer))
     except (TypeError, RuntimeError, ReferenceError, AttributeError):
         return False
 
 
-def _apply_vertices(item: Item):
+def posed_field(item: Item):
+    """The cached field of ``item`` posed at ``item.vertices`` (set only when they moved); call it under
+    :data:`LOCK`, with the object's own field loaded (:func:`get_field`)."""
     if item.field is not None:
         e = _CACHE.get(item.key)
         if e is None or e.field is not item.field:
@@ -332,8 +344,8 @@ def on_device(item: Item, field, device):
         _MIRRORS.pop(item.key, None)
         return field
     e = _CACHE.get(item.key)
-    if e is None or e.field is not field:   # not posed through the cache (_apply_vertices always is)
-        raise RuntimeError(f"on_device: {item.key} is not the cached field; pose it with _apply_vertices first")
+    if e is None or e.field is not field:   # not posed through the cache (posed_field always is)
+        raise RuntimeError(f"on_device: {item.key} is not the cached field; pose it with posed_field first")
     m = _MIRRORS.get(item.key)
     if m is None or m.entry is not e or m.device != device:
         return _fresh_mirror(item.key, e, device)
@@ -370,7 +382,7 @@ def private_copy(field):
     no render or deformation is half-way through it)."""
     import copy
 
-    with _LOCK:
+    with LOCK:
         return copy.deepcopy(field)
 
 
@@ -379,7 +391,7 @@ def posed_copy(item: Item):
     as a render poses it (nothing is recomputed when the render already posed it there), then copied."""
     import copy
 
-    with _LOCK:
+    with LOCK:
         if item.field is None:
             get_field(item.key, item.path)
-        return copy.deepcopy(_apply_vertices(item))
+        return copy.deepcopy(posed_field(item))

@@ -59,14 +59,14 @@ def _render_out(items: list[Item], K, c2w, width: int, height: int, transparent:
 
     import torch
 
-    with core.torch_work() as threads, fields._LOCK:
+    with core.torch_work() as threads, fields.LOCK:
         t0 = time.perf_counter()
         device = core.render_device()   # the preference Device (auto: a CUDA GPU when torch sees one)
         posed = []
         for it in items:
             if it.field is None:
                 fields.get_field(it.key, it.path)
-            posed.append(fields.on_device(it, fields._apply_vertices(it), device))
+            posed.append(fields.on_device(it, fields.posed_field(it), device))
         t1 = time.perf_counter()
         out = nm.render_camera(posed if len(posed) > 1 else posed[0], np.asarray(K, np.float32),
                                np.asarray(c2w, np.float32), int(width), int(height), background=bg,
@@ -100,7 +100,7 @@ def holdout_meshes(depsgraph) -> tuple[np.ndarray, np.ndarray] | None:
     for ob in depsgraph.objects:
         if ob.type not in {"MESH", "CURVE", "SURFACE", "META", "FONT"}:
             continue
-        if not fields._is_holdout(ob.original, depsgraph):
+        if not fields.is_holdout(ob.original, depsgraph):
             continue
         me = ob.to_mesh()
         try:
