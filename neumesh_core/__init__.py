@@ -16,7 +16,8 @@ from .errors import (CheckpointError, DataError, DeformError, EditError, NeuMesh
 from .mesh import Mesh, load_mesh, save_mesh
 from .device import resolve_device
 from .field.field import FieldConfig, NeuMeshField, create_field
-from .field.remap import field_key, remap_field, resolve_ids  # remap_field: the add-on's topology edits
+from .field.remap import (field_key, remap_field, resolve_ids,  # remap_field: the add-on's topology edits
+                          split_by_key, sub_triangles)
 from .render.renderer import Cancelled, RenderOutput, RenderSettings, render_camera, render_rays
 from .render.raster import depth_buffer
 from .field.io import load_field, save_field
@@ -46,7 +47,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "Cameras", "ScaffoldConfig", "axis_to_ray_depth", "bake", "deform", "bake_texture", "build_scaffold", "depth_buffer",
-    "field_key", "ray_to_axis_depth", "remap_field", "resolve_ids", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "DeformError", "EditError", "PaintMissError", "FieldConfig", "ImageSet",
+    "field_key", "ray_to_axis_depth", "remap_field", "resolve_ids", "split_by_key", "sub_triangles", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "DeformError", "EditError", "PaintMissError", "FieldConfig", "ImageSet",
     "Mesh", "NeuMeshError", "NeuMeshField", "NoSemanticsError", "RenderOutput", "RenderSettings", "Scene",
     "SelectionError", "TrainConfig", "TrainProgress", "TrainResult", "VertexMismatchError",
     "WeightsUnavailableError", "create_field", "default_scene_dir", "evaluate", "fill_texture",

@@ -194,28 +194,26 @@ def _object_items(ob, orig, path, depsgraph, for_render: bool) -> list:
             spath = identity.lookup(depsgraph.scene, int(k))
             if spath is not None and os.path.isfile(spath):
                 known[int(k)] = (_source(spath), spath)
-    key = np.where(np.isin(key, list(known)), key, own_key)
+    nm = core.get()
+    groups = nm.split_by_key(key, known, own_key)
     memo_key = (own,) + tuple(ident) + (signature,)   # identity.read returns fresh arrays: no copies
-    if len(vid) == own.num_vertices and (key == own_key).all() and np.array_equal(vid, np.arange(len(vid))):
-        ok = core.get().resolve_ids(own, vid, rest)
+    if len(vid) == own.num_vertices and [k for k, _ in groups] == [own_key] and \
+            np.array_equal(vid, np.arange(len(vid))):
+        ok = nm.resolve_ids(own, vid, rest)
         if (ok >= 0).all():   # exactly the field's vertices, in order: the field itself
             _DERIVED.pop(orig.name_full, None)
             _IDENTITY_MEMO[orig.name_full] = (memo_key, None)
             return [Item(orig.name_full, path, verts)]
     items, plan = [], []
     tri = None
-    for k in np.unique(key):
-        sel = np.nonzero(key == k)[0]
-        source, spath = known[int(k)]
+    for k, sel in groups:
+        source, spath = known[k]
 
         def faces_fn(sel=sel):
             nonlocal tri
             if tri is None:
                 tri = sync.mesh_triangles(mesh)
-            pos = np.full(len(vid), -1, np.int64)
-            pos[sel] = np.arange(len(sel))
-            f = pos[tri]
-            return f[(f >= 0).all(1)]
+            return nm.sub_triangles(tri, sel, len(vid))
         name = f"{orig.name_full}#{int(k)}"
         field = _derived(name, source, vid[sel], rest[sel], signature + (int(k),), faces_fn)
         items.append(Item(name, spath, verts[sel], field, sel))

@@ -142,3 +142,22 @@ def _restrict_grid(field, source) -> None:
     near = OccupancyGrid.mask_from_vertices(v, aabb, res.to(aabb.device), float(field.radius))
     g.mesh_mask = g.mesh_mask & near
     g.occ = g.occ & near
+
+
+def split_by_key(keys, known, own: int) -> list:
+    """The vertices of a joined mesh grouped by the field they came from: ``[(key, vertex indices)]``
+    sorted by key.  ``keys`` (V,) is each vertex's field key (:func:`field_key`); a key not in
+    ``known`` (interpolated between vertices by a modifier, lost, or the key of the field before it was
+    trained further) counts as ``own``, the key of the mesh's own field."""
+    keys = np.asarray(keys, np.int64).reshape(-1)
+    keys = np.where(np.isin(keys, np.asarray(list(known), np.int64)), keys, np.int64(own))
+    return [(int(k), np.nonzero(keys == k)[0]) for k in np.unique(keys)]
+
+
+def sub_triangles(triangles, selection, num_vertices: int) -> np.ndarray:
+    """The triangles (F,3) of a mesh with ``num_vertices`` vertices whose three corners all lie in
+    ``selection`` (vertex indices), with their corners renumbered to positions in ``selection``."""
+    pos = np.full(int(num_vertices), -1, np.int64)
+    pos[np.asarray(selection, np.int64)] = np.arange(len(selection))
+    f = pos[np.asarray(triangles, np.int64).reshape(-1, 3)]
+    return f[(f >= 0).all(1)]

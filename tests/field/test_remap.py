@@ -6,7 +6,8 @@ import pytest
 import torch
 
 import neumesh_core as nm
-from neumesh_core.field.remap import field_key, is_identity, remap_field, resolve_ids
+from neumesh_core.field.remap import (field_key, is_identity, remap_field, resolve_ids, split_by_key,
+                                      sub_triangles)
 
 from ..conftest import textured_field
 from ..edit.helpers import only_touching
@@ -117,3 +118,18 @@ def test_ids_whose_rest_position_disagrees_are_new_vertices(blob_mesh):
     assert got[5] == -1 and got[7] == -1 and (got[8:] == np.arange(8, f.num_vertices)).all()
     other = textured_field(blob_mesh, seed=3)
     assert field_key(other) != field_key(f)
+
+
+def test_a_joined_mesh_splits_by_field_key_and_unknown_keys_count_as_its_own():
+    keys = np.array([7, 3, 7, 99, 3, 5])           # 99: no field of that key; 5: the mesh's own field
+    groups = split_by_key(keys, known={5: None, 3: None, 7: None}, own=5)
+    assert [k for k, _ in groups] == [3, 5, 7]
+    assert [sel.tolist() for _, sel in groups] == [[1, 4], [3, 5], [0, 2]]
+    assert [k for k, _ in split_by_key(np.array([99, 98]), known={5: None}, own=5)] == [5]
+
+
+def test_sub_triangles_keeps_the_triangles_inside_the_selection_renumbered():
+    tri = np.array([[0, 1, 2], [2, 3, 4], [1, 3, 4], [4, 5, 1]])
+    out = sub_triangles(tri, np.array([1, 3, 4, 5]), 6)
+    assert out.tolist() == [[0, 1, 2], [2, 3, 0]]
+    assert sub_triangles(tri, np.array([0, 5]), 6).shape == (0, 3)
