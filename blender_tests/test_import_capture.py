@@ -60,7 +60,7 @@ def test_import_cameras_of_a_colmap_folder(addon, tmp_path):
     assert col.domain == "POINT"
     rgba = np.zeros(len(col.data) * 4, np.float32)
     col.data.foreach_get("color", rgba)
-    lin = _cap(addon).srgb_to_linear(np.array([10, 20, 30]) / 255.0)
+    lin = addon.runtime.core.get().srgb_to_linear(np.array([10, 20, 30]) / 255.0)
     np.testing.assert_allclose(rgba.reshape(-1, 4)[:, :3], np.broadcast_to(lin, (40, 3)), atol=1e-5)
     assert any(m.type == "NODES" for m in pts.modifiers)   # drawn as points in Object Mode
     box = bpy.data.objects["NeuMesh Box"]

@@ -23,7 +23,7 @@ from .render.raster import depth_buffer
 from .field.io import load_field, save_field
 from .train.trainer import TrainConfig, TrainProgress, TrainResult, train
 from .evaluate import evaluate
-from .imageio import read_image, save_image
+from .imageio import read_image, save_image, srgb_to_linear
 from .data.loader import load_scene
 from .data.synthetic import default_scene_dir, make_default_scene
 from . import edit  # noqa: E402  (nm.edit: EditRecord, save_edited, ...)
@@ -52,7 +52,7 @@ __all__ = [
     "SelectionError", "TrainConfig", "TrainProgress", "TrainResult", "VertexMismatchError",
     "WeightsUnavailableError", "create_field", "default_scene_dir", "evaluate", "fill_texture",
     "intrinsics_from_fov", "load_field", "load_mesh", "load_scene", "make_default_scene", "opencv_to_opengl",
-    "opengl_to_opencv", "paint_layer", "paint_texture", "pixel_rays", "read_image", "render_camera", "render_rays",
+    "opengl_to_opencv", "paint_layer", "paint_texture", "pixel_rays", "read_image", "srgb_to_linear", "render_camera", "render_rays",
     "save_field", "save_image", "save_mesh", "swap_texture", "train",
     "Capture", "PosesConfig", "PosesError", "PosesProgress", "PosesReport", "estimate_poses", "frames_from_video",
     "read_capture", "capture_object_box", "training_photos", "undistorted_images",

@@ -75,6 +75,13 @@ def read_image(path: str, reduce: int = 1) -> np.ndarray:
     return arr
 
 
+def srgb_to_linear(x) -> np.ndarray:
+    """sRGB-encoded values (display-referred, what a field renders and photos hold) decoded to linear
+    light with the sRGB transfer function, as float32; negative values count as 0."""
+    x = np.clip(np.asarray(x, np.float32), 0.0, None)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
 def _to_uint8(array) -> np.ndarray:
     try:
         import torch

@@ -1,4 +1,4 @@
-"""read_image / save_image / resize_image."""
+"""read_image / save_image / resize_image / srgb_to_linear."""
 import os
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 from PIL import Image
 
 from neumesh_core.errors import DataError
-from neumesh_core.imageio import read_image, resize_image, save_image
+from neumesh_core.imageio import read_image, resize_image, save_image, srgb_to_linear
 
 
 def test_png_round_trip_rgba_and_rgb(tmp_path):
@@ -83,3 +83,13 @@ def test_read_with_reduce_matches_resize(tmp_path):
     rgb = read_image(str(tmp_path / "r.png"))[..., :3]
     save_image(str(tmp_path / "rgb.png"), rgb)
     np.testing.assert_allclose(read_image(str(tmp_path / "rgb.png"), reduce=2), resize_image(rgb, 0.5), atol=0.51 / 255)
+
+
+def test_srgb_to_linear_is_the_srgb_transfer_function():
+    x = np.array([-0.5, 0.0, 0.04045, 0.5, 1.0])
+    y = srgb_to_linear(x)
+    assert y.dtype == np.float32
+    np.testing.assert_allclose(y, [0.0, 0.0, 0.04045 / 12.92, 0.21404114, 1.0], rtol=1e-5, atol=1e-7)
+    # the two pieces meet: continuous at the threshold, increasing throughout
+    assert abs(float(srgb_to_linear(0.04046)) - 0.04045 / 12.92) < 1e-5
+    assert np.all(np.diff(srgb_to_linear(np.linspace(0, 1, 256))) > 0)

@@ -32,7 +32,7 @@ from bpy.props import EnumProperty, FloatProperty, IntProperty
 
 from ..runtime._np import np
 from ..runtime import classes_factory, core, prefs
-from ..render import fields, frame
+from ..render import fields
 from ..runtime.errors import UserError
 from ..runtime.jobs import Job, JobModal
 from ..scene import sync
@@ -161,7 +161,7 @@ def build_object(name: str, result, shading: str, collection=None):
     if result.vertex_colours is not None and hasattr(me, "color_attributes"):
         attr = me.color_attributes.new(COLOR_NAME, "FLOAT_COLOR", "POINT")
         rgba = np.ones((n_field, 4), np.float32)
-        rgba[:, :3] = frame.srgb_to_linear(result.vertex_colours[:n_field])
+        rgba[:, :3] = core.get().srgb_to_linear(result.vertex_colours[:n_field])
         attr.data.foreach_set("color", rgba.ravel())
     img = make_image(f"{name}_texture", result.texture)
     mat = make_material(f"{name}_material", img, shading)

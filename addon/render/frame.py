@@ -174,11 +174,6 @@ def _rgba(out, width: int, height: int, transparent: bool) -> np.ndarray:
     return np.concatenate([rgb, alpha], axis=-1)
 
 
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, None)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     x = np.clip(x, 0.0, None)
     return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
@@ -186,6 +181,7 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
 
 def to_scene_linear(rgba: np.ndarray, transparent: bool) -> np.ndarray:
     """Display-referred RGBA from :func:`render_items` -> Blender scene-linear premultiplied RGBA."""
+    srgb_to_linear = core.get().srgb_to_linear
     rgb, a = rgba[..., :3], rgba[..., 3:4]
     if transparent:
         straight = np.where(a > 1e-6, rgb / np.maximum(a, 1e-6), 0.0)

@@ -67,11 +67,6 @@ def scene_box(scene):
     return M[:3, 3].copy(), half, R
 
 
-def srgb_to_linear(c):
-    c = np.asarray(c, np.float32)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
 def default_poses_dir(source: str) -> str:
     """Where Poses from Photos writes: beside the photos' folder or the video, '<name>_poses'."""
     src = os.path.normpath(os.path.abspath(source))
@@ -193,7 +188,7 @@ def points_object(coll, points, colours, radius: float):
     me.vertices.foreach_set("co", pts.ravel())
     if colours is not None:
         rgba = np.ones((len(pts), 4), np.float32)
-        rgba[:, :3] = srgb_to_linear(np.asarray(colours, np.float32)[:, :3] / 255.0)
+        rgba[:, :3] = core.get().srgb_to_linear(np.asarray(colours, np.float32)[:, :3] / 255.0)
         attr = me.color_attributes.new("Color", "FLOAT_COLOR", "POINT")
         attr.data.foreach_set("color", rgba.ravel())
         try:
