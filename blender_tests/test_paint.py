@@ -68,6 +68,33 @@ def test_paint_on_view_then_apply_shows_the_paint_in_f12(addon, trained_field, t
     assert addon.scene.props.field_abspath(obj) == str(tmp_path / "A.neumesh")
 
 
+def test_paint_on_a_subdivided_mesh_lands_in_the_objects_own_field(addon, trained_field, tmp_path):
+    """A mesh with a Subdivision Surface shows its field remapped onto the subdivided mesh; paint applied
+    there changes the modification colours (only) of the object's own field, towards the paint."""
+    import torch
+
+    import neumesh_core as nm
+
+    (obj,), cam = _scene(trained_field, tmp_path)
+    obj.modifiers.new("Subdivision", "SUBSURF").levels = 1
+    bpy.context.view_layer.update()
+    assert bpy.ops.neumesh.paint_view() == {"FINISHED"}
+    assert addon.render.fields.STATS.get("remaps", 0) > 0
+    _paint(addon, (16, 22), (18, 30), (0.05, 0.1, 0.9))
+    assert bpy.ops.neumesh.apply_paint() == {"FINISHED"}
+    edited = addon.scene.props.field_abspath(obj)
+    assert edited.endswith("A.edit-001.neumesh")
+    before, after = nm.load_field(str(tmp_path / "A.neumesh")), nm.load_field(edited)
+    assert after.num_vertices == before.num_vertices
+    delta = (after.mod_colours - before.mod_colours).detach()
+    moved = delta.abs().amax(1) > 1e-4
+    assert 0 < int(moved.sum()) < before.num_vertices
+    assert torch.equal(after.tex_codes, before.tex_codes) and torch.equal(after.decoder_id, before.decoder_id)
+    assert float(delta[moved, 2].mean()) > float(delta[moved, 0].mean())   # towards blue
+    assert bpy.ops.neumesh.undo_edit() == {"FINISHED"}
+    assert addon.scene.props.field_abspath(obj) == str(tmp_path / "A.neumesh")
+
+
 def test_only_the_fields_under_the_paint_change(addon, trained_field, tmp_path):
     (a, b), cam = _scene(trained_field, tmp_path, names=("A", "B"))
     assert bpy.ops.neumesh.paint_view() == {"FINISHED"}
