@@ -3,7 +3,7 @@
 
 The zip holds one folder ``neumesh/`` with
   * the add-on (``addon/``: ``__init__.py`` and its sub-packages runtime/, scene/, render/, train/,
-    edit/, ui/), including ``blender_manifest.toml`` -> a Blender 4.2+ extension, and
+    edit/, semantics/, bake/, deform/, ui/), including ``blender_manifest.toml`` -> a Blender 4.2+ extension, and
     ``bl_info`` in ``__init__.py`` -> a legacy add-on for Blender 3.x/4.0/4.1;
   * ``neumesh_core`` vendored as the subpackage ``neumesh/neumesh_core`` (imported by ``addon/runtime/core.py``).
 torch & co are not bundled (see the add-on preferences / docs/addon.md).

@@ -25,11 +25,11 @@ try:
 except Exception as _exc:  # noqa: BLE001
     print(f"NeuMesh: dependency folder unavailable: {_exc}")
 
-from . import edit, render, runtime, scene, train, ui  # noqa: E402
+from . import bake, deform, edit, render, runtime, scene, semantics, train, ui  # noqa: E402
 
 # each room registers its own modules; the order is the sidebar's order of panels, and a room's
 # classes may use the properties of the rooms before it
-_rooms = (runtime, scene, train, render, ui, edit)
+_rooms = (runtime, scene, train, render, ui, edit, semantics, bake, deform)
 
 
 def register():

@@ -63,7 +63,7 @@ def _live_key():
     """(N,3) the 'NeuMesh ARAP' shape key as the mesh holds it."""
     import numpy as np
 
-    kb = bpy.data.objects["bar"].data.shape_keys.key_blocks[addon_module().edit.arap.LIVE_KEY]
+    kb = bpy.data.objects["bar"].data.shape_keys.key_blocks[addon_module().deform.arap.LIVE_KEY]
     arr = np.empty(len(kb.data) * 3, np.float32)
     kb.data.foreach_get("co", arr)
     return arr.reshape(-1, 3)
@@ -94,7 +94,7 @@ class Driver:
         area = next(a for a in win.screen.areas if a.type == "VIEW_3D")
         main = next(r for r in area.regions if r.type == "WINDOW")
         cx, cy = main.x + main.width // 2, main.y + main.height // 2
-        arap = addon_module().edit.arap
+        arap = addon_module().deform.arap
         if time.time() - self.t > 120:
             self.out["errors"].append(f"timed out in {self.state}")
             return self.finish()

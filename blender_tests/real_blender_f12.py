@@ -41,7 +41,7 @@ got = linear_to_srgb(read_exr(os.path.join(out_dir, "f12.exr"))[..., :3])
 
 nm = addon.runtime.core.get()
 dg = bpy.context.evaluated_depsgraph_get()
-items = addon.render.fields.collect(dg)
+items = addon.render.field_cache.collect(dg)
 K, c2w, _w, _h = addon.scene.camera.camera_K_c2w(cam, scene, dg)
 field = nm.load_field(field_path)
 field.set_vertices(items[0].vertices)

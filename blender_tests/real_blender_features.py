@@ -41,7 +41,7 @@ def run(name, fn):
 
 
 run("distill", lambda: bpy.ops.neumesh.distill_semantics(wait=True, steps=2, max_views=2, rays_per_view=32))
-job = addon.edit.distil.current_job()
+job = addon.semantics.distill.current_job()
 out["distill_job"] = None if job is None else [job.state, job.message]
 run("bake", lambda: bpy.ops.neumesh.bake_material(resolution=64))
 out["baked"] = [o.name for o in bpy.data.objects if o.name.endswith("_baked")]

@@ -1,4 +1,4 @@
-"""ARAP deform in Blender (addon/edit/arap.py): Anchor/Handle vertex groups, one Empty per handle group,
+"""ARAP deform in Blender (addon/deform/arap.py): Anchor/Handle vertex groups, one Empty per handle group,
 the solve written into the live shape key on depsgraph updates and frame changes, Apply as shape key."""
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def test_moving_the_empty_moves_handles_and_keeps_anchors(addon):
     e = _empty(obj)
     np.testing.assert_allclose(np.array(e.matrix_world.translation), V[handles].mean(0), atol=1e-5)
     np.testing.assert_allclose(_evaluated(obj), V, atol=1e-4)   # at rest: the rest shape
-    assert addon.edit.arap.TIMINGS[obj.name_full]["mode"] == "rest"   # written without a solve
+    assert addon.deform.arap.TIMINGS[obj.name_full]["mode"] == "rest"   # written without a solve
     e.location.z += 0.3
     bpy.context.view_layer.update()   # depsgraph_update_post -> solve
     W = _evaluated(obj)
@@ -112,7 +112,7 @@ def test_missing_and_overlapping_groups_are_clear_errors(addon):
     V, F = grid_mesh(8, 3)
     obj = addon.scene.sync.new_mesh_object("g", V, F)
     bpy.context.view_layer.objects.active = obj
-    err = addon.edit.arap.read_groups
+    err = addon.deform.arap.read_groups
     UserError = addon.runtime.errors.UserError
     s = obj.neumesh_arap
     try:
@@ -187,7 +187,7 @@ def test_drag_solves_in_a_thread_on_the_preview_cage(addon):
     obj.neumesh_arap.preview_vertices = 40
     bpy.ops.neumesh.arap_add()
     e = _empty(obj)
-    arap = addon.edit.arap
+    arap = addon.deform.arap
     e.matrix_world = mathutils.Matrix.Translation((0, 0, 0.2)) @ e.matrix_world
     assert arap.drag(obj) is True
     arap.wait_for_drags()
@@ -218,7 +218,7 @@ def test_undo_drops_a_late_drag_solve_and_gives_back_the_shape_from_before_the_d
     obj, V, anchors, handles = _bar(addon)
     bpy.ops.neumesh.arap_add()
     e = _empty(obj)
-    arap, undo = addon.edit.arap, addon.edit.arap_undo
+    arap, undo = addon.deform.arap, addon.deform.arap_undo
     before = _live(obj)
     rest = e.matrix_world.copy()
     e.matrix_world = mathutils.Matrix.Translation((0, 0, 0.3)) @ rest

@@ -139,7 +139,7 @@ def test_relative_field_path_in_unsaved_file_keeps_its_slashes(addon, trained_fi
     bpy.context.scene.render.engine = "NEUMESH"
     bpy.context.scene.render.resolution_x = bpy.context.scene.render.resolution_y = 16
     with pytest.raises(FileNotFoundError) as exc:
-        addon.render.fields.collect(bpy.context.evaluated_depsgraph_get())
+        addon.render.field_cache.collect(bpy.context.evaluated_depsgraph_get())
     msg = str(exc.value)
     assert "not found: //field.neumesh" in msg and "has not been saved" in msg
     try:

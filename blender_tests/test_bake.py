@@ -47,13 +47,13 @@ def test_bake_material_creates_a_textured_object(addon, trained_field, tmp_path,
     # normal (at most SurfaceFitConfig.search radii), so the baked mesh lies where the field renders
     shift = np.linalg.norm(co.reshape(-1, 3) - (src.reshape(-1, 3) + [1.5, 0, 0]), axis=1)
     assert shift.max() <= nm.bake.SurfaceFitConfig().search * field.radius + 1e-4, shift.max()
-    uv = me.uv_layers.get(addon.edit.bake.UV_NAME)
+    uv = me.uv_layers.get(addon.bake.material.UV_NAME)
     assert uv is not None
     uvs = np.empty(len(me.loops) * 2, np.float32)
     uv.data.foreach_get("uv", uvs)
     assert uvs.min() >= 0 and uvs.max() <= 1 and np.ptp(uvs) > 0.5
     # the per-vertex colour attribute (the same rays at the vertices)
-    attr = me.color_attributes.get(addon.edit.bake.COLOR_NAME)
+    attr = me.color_attributes.get(addon.bake.material.COLOR_NAME)
     assert attr is not None and attr.domain == "POINT" and len(attr.data) == len(me.vertices)
     vc = np.empty(len(me.vertices) * 4, np.float32)
     attr.data.foreach_get("color", vc)
@@ -72,7 +72,7 @@ def test_bake_material_creates_a_textured_object(addon, trained_field, tmp_path,
     socket = ("Emission Color", "Emission") if shading == "EMISSION" else ("Base Color",)
     assert tex in _links_to(bsdf, socket)
     uvnode = _links_to(tex, ("Vector",))[0]
-    assert uvnode.type == "UVMAP" and uvnode.uv_map == addon.edit.bake.UV_NAME
+    assert uvnode.type == "UVMAP" and uvnode.uv_map == addon.bake.material.UV_NAME
     assert any(l.to_node.type == "OUTPUT_MATERIAL" for l in bsdf.outputs[0].links)
     # the field file and the source object are unchanged
     assert hashlib.sha256(open(path, "rb").read()).hexdigest() == digest
@@ -98,11 +98,11 @@ def test_bake_material_decimate_ratio(addon, trained_field, tmp_path):
     assert 0.15 * n_faces < len(me.polygons) < 0.35 * n_faces
     assert all(len(p.vertices) == 3 for p in me.polygons)
     assert len(obj.data.polygons) == n_faces
-    uv = me.uv_layers.get(addon.edit.bake.UV_NAME)
+    uv = me.uv_layers.get(addon.bake.material.UV_NAME)
     uvs = np.empty(len(me.loops) * 2, np.float32)
     uv.data.foreach_get("uv", uvs)
     assert uvs.min() >= 0 and uvs.max() <= 1
-    attr = me.color_attributes.get(addon.edit.bake.COLOR_NAME)
+    attr = me.color_attributes.get(addon.bake.material.COLOR_NAME)
     assert attr is not None and len(attr.data) == len(me.vertices)
     img = me.materials[0].node_tree.nodes["NeuMesh baked texture"].image
     px = np.empty(64 * 64 * 4, np.float32)

@@ -48,7 +48,7 @@ def _core(addon, field_path, scene, cam, transparent=True):
     import neumesh_core as nm
 
     dg = bpy.context.evaluated_depsgraph_get()
-    items = addon.render.fields.collect(dg)
+    items = addon.render.field_cache.collect(dg)
     K, c2w, w, h = addon.scene.camera.camera_K_c2w(cam, scene, dg)
     field = nm.load_field(field_path)
     field.set_vertices(items[0].vertices)
@@ -255,9 +255,9 @@ def test_field_object_stays_editable_in_the_artists_scene(addon, trained_field, 
     mine = bpy.data.collections.new("props")
     scene.collection.children.link(mine)
     vl.active_layer_collection = vl.layer_collection.children["props"]
-    assert addon.edit.bake.output_collection(bpy.context) is mine
+    assert addon.bake.material.output_collection(bpy.context) is mine
     vl.active_layer_collection = vl.layer_collection.children[edit.name]
-    assert addon.edit.bake.output_collection(bpy.context) is scene.collection
+    assert addon.bake.material.output_collection(bpy.context) is scene.collection
     # with nothing selected the panel's message is wrapped, not cut
     vl.objects.active = None
     labels, _ = draw_panel(bpy.types.NEUMESH_PT_paint, bpy.context)

@@ -167,7 +167,7 @@ def test_cpu_threads_preference_is_applied_to_renders(addon, trained_field):
         assert addon.render.engine.LAST_RENDER["torch_threads"] == addon.runtime.core.all_cores()
         # another thread (as the viewport preview renders): the preference again, in that thread
         prefs.torch_threads = 1
-        items = addon.render.fields.collect(bpy.context.evaluated_depsgraph_get())
+        items = addon.render.field_cache.collect(bpy.context.evaluated_depsgraph_get())
         K, c2w = manual_K_c2w(bpy.context.scene.camera, 16, 12)
         th = threading.Thread(target=addon.render.frame.render_items, args=(items, K, c2w, 16, 12))
         th.start()
@@ -227,7 +227,7 @@ def test_field_lookups_do_not_wait_for_a_render_holding_the_cache_lock(addon, tr
     import shutil
     import threading
 
-    render = addon.render.fields
+    render = addon.render.field_cache
     render.clear_cache()
     other = str(tmp_path / "other.neumesh")
     shutil.copy(trained_field, other)
@@ -268,7 +268,7 @@ def test_field_cache_reloads_on_change_and_skips_unchanged_vertices(addon, train
     shutil.copy(trained_field, path)
     obj, cam, _r, _t = _deformed_scene(addon, path)
     scene = bpy.context.scene
-    render = addon.render.fields
+    render = addon.render.field_cache
     render.clear_cache()
     scene.render.filepath = str(tmp_path / "a.png")
     bpy.ops.render.render(write_still=True)
@@ -304,7 +304,7 @@ def test_animation_frames_follow_keyed_armature(addon, trained_field, tmp_path):
 def test_progressive_preview_renders_low_resolution_first(addon, trained_field):
     obj, cam, _r, _t = _deformed_scene(addon, trained_field)
     dg = bpy.context.evaluated_depsgraph_get()
-    items = addon.render.fields.collect(dg, for_render=False)
+    items = addon.render.field_cache.collect(dg, for_render=False)
     K, c2w = manual_K_c2w(cam, 96, 80)
     pv = addon.render.preview.PreviewRenderer(divisors=(8, 4, 2))
     try:
@@ -324,7 +324,7 @@ def test_progressive_preview_renders_low_resolution_first(addon, trained_field):
 
 def test_progressive_preview_starts_coarser_when_the_first_level_would_be_slow(addon, trained_field):
     obj, cam, _r, _t = _deformed_scene(addon, trained_field)
-    items = addon.render.fields.collect(bpy.context.evaluated_depsgraph_get(), for_render=False)
+    items = addon.render.field_cache.collect(bpy.context.evaluated_depsgraph_get(), for_render=False)
     K, c2w = manual_K_c2w(cam, 192, 160)
     pv = addon.render.preview.PreviewRenderer(divisors=(4, 2), first_budget_s=0.1, max_divisor=16)
     try:
@@ -432,7 +432,7 @@ def test_device_preference_renders_on_the_chosen_device(addon, trained_field):
 
     _deformed_scene(addon, trained_field)
     prefs = addon.runtime.prefs.get_prefs()
-    items = addon.render.fields.collect(bpy.context.evaluated_depsgraph_get())
+    items = addon.render.field_cache.collect(bpy.context.evaluated_depsgraph_get())
     K, c2w = manual_K_c2w(bpy.context.scene.camera, 16, 12)
     try:
         prefs.device = "CPU"
@@ -459,7 +459,7 @@ def test_device_preference_renders_on_the_chosen_device(addon, trained_field):
 def test_device_copy_is_made_once_per_field_and_follows_deformation(addon):
     """The copy of a cached field on the render device: made once, re-posed (not re-copied) when the
     cached field was deformed, and made anew when an edit is adopted (a new cache entry)."""
-    fields = addon.render.fields
+    fields = addon.render.field_cache
 
     class FakeField:   # records what the device copy is asked to do
         def __init__(self):

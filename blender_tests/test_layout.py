@@ -9,13 +9,13 @@ import os
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ADDON = os.path.join(ROOT, "addon")
 # the rooms from the bottom up; a room may import its own modules and the rooms before it
-ROOMS = ("runtime", "scene", "render", "train", "edit", "ui")
+ROOMS = ("runtime", "scene", "render", "train", "edit", "semantics", "bake", "deform", "ui")
 # public sub-modules of neumesh_core (besides the names in neumesh_core.__all__)
 PUBLIC_SUBMODULES = {"edit", "semantics", "bake", "deform"}
 
 
 def addon_modules(root=ADDON) -> dict:
-    """{dotted module name below the add-on ('' for the package, 'render.fields', ...): file path}."""
+    """{dotted module name below the add-on ('' for the package, 'render.field_cache', ...): file path}."""
     out = {}
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames[:] = [d for d in dirnames if not d.startswith((".", "__pycache__"))]

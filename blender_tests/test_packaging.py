@@ -20,7 +20,7 @@ def test_zip_layout(addon_zip):
     assert "neumesh/neumesh_core/__init__.py" in names
     for room in ("runtime", "scene", "render", "train", "edit", "ui"):   # the add-on's sub-packages
         assert f"neumesh/{room}/__init__.py" in names, room
-    assert {"neumesh/runtime/deps.py", "neumesh/render/engine.py", "neumesh/edit/bake.py"} <= names
+    assert {"neumesh/runtime/deps.py", "neumesh/render/engine.py", "neumesh/bake/material.py"} <= names
     assert any(n.startswith("neumesh/neumesh_core/render/") for n in names)
     assert not any("__pycache__" in n or n.endswith(".pyc") for n in names)
     import tomllib

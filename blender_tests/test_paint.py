@@ -79,7 +79,7 @@ def test_paint_on_a_subdivided_mesh_lands_in_the_objects_own_field(addon, traine
     obj.modifiers.new("Subdivision", "SUBSURF").levels = 1
     bpy.context.view_layer.update()
     assert bpy.ops.neumesh.paint_view() == {"FINISHED"}
-    assert addon.render.fields.STATS.get("remaps", 0) > 0
+    assert addon.render.field_cache.STATS.get("remaps", 0) > 0
     _paint(addon, (16, 22), (18, 30), (0.05, 0.1, 0.9))
     assert bpy.ops.neumesh.apply_paint() == {"FINISHED"}
     edited = addon.scene.props.field_abspath(obj)

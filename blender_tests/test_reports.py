@@ -75,9 +75,9 @@ def test_load_field_reports_the_field_and_its_check_against_the_mesh(addon, trai
     assert _infos(capfd.readouterr().out) == [
         f"Info: NeuMesh: {head}, as the new object '{obj.name}' (the field's own scaffold)"]
     # the render uses the field read here: no second read of the file
-    loads = addon.render.fields.STATS["loads"]
-    assert addon.render.fields.get_field(obj.name_full, trained_field) is not None
-    assert addon.render.fields.STATS["loads"] == loads
+    loads = addon.render.field_cache.STATS["loads"]
+    assert addon.render.field_cache.get_field(obj.name_full, trained_field) is not None
+    assert addon.render.field_cache.STATS["loads"] == loads
     # onto a copy of its mesh: the vertices match
     sync = addon.scene.sync
     copy = sync.new_mesh_object("copy", sync.mesh_vertices(obj.data), sync.mesh_triangles(obj.data))
@@ -275,7 +275,7 @@ def test_the_sidebar_says_which_pass_the_rendered_viewport_shows(addon, trained_
     # what a real preview reports, level by level
     assert bpy.ops.neumesh.load_field(filepath=trained_field, new_object=True) == {"FINISHED"}
     cam = add_camera((0.0, -4.6, 0.8), lens=35.0)
-    items = addon.render.fields.collect(bpy.context.evaluated_depsgraph_get(), for_render=False)
+    items = addon.render.field_cache.collect(bpy.context.evaluated_depsgraph_get(), for_render=False)
     K, c2w = manual_K_c2w(cam, 64, 48)
     pv = addon.render.preview.PreviewRenderer(divisors=(4, 2))
     try:

@@ -121,7 +121,7 @@ def test_the_blender_crash_quiet_prevents(tmp_path):
 def test_every_background_job_is_the_one_job_class(addon):
     Job = addon.runtime.jobs.Job
     assert issubclass(addon.train.worker.TrainJob, Job)
-    assert issubclass(addon.edit.distil.DistillJob, Job)
+    assert issubclass(addon.semantics.distill.DistillJob, Job)
     assert issubclass(addon.runtime.install.InstallJob, Job)
     assert not addon.runtime.install.InstallJob.uses_torch
 
@@ -219,6 +219,6 @@ def test_distill_and_bake_refuse_to_start_without_their_packages(addon, monkeypa
     bpy.context.scene.neumesh.dataset_path = d
     with pytest.raises(RuntimeError, match="Distill semantics needs the Python package scikit-image"):
         bpy.ops.neumesh.distill_semantics(wait=True)
-    assert addon.edit.distil.current_job() is None or not addon.edit.distil.current_job().running
+    assert addon.semantics.distill.current_job() is None or not addon.semantics.distill.current_job().running
     with pytest.raises(RuntimeError, match="Bake to material needs the Python package xatlas"):
         bpy.ops.neumesh.bake_material(resolution=64)

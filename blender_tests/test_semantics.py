@@ -99,7 +99,7 @@ def test_click_creates_the_parts_vertex_group(addon, parts_data):
     assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head) == {"FINISHED"}
     assert obj.mode == "EDIT"
     bpy.ops.object.mode_set(mode="OBJECT")
-    assert np.array_equal(_group(obj, addon.edit.select.DEFAULT_GROUP), got)
+    assert np.array_equal(_group(obj, addon.semantics.select.DEFAULT_GROUP), got)
 
 
 def test_the_viewport_click_path_uses_the_stored_view(addon, parts_data):
@@ -125,21 +125,21 @@ def test_context_prepared_before_the_click_gives_the_same_group(addon, parts_dat
     _, _, sem, _ = parts_data
     obj, cam = _scene(sem)
     head = _click_on(addon, cam, 1)
-    addon.edit.select._CONTEXTS.clear()
+    addon.semantics.select._CONTEXTS.clear()
     assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="cold") == {"FINISHED"}
-    addon.edit.select._CONTEXTS.clear()
-    job = addon.edit.select.prepare_selection(obj, bpy.context)
+    addon.semantics.select._CONTEXTS.clear()
+    job = addon.semantics.select.prepare_selection(obj, bpy.context)
     assert job is not None
     job.join()
-    ctx = addon.edit.select._CONTEXTS[obj.name_full]
+    ctx = addon.semantics.select._CONTEXTS[obj.name_full]
     assert ctx._graph is not None and ctx._tree is not None   # built before the click
-    assert addon.edit.select.prepare_selection(obj, bpy.context) is None   # already current: nothing to do
+    assert addon.semantics.select.prepare_selection(obj, bpy.context) is None   # already current: nothing to do
     assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="warm") == {"FINISHED"}
-    assert addon.edit.select._CONTEXTS[obj.name_full] is ctx                # reused, not rebuilt
+    assert addon.semantics.select._CONTEXTS[obj.name_full] is ctx                # reused, not rebuilt
     assert np.array_equal(_group(obj, "warm"), _group(obj, "cold"))
     # a field without semantics: nothing is started, the click reports the error
     plain_obj, _ = _scene(parts_data[1])
-    assert addon.edit.select.prepare_selection(plain_obj, bpy.context) is None
+    assert addon.semantics.select.prepare_selection(plain_obj, bpy.context) is None
 
 
 def test_click_errors(addon, parts_data):
@@ -183,7 +183,7 @@ def test_semantic_colours(addon, parts_data):
     _, _, sem, labels = parts_data
     obj, _ = _scene(sem)
     assert bpy.ops.neumesh.semantic_colours() == {"FINISHED"}
-    attr = obj.data.color_attributes[addon.edit.semantic_colours.COLOUR_ATTRIBUTE]
+    attr = obj.data.color_attributes[addon.semantics.semantic_colours.COLOUR_ATTRIBUTE]
     rgba = np.empty(len(obj.data.vertices) * 4, np.float32)
     attr.data.foreach_get("color", rgba)
     rgb = rgba.reshape(-1, 4)[:, :3]
@@ -233,7 +233,7 @@ def test_shape_options_reach_the_core_and_cache_beside_the_field(addon, parts_da
         return real(field, view, pixel, cfg, context=context, **kw)
 
     monkeypatch.setattr(nm.semantics, "select_region", spy)
-    addon.edit.select._CONTEXTS.clear()
+    addon.semantics.select._CONTEXTS.clear()
     assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="shape", geometry=0.3,
                                            creases=False) == {"FINISHED"}
     folder = os.path.dirname(sem)
@@ -259,6 +259,6 @@ def test_panel_says_selection_is_colour_only_without_robust_laplacian(addon, mon
     text = " ".join(labels)
     assert "Shape-aware selection needs robust-laplacian" in text and "colour only" in text
     assert "neumesh.install_dependencies" in ops and "neumesh.select_by_click" in ops
-    assert "robust-laplacian" in addon.edit.select.shape_note({"geometry": "geometric features need "
+    assert "robust-laplacian" in addon.semantics.select.shape_note({"geometry": "geometric features need "
                                                                            "robust-laplacian"})
-    assert addon.edit.select.shape_note({}) == ""
+    assert addon.semantics.select.shape_note({}) == ""

@@ -84,7 +84,7 @@ def test_texture_paint_pixels_reach_the_rendered_field_undo_and_save(addon, trai
     assert obj.data.uv_layers.active.name == tp.UV_NAME
     assert bpy.context.scene.tool_settings.image_paint.canvas == img
     assert obj.mode == "TEXTURE_PAINT"
-    field = addon.render.fields.get_field(obj.name_full, path)     # the field the viewport renders
+    field = addon.render.field_cache.get_field(obj.name_full, path)     # the field the viewport renders
     assert field.paint_atlas is not None and field.paint_atlas.is_empty
     # the UV map is the atlas's: loop corners carry the atlas UVs of the field's faces
     uv = np.empty(len(obj.data.loops) * 2, np.float32)
@@ -134,7 +134,7 @@ def test_f12_of_a_stroke_pushed_during_a_render_equals_the_core_render_of_the_sa
     in the brush's colour, not black."""
     import neumesh_core as nm
 
-    tp, fields, frame = addon.edit.texture_paint, addon.render.fields, addon.render.frame
+    tp, fields, frame = addon.edit.texture_paint, addon.render.field_cache, addon.render.frame
     obj, cam, path = _scene(trained_field, tmp_path)
     scene = bpy.context.scene
     scene.camera = cam

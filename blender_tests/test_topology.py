@@ -78,7 +78,7 @@ def test_attach_writes_vertex_ids_and_the_scene_knows_the_field(addon, trained_f
     obj, path = _load(trained_field, tmp_path, "A")
     vid, rest, key = addon.scene.identity.read(obj.data)
     assert np.array_equal(vid, np.arange(len(obj.data.vertices)))
-    field = addon.render.fields.get_field(obj.name_full, path)
+    field = addon.render.field_cache.get_field(obj.name_full, path)
     assert np.allclose(rest, field.rest_vertices.numpy(), atol=1e-6)
     assert (key == addon.scene.identity.key_of(field)).all()
     assert addon.scene.identity.lookup(bpy.context.scene, int(key[0])) == path
@@ -169,7 +169,7 @@ def test_subdivision_surface_renders_close_to_the_original(addon, trained_field,
     p = _psnr(after, before)
     print(f"subdivision surface level 1: {p:.1f} dB against the original render")
     assert p > 35.0   # the new vertices' codes are interpolated (see identity.py)
-    assert addon.render.fields.STATS.get("remaps", 0) > 0
+    assert addon.render.field_cache.STATS.get("remaps", 0) > 0
 
 
 def test_save_and_reload_render_the_same_pixels(addon, trained_field, second_field, tmp_path):
@@ -185,7 +185,7 @@ def test_save_and_reload_render_the_same_pixels(addon, trained_field, second_fie
     before = _f12(tmp_path / "a.exr")
     blend = str(tmp_path / "scene.blend")
     bpy.ops.wm.save_as_mainfile(filepath=blend)
-    addon.render.fields.clear_cache()
+    addon.render.field_cache.clear_cache()
     bpy.ops.wm.open_mainfile(filepath=blend)
     after = _f12(tmp_path / "b.exr")
     assert np.abs(after - before).max() < 1e-5

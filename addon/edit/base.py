@@ -29,7 +29,7 @@ from ..runtime.jobs import Job, JobModal, redraw
 from ..runtime.text import file_size, labelled, text_width, wrapped_label
 from ..scene import identity, props, sync
 from ..scene.props import field_path_of
-from ..render import fields
+from ..render import field_cache
 from ..render.engine import refresh_viewports
 
 
@@ -37,7 +37,7 @@ def field_for_edit(obj):
     """(field, path): the object's field as the renderer holds it (edits write into this instance, so
     the next render shows them without reloading)."""
     path = field_path_of(obj)
-    return fields.get_field(obj.name_full, path), path
+    return field_cache.get_field(obj.name_full, path), path
 
 
 def edit_out_path(parent_path: str, folder: str) -> str:
@@ -70,7 +70,7 @@ def commit_edit(obj, field, record, parent_path: str, folder: str | None = None)
         record.undo(field)
         raise
     props.set_field_path(obj, out)
-    fields.adopt(obj.name_full, out, field)
+    field_cache.adopt(obj.name_full, out, field)
     _register(obj, field, out)
     return out
 
@@ -119,7 +119,7 @@ def _read_chain(edit, path):
     return chain[::-1]
 
 
-edit_copy = fields.private_copy   # a private copy of a cached field for a background edit
+edit_copy = field_cache.private_copy   # a private copy of a cached field for a background edit
 
 
 def region_of(obj, group: str, field, what: str):
@@ -255,7 +255,7 @@ def _point_back(op, context, which: str):
         op.report({"ERROR"}, f"NeuMesh: {what} is missing: {target}")
         return {"CANCELLED"}
     props.set_field_path(obj, target)
-    _register(obj, fields.get_field(obj.name_full, target), target)
+    _register(obj, field_cache.get_field(obj.name_full, target), target)
     refresh_viewports(context)
     shown = "the trained field " if which == "root" else ""
     op.report({"INFO"}, f"NeuMesh: '{obj.name}' shows {shown}{os.path.basename(target)}")

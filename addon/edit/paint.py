@@ -24,7 +24,7 @@ from ..runtime._np import np
 from ..runtime import core, quiet
 from ..runtime.text import text_width, ui_scale, wrapped_label
 from ..scene import camera, props
-from ..render import fields, frame
+from ..render import field_cache, frame
 from ..runtime.errors import UserError
 from .base import EditOperator, EditSubPanel, edit_copy
 from .paint_editor import OPENED_KEY, open_in_image_editor
@@ -81,7 +81,7 @@ class NEUMESH_OT_paint_view(bpy.types.Operator):
     def execute(self, context):
         try:
             cam, depsgraph, K, c2w, W, H = _view(context)
-            items = fields.collect(depsgraph, for_render=True)
+            items = field_cache.collect(depsgraph, for_render=True)
             if not items:
                 raise UserError("no object with a field is in the scene; load or train a field first")
             rgba, opacity, depth = frame.render_items_surface(items, K, c2w, W, H)
@@ -157,7 +157,7 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
         layer = nm.edit.paint_layer(_image_pixels(img)[..., :3], _image_pixels(orig)[..., :3])
         if layer[..., 3].max() <= 0:
             raise UserError(f"nothing is painted on '{img.name}'; paint on it in the Image Editor first")
-        items = fields.collect(depsgraph, for_render=True)
+        items = field_cache.collect(depsgraph, for_render=True)
         if not items:
             raise UserError("no object with a field is in the scene")
 
@@ -170,21 +170,21 @@ class NEUMESH_OT_apply_paint(EditOperator, bpy.types.Operator):
         for it in items:
             obj = bpy.data.objects.get(it.key.split("#")[0])
             if it.field is None:                     # the object's own field, vertex by vertex
-                field = fields.posed_copy(it)        # paint lands on the surface as it is posed now
+                field = field_cache.posed_copy(it)        # paint lands on the surface as it is posed now
                 targets.append((obj, field, it.path))
                 # a field with a paint atlas takes the paint in its texels (as sharp as painted)
                 plans.append("atlas" if getattr(field, "paint_atlas", None) is not None else None)
                 posed.append(field)
                 continue
-            shown = fields.posed_copy(it)            # a field remapped onto the object's mesh
+            shown = field_cache.posed_copy(it)            # a field remapped onto the object's mesh
             posed.append(shown)
             own = props.field_abspath(obj)
             if it.path != own:                       # joined in from another field: shown, not edited
                 targets.append((obj, None, it.path))
                 plans.append("skip")
                 continue
-            source = edit_copy(fields.get_field(obj.name_full, own))
-            ids = fields.source_ids(it.key, source)
+            source = edit_copy(field_cache.get_field(obj.name_full, own))
+            ids = field_cache.source_ids(it.key, source)
             targets.append((obj, source, own))
             plans.append((source, ids))
 

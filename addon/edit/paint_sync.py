@@ -19,7 +19,7 @@ from ..runtime._np import np
 from ..runtime import core, quiet
 from ..runtime.errors import UserError
 from ..scene import props
-from ..render import engine, fields
+from ..render import engine, field_cache
 
 UV_NAME = "NeuMesh Paint"
 IMAGE_PREFIX = "NeuMesh Paint "
@@ -58,7 +58,7 @@ def own_field(obj, depsgraph=None):
     if obj is None or obj.type != "MESH" or not props.has_field(obj):
         raise UserError("select an object with a NeuMesh field (Load field) to texture paint it")
     depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
-    field, mesh_index = fields.object_field(obj, depsgraph)
+    field, mesh_index = field_cache.object_field(obj, depsgraph)
     if mesh_index is not None:
         raise UserError(f"'{obj.name}' shows a field remapped onto an edited mesh; Texture Paint needs the "
                         "field's own scaffold mesh (Load field > New object)")
@@ -135,7 +135,7 @@ def sync_object(obj, depsgraph=None, force: bool = False) -> int:
         return 0
     t0 = time.perf_counter()
     # the field the viewport shows (not waiting for a render that holds the cache's lock)
-    field = fields.cached_field(obj.name_full, props.field_abspath(obj))
+    field = field_cache.cached_field(obj.name_full, props.field_abspath(obj))
     st = STATE.setdefault(obj.name, {})
     w, h = img.size
     if getattr(field, "paint_atlas", None) is None or field.paint_atlas.size != (h, w):

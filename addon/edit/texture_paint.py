@@ -21,7 +21,7 @@ from ..runtime import core
 from ..runtime.errors import UserError
 from ..runtime.text import file_size, text_width, wrapped_label
 from ..scene import props
-from ..render import engine, fields
+from ..render import engine, field_cache
 from .base import EditSubPanel, commit_edit
 from .paint_sync import (POLL_S, STATS, STATE, UV_NAME, WATCH, ensure_timer, mesh_uvs, new_image,  # noqa: F401
                          on_undo, own_field, paint_image, sync_all, sync_object, tick, triangles, write_uv_layer)
@@ -64,7 +64,7 @@ class NEUMESH_OT_texture_paint(bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
         except Exception as exc:  # noqa: BLE001
-            self.report({"ERROR"}, f"NeuMesh: cannot set up Texture Paint: {fields.user_message(exc)}")
+            self.report({"ERROR"}, f"NeuMesh: cannot set up Texture Paint: {field_cache.user_message(exc)}")
             return {"CANCELLED"}
         ip = context.scene.tool_settings.image_paint
         ip.mode = "IMAGE"          # Single Image: paint into this image through the active UV map
@@ -89,7 +89,7 @@ def unsaved_texels(obj) -> int:
     if st is None or img is None or st.get("saved") is None:
         return 0
     try:
-        field = fields.cached_field(obj.name_full, props.field_abspath(obj))
+        field = field_cache.cached_field(obj.name_full, props.field_abspath(obj))
     except Exception:  # noqa: BLE001
         return 0
     if getattr(field, "paint_atlas", None) is None or field.paint_atlas.image.shape != st["saved"].shape:
@@ -129,7 +129,7 @@ class NEUMESH_OT_save_paint(bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: {exc}")
             return {"CANCELLED"}
         except Exception as exc:  # noqa: BLE001
-            self.report({"ERROR"}, f"NeuMesh: cannot save the paint: {fields.user_message(exc)}")
+            self.report({"ERROR"}, f"NeuMesh: cannot save the paint: {field_cache.user_message(exc)}")
             return {"CANCELLED"}
         engine.refresh_viewports(context)
         self.report({"INFO"}, f"NeuMesh: paint saved ({rec.num_changed:,} texels) in {out} ({file_size(out)})")

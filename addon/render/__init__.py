@@ -1,4 +1,4 @@
-"""render: the field cache and core renders (fields), the NEUMESH engine for F12 / -a / viewport
+"""render: the field cache (field_cache) and core renders (frame), the NEUMESH engine for F12 / -a / viewport
 (engine, preview), colour management (colour), compositing with Cycles/EEVEE (composite), rendering
 cameras to PNG files (images). Imports runtime and scene."""
 from __future__ import annotations

@@ -8,7 +8,7 @@ import bpy
 from ..runtime._np import np
 from ..runtime import settings, text
 from ..scene import camera
-from . import colour, fields, frame
+from . import colour, field_cache, frame
 from .preview import PreviewRenderer, same_items
 
 LAST_ERROR = {"message": ""}
@@ -108,7 +108,7 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
             K, c2w, W, H = camera.camera_K_c2w(cam, scene, depsgraph, W, H)
             col, row, w, h = camera.border_rect(scene, W, H)   # Render Region: only that part
             K = camera.crop_K(K, col, row)
-            items = fields.collect(depsgraph, for_render=True)
+            items = field_cache.collect(depsgraph, for_render=True)
             occluder_z = frame.holdout_z(depsgraph, K, c2w, w, h)
             t1 = time.perf_counter()
             if not items:
@@ -127,7 +127,7 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
         except Exception as exc:  # noqa: BLE001 - reported to the user, no (wrong) image written
             if type(exc).__name__ == "Cancelled":
                 return
-            msg = prefixed(fields.user_message(exc))
+            msg = prefixed(field_cache.user_message(exc))
             LAST_ERROR["message"] = msg
             print(msg)
             if hasattr(self, "error_set"):
@@ -166,10 +166,10 @@ class NeuMeshRenderEngine(bpy.types.RenderEngine):
         """A depsgraph update: collect the fields again; the preview restarts (coarse first) only when
         what they show changed (see same_items)."""
         try:
-            items = fields.collect(depsgraph, for_render=False)
+            items = field_cache.collect(depsgraph, for_render=False)
             error = ""
         except Exception as exc:  # noqa: BLE001 - drawn in the viewport
-            items, error = [], fields.user_message(exc)
+            items, error = [], field_cache.user_message(exc)
         if error or self._error or not same_items(self._items, items):
             self._generation += 1
         self._items, self._error = items, error
@@ -382,4 +382,4 @@ def unregister():
     for p in compatible_panels():
         p.COMPAT_ENGINES.discard("NEUMESH")
     bpy.utils.unregister_class(NeuMeshRenderEngine)
-    fields.clear_cache()
+    field_cache.clear_cache()

@@ -1,4 +1,4 @@
-"""One frame of the fields :func:`fields.collect` found, for the F12 engine, the viewport preview, the
+"""One frame of the fields :func:`field_cache.collect` found, for the F12 engine, the viewport preview, the
 render-to-image operator, painting and the benchmarks: ``nm.render_camera`` of the posed fields, its
 passes (combined, depth, modification colour) and holdouts, in Blender's colour space.
 
@@ -14,8 +14,8 @@ from dataclasses import dataclass
 from ..runtime._np import np
 from ..runtime import core
 from ..scene import sync
-from . import fields
-from .fields import Item
+from . import field_cache
+from .field_cache import Item
 
 # the last render_items call: seconds in nm.render_camera, in posing the fields, torch's threads
 LAST_TIMINGS: dict = {}
@@ -59,14 +59,14 @@ def _render_out(items: list[Item], K, c2w, width: int, height: int, transparent:
 
     import torch
 
-    with core.torch_work() as threads, fields.LOCK:
+    with core.torch_work() as threads, field_cache.LOCK:
         t0 = time.perf_counter()
         device = core.render_device()   # the preference Device (auto: a CUDA GPU when torch sees one)
         posed = []
         for it in items:
             if it.field is None:
-                fields.get_field(it.key, it.path)
-            posed.append(fields.on_device(it, fields.posed_field(it), device))
+                field_cache.get_field(it.key, it.path)
+            posed.append(field_cache.on_device(it, field_cache.posed_field(it), device))
         t1 = time.perf_counter()
         out = nm.render_camera(posed if len(posed) > 1 else posed[0], np.asarray(K, np.float32),
                                np.asarray(c2w, np.float32), int(width), int(height), background=bg,
@@ -100,7 +100,7 @@ def holdout_meshes(depsgraph) -> tuple[np.ndarray, np.ndarray] | None:
     for ob in depsgraph.objects:
         if ob.type not in {"MESH", "CURVE", "SURFACE", "META", "FONT"}:
             continue
-        if not fields.is_holdout(ob.original, depsgraph):
+        if not field_cache.is_holdout(ob.original, depsgraph):
             continue
         me = ob.to_mesh()
         try:

@@ -10,7 +10,7 @@ from bpy.props import EnumProperty, StringProperty
 from ..runtime._np import np
 from ..runtime import core
 from ..scene import camera
-from . import fields, frame
+from . import field_cache, frame
 
 
 def dataset_cameras():
@@ -57,7 +57,7 @@ class NEUMESH_OT_render_images(bpy.types.Operator):
             nm = core.get()
             os.makedirs(out_dir, exist_ok=True)
             depsgraph = context.evaluated_depsgraph_get()
-            items = fields.collect(depsgraph, for_render=True)
+            items = field_cache.collect(depsgraph, for_render=True)
             wm = context.window_manager
             wm.progress_begin(0, len(cams))
             written = []

@@ -6,11 +6,11 @@ import threading
 import time
 
 from ..runtime import quiet
-from . import fields, frame
+from . import field_cache, frame
 
 
 def same_items(old, new) -> bool:
-    """Do two lists of collected items (``fields.collect``) show the same picture: the same objects and
+    """Do two lists of collected items (``field_cache.collect``) show the same picture: the same objects and
     field files, the same remapped fields and equal vertex positions?  Depsgraph updates come for
     many things the field does not show (selection, tools, paint modes); the viewport restarts its
     progressive preview only when this is False, so such updates never keep it coarse."""
@@ -117,7 +117,7 @@ class PreviewRenderer:
                     self._render(serial, items, K, c2w, W, H, transparent, background_model, t0)
             except Exception as exc:  # noqa: BLE001 - shown in the viewport
                 if type(exc).__name__ != "Cancelled":
-                    self.error = fields.user_message(exc)
+                    self.error = field_cache.user_message(exc)
             finally:
                 self.busy = False
 

@@ -20,7 +20,7 @@ from ..runtime._np import np
 from ..runtime import core, jobs
 from ..runtime.text import file_size
 from ..scene import identity, props, sync
-from ..render import fields
+from ..render import field_cache
 
 MESH_GLOB = "*.ply;*.obj"
 FIELD_GLOB = "*.neumesh"
@@ -227,7 +227,7 @@ class NEUMESH_OT_load_field(_BrowseThenRead, bpy.types.Operator):
                                    f"has {nv}; enable 'New object' to create its mesh")
             return {"CANCELLED"}
         identity.attach(context, obj, field, path)   # path, vertex ids (topology edits keep the field)
-        fields.adopt(obj.name_full, path, field)     # the render uses this copy: no second read of the file
+        field_cache.adopt(obj.name_full, path, field)     # the render uses this copy: no second read of the file
         obj.neumesh.enabled = True
         context.scene.neumesh.train_object = obj   # Training > Scaffold mesh: the mesh this field is on
         what = f"NeuMesh: loaded {os.path.basename(path)} ({file_size(path)}): {nv:,} vertices, {nf:,} faces"

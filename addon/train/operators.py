@@ -12,7 +12,7 @@ from ..runtime import core, jobs
 from ..runtime.errors import UserError
 from ..runtime.text import text_width, wrapped_label
 from ..scene import camera, identity, props, sync
-from ..render import fields
+from ..render import field_cache
 from ..render.images import DATASET_COLLECTION, dataset_cameras  # noqa: F401 (ui, tests)
 from . import capture, worker
 from .imports import make_active
@@ -330,7 +330,7 @@ def _attach_trained(job):
         if obj is not None:
             props.set_field_path(obj, job.field_path)
             try:   # the trained mesh is the field's scaffold: mark its vertices with their ids
-                field = fields.get_field(obj.name_full, job.field_path)
+                field = field_cache.get_field(obj.name_full, job.field_path)
                 if len(obj.data.vertices) == field.num_vertices:
                     identity.attach(bpy.context, obj, field, job.field_path)
             except Exception as exc:  # noqa: BLE001 - the field still renders by vertex order

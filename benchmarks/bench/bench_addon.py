@@ -161,7 +161,7 @@ def bench_preview(a) -> dict:
     # warm-up: load + first collect (loads the field into the cache)
     t = time.perf_counter()
     dg = bpy.context.evaluated_depsgraph_get()
-    items = addon.render.fields.collect(dg, for_render=False)
+    items = addon.render.field_cache.collect(dg, for_render=False)
     t_load = time.perf_counter() - t
 
     K, c2w = manual_K_c2w(cam, vw, vh)
@@ -178,14 +178,14 @@ def bench_preview(a) -> dict:
         dg = bpy.context.evaluated_depsgraph_get()                  # what view_update receives
         dg.update()
         t1 = time.perf_counter()
-        items = addon.render.fields.collect(dg, for_render=False)          # sync: evaluated world vertices
+        items = addon.render.field_cache.collect(dg, for_render=False)          # sync: evaluated world vertices
         t2 = time.perf_counter()
-        sv0 = addon.render.fields.STATS["set_vertices"]
+        sv0 = addon.render.field_cache.STATS["set_vertices"]
         serial = pv.request(items, K, c2w, vw, vh)                  # view_draw -> preview thread
         ok = pv.wait(serial, divisor=pv.max_divisor, timeout=120)   # its first image, at any level
         t3 = time.perf_counter()
         assert ok, pv.error
-        assert addon.render.fields.STATS["set_vertices"] == sv0 + 1
+        assert addon.render.field_cache.STATS["set_vertices"] == sv0 + 1
         first = pv.latest[1]
         ok8 = pv.wait(serial, divisor=8, timeout=120)
         t4 = time.perf_counter()
@@ -197,11 +197,11 @@ def bench_preview(a) -> dict:
     pv.stop()
 
     # set_vertices alone (the part of the preview that is not rendering)
-    f_cached = addon.render.fields.get_field(obj.name_full, addon.scene.props.field_abspath(obj))
+    f_cached = addon.render.field_cache.get_field(obj.name_full, addon.scene.props.field_abspath(obj))
     t = time.perf_counter()
     f_cached.set_vertices(items[0].vertices + 1e-4)
     t_setv = time.perf_counter() - t
-    addon.render.fields._CACHE[obj.name_full].last_vertices = None
+    addon.render.field_cache._CACHE[obj.name_full].last_vertices = None
     low_w, low_h = vw // 8, vh // 8
     # best of 3: the 2-core machine is shared, single timings are noisy
     t_low = timed(lambda: nm.render_camera(f_cached, addon.render.frame.scale_K(K, vw, vh, low_w, low_h), c2w,

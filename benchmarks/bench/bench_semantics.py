@@ -295,10 +295,10 @@ def blender_clicks(field_path: str, cams, clicks, threshold: float):
         # the interactive operator starts building the selection context (features, KD-tree, graph)
         # when it starts waiting for the click; time that, then the first click again on top of it
         name, view, xy, *_ = clicks[0]
-        addon.edit.select._CONTEXTS.clear()
+        addon.semantics.select._CONTEXTS.clear()
         obj = bpy.context.active_object
         t = time.perf_counter()
-        job = addon.edit.select.prepare_selection(obj, bpy.context)
+        job = addon.semantics.select.prepare_selection(obj, bpy.context)
         if job is not None:
             job.join()
         prep = time.perf_counter() - t

@@ -89,14 +89,14 @@ def main(argv=None) -> int:
     assert bpy.ops.neumesh.texture_paint() == {"FINISHED"}
     setup_s = time.perf_counter() - t
     img = tp.paint_image(obj)
-    field = addon.render.fields.get_field(obj.name_full, path)
+    field = addon.render.field_cache.get_field(obj.name_full, path)
     atlas = field.paint_atlas
     h, w = atlas.size
 
     vw, vh = (int(x) for x in a.viewport.split("x"))
     K, c2w = manual_K_c2w(cam, vw, vh)
     dg = bpy.context.evaluated_depsgraph_get()
-    items = addon.render.fields.collect(dg, for_render=False)
+    items = addon.render.field_cache.collect(dg, for_render=False)
     # the texels a line of the view looks up (at 1/4 of the viewport: what the preview shows)
     sw, sh = vw // 4, vh // 4
     Ks = addon.render.frame.scale_K(K, vw, vh, sw, sh)
@@ -132,7 +132,7 @@ def main(argv=None) -> int:
         t1 = time.perf_counter()
         texels = tp.STATS["texels"]
         split = dict(tp.STATS.get("last_split_s", {}))
-        serial = pv.request(addon.render.fields.collect(bpy.context.evaluated_depsgraph_get(), for_render=False),
+        serial = pv.request(addon.render.field_cache.collect(bpy.context.evaluated_depsgraph_get(), for_render=False),
                             K, c2w, vw, vh)                # refresh_viewports -> view_draw -> the preview
         assert pv.wait(serial, divisor=pv.max_divisor, timeout=300), pv.error
         t2 = time.perf_counter()

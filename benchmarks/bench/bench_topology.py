@@ -41,12 +41,12 @@ def _sync_frames(addon, arm, frames: int) -> list:
         dg = bpy.context.evaluated_depsgraph_get()
         dg.update()
         t = time.perf_counter()
-        items = addon.render.fields.collect(dg, for_render=False)
-        with addon.render.fields._LOCK:
+        items = addon.render.field_cache.collect(dg, for_render=False)
+        with addon.render.field_cache._LOCK:
             for it in items:
                 if it.field is None:
-                    addon.render.fields.get_field(it.key, it.path)
-                addon.render.fields._apply_vertices(it)
+                    addon.render.field_cache.get_field(it.key, it.path)
+                addon.render.field_cache._apply_vertices(it)
         if i:   # the first frame may (re)build a remapped field
             out.append(time.perf_counter() - t)
     return out
@@ -84,7 +84,8 @@ def main(argv=None) -> int:
     for name in addon.scene.identity.ATTRS:
         obj.data.attributes.remove(obj.data.attributes[name])
     strict = _sync_frames(addon, arm, a.frames)
-    addon.scene.identity.write(obj, addon.render.fields.get_field(obj.name_full, addon.scene.props.field_abspath(obj)))
+    path = addon.scene.props.field_abspath(obj)
+    addon.scene.identity.write(obj, addon.render.field_cache.get_field(obj.name_full, path))
     whole = _sync_frames(addon, arm, a.frames)
     bm = bmesh.new()
     bm.from_mesh(obj.data)
@@ -124,7 +125,7 @@ def main(argv=None) -> int:
     bpy.ops.object.mode_set(mode="OBJECT")
     t1 = time.perf_counter()
     dg = bpy.context.evaluated_depsgraph_get()
-    items = addon.render.fields.collect(dg, for_render=False)
+    items = addon.render.field_cache.collect(dg, for_render=False)
     t2 = time.perf_counter()
     meshes = [o for o in bpy.context.scene.objects if o.type == "MESH"]
     for o in bpy.context.view_layer.objects:
@@ -133,7 +134,7 @@ def main(argv=None) -> int:
     bpy.ops.object.join()
     t3 = time.perf_counter()
     dg = bpy.context.evaluated_depsgraph_get()
-    items2 = addon.render.fields.collect(dg, for_render=False)
+    items2 = addon.render.field_cache.collect(dg, for_render=False)
     t4 = time.perf_counter()
     res["separate_join_s"] = {"separate": t1 - t0, "first_sync_after_separate": t2 - t1, "join": t3 - t2,
                               "first_sync_after_join": t4 - t3, "total": t4 - t0,

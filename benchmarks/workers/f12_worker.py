@@ -129,7 +129,7 @@ def run_blender(zip_path, field_path, inputs_path, size, threads):
     scene.view_settings.view_transform = "Standard"
     scene.view_settings.look = "None"
     engine = importlib.import_module(module + ".render.engine")
-    render = importlib.import_module(module + ".render.fields")
+    render = importlib.import_module(module + ".render.field_cache")
     camera = importlib.import_module(module + ".scene.camera")
     nm = addon.runtime.core.get()
     addon.runtime.prefs.get_prefs().torch_threads = int(threads)

@@ -15,7 +15,7 @@ from ..runtime import core, jobs
 from ..runtime.errors import UserError
 from ..runtime.text import file_size
 from ..scene import props
-from .base import edits_folder_ready
+from ..edit.base import edits_folder_ready
 
 STAGES = {"features": "2D features", "rays": "Marching rays", "train": "Training"}
 

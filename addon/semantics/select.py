@@ -18,7 +18,7 @@ from ..runtime._np import np
 from ..runtime import core
 from ..runtime.errors import UserError
 from ..scene import camera, props, sync
-from ..render import fields
+from ..render import field_cache
 
 DEFAULT_GROUP = "NeuMesh selection"
 
@@ -36,7 +36,7 @@ def _posed_field(obj, context):
         raise UserError(f"'{obj.name}' has modifiers that add or remove vertices ({n_eval} evaluated, "
                              f"{len(obj.data.vertices)} in the mesh); disable them (e.g. Subdivision Surface) "
                              "while selecting, so the selection lands on the mesh's own vertices")
-    return fields.object_field(obj, depsgraph)
+    return field_cache.object_field(obj, depsgraph)
 
 
 _PREPARING: dict = {}   # object name -> thread building its SelectionContext (see prepare_selection)

@@ -32,12 +32,12 @@ from bpy.props import EnumProperty, FloatProperty, IntProperty
 
 from ..runtime._np import np
 from ..runtime import classes_factory, core, prefs
-from ..render import fields
+from ..render import field_cache
 from ..runtime.errors import UserError
 from ..runtime.jobs import Job, JobModal
 from ..scene import sync
 from ..scene.props import field_path_of
-from .base import EditSubPanel, edit_copy
+from ..edit.base import EditSubPanel, edit_copy
 
 SHADING_ITEMS = (
     ("EMISSION", "Emission", "Texture as emission (strength 1), black base colour: looks like the field "
@@ -210,7 +210,7 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
             core.require("bake")
             if self.target == "FIELD":
                 core.require("bake_field")
-            field, _ = fields.object_field(obj, context.evaluated_depsgraph_get())
+            field, _ = field_cache.object_field(obj, context.evaluated_depsgraph_get())
             field = edit_copy(field)      # posed as it renders now; the thread works on its own copy
         except (UserError, core.CoreUnavailable, ValueError) as exc:
             self.report({"ERROR"}, f"NeuMesh: {exc}")

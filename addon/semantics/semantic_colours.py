@@ -8,7 +8,7 @@ from ..runtime._np import np
 from ..runtime import core
 from ..runtime.errors import UserError
 from ..scene import props
-from ..render import fields
+from ..render import field_cache
 from .select import core_message
 
 COLOUR_ATTRIBUTE = "NeuMesh semantics"
@@ -27,7 +27,7 @@ class NEUMESH_OT_semantic_colours(bpy.types.Operator):
         try:
             nm = core.get()
             props.field_path_of(obj)
-            field, mesh_index = fields.object_field(obj, context.evaluated_depsgraph_get())
+            field, mesh_index = field_cache.object_field(obj, context.evaluated_depsgraph_get())
             feats = field.vertex_semantics().cpu().numpy().astype(np.float64)
             if mesh_index is not None:   # a remapped mesh: features onto its vertices (others stay 0)
                 full = np.zeros((len(obj.data.vertices), feats.shape[1]))

@@ -14,7 +14,7 @@ from .arap import (APPLIED_KEY, LIVE_KEY, TIMINGS, _DRAGS, _SHAPES, _SOLVERS, _a
                    on_depsgraph_update, on_frame_change, prepare_preview, read_groups, start,
                    wait_for_drags)
 from .arap_undo import on_undo_post, on_undo_pre
-from .base import EditSubPanel, shown_object
+from ..edit.base import EditSubPanel, shown_object
 
 
 class NeuMeshArapSettings(bpy.types.PropertyGroup):

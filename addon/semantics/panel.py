@@ -1,4 +1,4 @@
-"""The Semantics panel (under *Edit field*) and its settings: Distill semantics (:mod:`distil`), Select
+"""The Semantics panel (under *Edit field*) and its settings: Distill semantics (:mod:`distill`), Select
 by click (:mod:`select`), Show semantic colours (:mod:`semantic_colours`)."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from bpy.props import EnumProperty, IntProperty, PointerProperty, StringProperty
 
 from ..runtime import classes_factory, prefs
 from ..runtime.text import job_status, labelled, text_width, wrapped_label
-from . import distil
+from . import distill
 from .select import DEFAULT_GROUP
 
 _EXTRACTORS = [("colour-texture", "Colour & texture", "Weight-free: colour and texture statistics over "
@@ -37,7 +37,7 @@ class NEUMESH_PT_semantics(bpy.types.Panel):
         s = context.scene.neumesh_semantics
         col = self.layout.column()
         width = text_width(context)
-        job = distil.current_job()
+        job = distill.current_job()
         if job is None or not job.running:
             prefs.draw_missing(col, "semantics", context)
             labelled(col, s, "extractor", "2D features")
