@@ -215,9 +215,10 @@ def test_click_after_deleting_part_of_the_mesh_selects_mesh_vertices(addon, part
     assert inter / len(got) > 0.9 and inter / len(gt) > 0.8
 
 
-def test_shape_options_reach_the_core_and_cache_beside_the_field(addon, parts_data, monkeypatch):
+def test_shape_options_reach_the_core_and_cache_in_the_edits_folder(addon, parts_data, monkeypatch):
     """Select by click's redo panel has Shape weight and Stop at creases; they reach the core's
-    SelectConfig, and the shape features are cached in the field's folder (geometry_cache)."""
+    SelectConfig, and the shape features are cached in the scene's Edits folder (geometry_cache), never
+    in the folder the field was read from."""
     _, _, sem, _ = parts_data
     obj, cam = _scene(sem)
     head = _click_on(addon, cam, 1)
@@ -236,9 +237,11 @@ def test_shape_options_reach_the_core_and_cache_beside_the_field(addon, parts_da
     addon.semantics.select._CONTEXTS.clear()
     assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="shape", geometry=0.3,
                                            creases=False) == {"FINISHED"}
-    folder = os.path.dirname(sem)
+    folder = addon.scene.props.scene_edits_folder()
+    assert folder != os.path.dirname(sem)
     assert seen == [(pytest.approx(0.3), False, folder)]
     assert any(f.startswith("neumesh-geometry-") and f.endswith(".npz") for f in os.listdir(folder))
+    assert not any(f.startswith("neumesh-geometry-") for f in os.listdir(os.path.dirname(sem)))
     assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="colour", geometry=0.0,
                                            creases=False) == {"FINISHED"}
     assert len(_group(obj, "colour")) > 0
