@@ -109,7 +109,7 @@ def main(argv=None) -> int:
                 log(f"snapshot at step {p.step} ({p.elapsed_s:.0f}s): {snap_path}")
 
     summary = fit(args.data, out, downscale=args.downscale, background=None, scaffold_config=scfg,
-                  train_config=tcfg, train_callback=cb, evaluate_split="none", log=log, device=args.device,
+                  train_config=tcfg, train_progress=cb, evaluate_split="none", log=log, device=args.device,
                   background_model=not args.no_background_model)
     field = nm.load_field(os.path.join(out, "field.neumesh"), device=args.device)
     scene = nm.load_scene(args.data, downscale=args.downscale)

@@ -72,15 +72,17 @@ def prepare_capture_field(field, scene, box, background_model: bool = True, fitt
 def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, background="white",
         scaffold_config: Optional[ScaffoldConfig] = None, field_config=None, train_config=None,
         scaffold_progress: Optional[Callable[[str, float], object]] = None,
-        train_callback=None, evaluate_split: str = "val", log: Callable[[str], None] = print,
-        device="cpu", box=None, background_model: bool = True, eval_progress=None) -> dict:
+        train_progress=None, evaluate_split: str = "val", log: Callable[[str], None] = print,
+        device="cpu", box=None, background_model: bool = True, eval_progress=None, *,
+        train_callback=None) -> dict:
     """Run the whole pipeline on a dataset folder; returns a summary dict (also written to fit.json).
 
     ``device``: where the field trains and is evaluated (the scaffold is built on the CPU).
     ``box``: a ``data.frame.ObjectBox`` for the object (None: automatic for captures without masks).
     ``background_model``: without masks, fit a background model outside the box (off: the field
     alone must explain the whole frame; for comparisons). ``eval_progress(done, total)``: the
-    evaluation's progress over the held-out photos."""
+    evaluation's progress over the held-out photos. ``train_progress``: the trainer's ``progress``
+    (``train_callback``: the same, the name older scripts pass)."""
     from .data.loader import load_scene
     from .errors import VertexMismatchError
     from .evaluate import evaluate
@@ -131,7 +133,7 @@ def fit(data_dir: str, out_dir: str, steps: int = 3000, downscale: float = 1, ba
         field = create_field(mesh, field_config or FieldConfig(), device=device)
         prepare_capture_field(field, scene, box, background_model=background_model,
                               fitted_background=fitted_background)
-    res = train(field, scene, tcfg, callback=train_callback)
+    res = train(field, scene, tcfg, progress=train_progress or train_callback)
     if os.path.abspath(tcfg.checkpoint_path) != os.path.abspath(field_path):
         save_field(field, field_path)  # (the trainer already wrote field_path with its step/optimiser)
     summary["train"] = {"steps": getattr(res, "steps_done", None), "psnr": getattr(res, "final_psnr", None),

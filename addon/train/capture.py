@@ -114,7 +114,7 @@ class CaptureJob(jobs.Job):
                 self.stage, self.message = "frames", "reading the video"
                 images, sequential = os.path.join(self.folder, "images"), True
                 nm.frames_from_video(self.source, images, fps=self.fps,
-                                     callback=lambda f: self._part(0.0, 0.1, f))
+                                     progress=lambda f: self._part(0.0, 0.1, f))
                 lo = 0.1
             cfg = self.poses_config or nm.PosesConfig()
             if cfg.num_threads == -1 and self.threads:

@@ -134,7 +134,7 @@ def run_arm(args) -> int:
             summary = json.load(fh)
     else:
         summary = fit(data, out, downscale=args.downscale, background=None, scaffold_config=scfg, train_config=tcfg,
-                      train_callback=cb, evaluate_split="none", log=log, box=box, background_model=True)
+                      train_progress=cb, evaluate_split="none", log=log, box=box, background_model=True)
     field = nm.load_field(os.path.join(out, "field.neumesh"))
     st = RenderSettings(background_model=True)
     evals = {"given": given.split("val")} if args.arm == "given" else {}

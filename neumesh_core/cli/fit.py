@@ -48,7 +48,7 @@ def _fit(args) -> int:
     summary = fit(data, args.out, downscale=args.downscale, background=args.background,
                   scaffold_config=config_from_args(args), field_config=_field_config(args),
                   train_config=_train_config(args, os.path.join(args.out, "field.neumesh")),
-                  scaffold_progress=progress.scaffold, train_callback=train_cb, log=log, device=_device(args),
+                  scaffold_progress=progress.scaffold, train_progress=train_cb, log=log, device=_device(args),
                   box=None if args.box is None else parse_box(args.box),
                   background_model=args.background_model == "on",
                   eval_progress=progress.count("evaluation", "held-out photos"))

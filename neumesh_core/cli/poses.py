@@ -25,7 +25,7 @@ def recover_poses(out: str, *, images: str | None = None, video: str | None = No
         progress.say(f"{len(paths)} frames kept")
         sequential = True
     try:
-        rep = estimate_poses(images, out, cfg, callback=progress.poses, sequential=sequential)
+        rep = estimate_poses(images, out, cfg, progress=progress.poses, sequential=sequential)
     except PosesError as exc:
         if cfg.colmap_log:
             raise

@@ -7,7 +7,7 @@ and a short report (``out_dir/poses_report.json``: registered photos, mean repro
 and the photo folder, so the photos are read where they are: nothing is renamed or moved).
 Video clips: ``video.frames_from_video`` extracts frames to run this on.
 
-Progress: ``callback(p: PosesProgress) -> False`` cancels (raises ``nm.Cancelled``); it is called
+Progress: ``progress(p: PosesProgress) -> False`` cancels (raises ``nm.Cancelled``); it is called
 from the calling thread about four times a second while pycolmap works in a helper thread.
 
 pycolmap's own log (COLMAP's glog lines, written by C++ straight to the process's stderr) is hidden
@@ -103,17 +103,19 @@ def _list_photos(images_dir: str) -> list:
 
 
 def estimate_poses(images_dir: str, out_dir: str, config: PosesConfig | None = None,
-                   callback: Callable[[PosesProgress], Optional[bool]] | None = None,
-                   sequential: bool = False) -> PosesReport:
+                   progress: Callable[[PosesProgress], Optional[bool]] | None = None,
+                   sequential: bool = False, *,
+                   callback: Callable[[PosesProgress], Optional[bool]] | None = None) -> PosesReport:
     """Recover camera poses and sparse points of the photos in ``images_dir`` into ``out_dir``.
 
     ``sequential``: the photos are frames of one video in order (matcher 'auto' then matches each
     frame with its neighbours, not all pairs). Raises :class:`PosesError` with what to do when too few
-    photos register, and ``nm.Cancelled`` when the callback returns False.
+    photos register, and ``nm.Cancelled`` when ``progress`` returns False (``callback``: the same, the
+    name older scripts pass).
     """
     cfg = config or PosesConfig()
     with colmap_log(cfg.colmap_log):
-        return _estimate_poses(images_dir, out_dir, cfg, callback, sequential)
+        return _estimate_poses(images_dir, out_dir, cfg, progress or callback, sequential)
 
 
 def _estimate_poses(images_dir: str, out_dir: str, cfg: PosesConfig, callback, sequential: bool) -> PosesReport:
@@ -270,9 +272,12 @@ class _Run:
 
 
 def map_database(database: str, images_dir: str, out_dir: str, config: PosesConfig | None = None,
+                 progress: Callable[[PosesProgress], Optional[bool]] | None = None, *,
                  callback: Callable[[PosesProgress], Optional[bool]] | None = None) -> PosesReport:
     """Stage 3 alone: incremental mapping of a COLMAP database whose features and matches exist
-    (e.g. made by COLMAP's GUI), written like :func:`estimate_poses` writes it."""
+    (e.g. made by COLMAP's GUI), written like :func:`estimate_poses` writes it (``progress`` and
+    ``callback`` as there)."""
+    callback = progress or callback
     pycolmap = import_pycolmap()
     cfg = config or PosesConfig()
     with colmap_log(cfg.colmap_log):

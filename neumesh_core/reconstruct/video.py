@@ -22,10 +22,13 @@ def sharpness(grey: np.ndarray) -> float:
 
 
 def frames_from_video(video: str, out_dir: str, fps: float = 2.0, min_sharpness: float = 20.0,
+                      progress: Callable[[float], Optional[bool]] | None = None, *,
                       callback: Callable[[float], Optional[bool]] | None = None) -> list:
     """Write the sharpest frame of every 1/fps seconds of ``video`` as out_dir/frame_00001.jpg ...
     Returns the paths. PosesError when the video cannot be read, is too short, or most kept frames are
-    blurrier than ``min_sharpness`` (variance of the Laplacian). ``callback(fraction) -> False`` cancels."""
+    blurrier than ``min_sharpness`` (variance of the Laplacian). ``progress(fraction) -> False`` cancels
+    (``callback``: the same, the name older scripts pass)."""
+    progress = progress or callback
     import cv2
 
     from ..errors import Cancelled
@@ -63,7 +66,7 @@ def frames_from_video(video: str, out_dir: str, fps: float = 2.0, min_sharpness:
             if i % step == 0:
                 keep(best)
                 best = None
-                if callback is not None and total and callback(min(i / total, 1.0)) is False:
+                if progress is not None and total and progress(min(i / total, 1.0)) is False:
                     raise Cancelled("frame extraction cancelled")
         if best is not None and (not kept or i % step > step // 2):
             keep(best)

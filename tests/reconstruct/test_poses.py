@@ -111,7 +111,7 @@ def test_estimate_poses_on_rendered_photos_and_load_the_result(tmp_path, capfd):
     seen = []
     cfg = PosesConfig(camera_model="PINHOLE", num_threads=1, max_num_features=2000)
     capfd.readouterr()
-    rep = estimate_poses(photos, out, cfg, callback=lambda p: seen.append((p.stage, p.fraction)))
+    rep = estimate_poses(photos, out, cfg, progress=lambda p: seen.append((p.stage, p.fraction)))
     err = capfd.readouterr().err   # what pycolmap's C++ wrote to fd 2 as well
     assert not GLOG_LINE.search(err), err[:500]
     assert rep.registered == rep.num_images == 16 and rep.mean_reprojection_error < 1.0
@@ -145,7 +145,7 @@ def test_map_database_from_a_synthetic_database_and_cancel(tmp_path, capfd):
     for im in truth.images.values():
         cv2.imwrite(str(images / im.name), np.full((96, 128, 3), 128, np.uint8))
     with pytest.raises(Cancelled):
-        map_database(db_path, str(images), str(tmp_path / "cancelled"), callback=lambda p: False)
+        map_database(db_path, str(images), str(tmp_path / "cancelled"), progress=lambda p: False)
     level = pycolmap.logging.minloglevel
     capfd.readouterr()
     rep = map_database(db_path, str(images), str(tmp_path / "out"), PosesConfig(num_threads=1))
