@@ -51,32 +51,29 @@ def _v1_to_v2_name(name: str) -> str:
     return name
 
 
+def _rename_tensors(tensors: dict, rename) -> dict:
+    """``tensors`` with each parameter's and buffer's name, and the parameter name of each optimiser
+    entry, passed through ``rename``."""
+    out = {}
+    for k, v in tensors.items():
+        kind, _, rest = k.partition("/")
+        if kind in ("param", "buffer"):
+            k = f"{kind}/{rename(rest)}"
+        elif kind == "optim":
+            pname, _, skey = rest.rpartition("/")
+            k = f"optim/{rename(pname)}/{skey}"
+        out[k] = v
+    return out
+
+
 def _current_names(tensors: dict) -> dict:
     """``tensors`` with every parameter, buffer and optimiser entry saved under an earlier name
     (:data:`_RENAMED`) under the field's name for it."""
-    out = {}
-    for k, v in tensors.items():
-        kind, _, rest = k.partition("/")
-        if kind in ("param", "buffer"):
-            k = f"{kind}/{_RENAMED.get(rest, rest)}"
-        elif kind == "optim":
-            pname, _, skey = rest.rpartition("/")
-            k = f"optim/{_RENAMED.get(pname, pname)}/{skey}"
-        out[k] = v
-    return out
+    return _rename_tensors(tensors, lambda name: _RENAMED.get(name, name))
 
 
 def _upgrade_v1(tensors: dict) -> dict:
-    out = {}
-    for k, v in tensors.items():
-        kind, _, rest = k.partition("/")
-        if kind in ("param", "buffer"):
-            k = f"{kind}/{_v1_to_v2_name(rest)}"
-        elif kind == "optim":
-            pname, _, skey = rest.rpartition("/")
-            k = f"optim/{_v1_to_v2_name(pname)}/{skey}"
-        out[k] = v
-    return out
+    return _rename_tensors(tensors, _v1_to_v2_name)
 
 
 def _atomic_write(path: str, write) -> None:
