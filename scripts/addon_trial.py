@@ -402,8 +402,15 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
          cyan_pixels_before=int(((base[:, 0] < 0.35) & (base[:, 1] > 0.55) & (base[:, 2] > 0.55)).sum()),
          black_pixels=int((f12[:, :3].max(1) < 0.03).sum()), black_before=int((base[:, :3].max(1) < 0.03).sum()))
     yield 0.5
+    step("before saving in Texture Paint mode")
+    bpy.ops.wm.save_mainfile()
+    step("saved in Texture Paint mode", blend=os.path.exists(blend))
+    yield 2.0
+    w, area, regs = view3d()
     with bpy.context.temp_override(window=w, area=area, region=regs["WINDOW"]):
         bpy.ops.object.mode_set(mode="OBJECT")
+    step("Object Mode")
+    yield 2.0
     bpy.ops.wm.save_mainfile()
     step("saved", blend=os.path.exists(blend))
 
