@@ -29,6 +29,7 @@ for ob in list(bpy.data.objects):
 bpy.ops.neumesh.load_field(filepath=field_path, new_object=True)
 obj = bpy.context.active_object
 bpy.context.scene.neumesh.dataset_path = data
+bpy.context.scene.neumesh.edits_dir = os.path.join(out_dir, "edits")   # the file is never saved
 out = {"version": list(bpy.app.version),
        "missing": {f: addon.runtime.deps.missing_for(f) for f in ("semantics", "select", "bake")}}
 

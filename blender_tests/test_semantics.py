@@ -4,6 +4,7 @@ selection; Distill semantics runs the core in the background; semantic colours."
 from __future__ import annotations
 
 import os
+import sys
 import shutil
 
 import bpy
@@ -235,6 +236,7 @@ def test_shape_options_reach_the_core_and_cache_in_the_edits_folder(addon, parts
 
     monkeypatch.setattr(nm.semantics, "select_region", spy)
     addon.semantics.select._CONTEXTS.clear()
+    sys.modules[nm.__name__ + ".semantics.geometry"]._MEMO.clear()   # computed here, not kept from another test
     assert bpy.ops.neumesh.select_by_click(camera="cam", pixel=head, group_name="shape", geometry=0.3,
                                            creases=False) == {"FINISHED"}
     folder = addon.scene.props.scene_edits_folder()
