@@ -76,6 +76,18 @@ def preview_done():
     return False
 
 
+def register_open_copy(cls, suffix: str) -> None:
+    """Register panel ``cls`` again as ``<name><suffix>`` without DEFAULT_CLOSED (Blender keeps a panel's
+    open or closed state by its name once drawn), its parent renamed with the same suffix."""
+    opts = next((c.__dict__["bl_options"] for c in cls.__mro__ if isinstance(c.__dict__.get("bl_options"), set)),
+                set())
+    attrs = {"bl_idname": cls.__name__ + suffix, "bl_options": set(opts) - {"DEFAULT_CLOSED"}}
+    parent = next((c.__dict__["bl_parent_id"] for c in cls.__mro__ if "bl_parent_id" in c.__dict__), "")
+    if parent:
+        attrs["bl_parent_id"] = parent + suffix
+    bpy.utils.register_class(type(cls.__name__ + suffix, (cls,), attrs))
+
+
 def overridden(**kw):
     """``bpy.context.temp_override(**kw)`` with the add-on's Python threads held at a checkpoint
     (``runtime.quiet.override``): Blender 3.4 corrupts Python's heap when an operator runs under an

@@ -22,7 +22,8 @@ import traceback
 import bpy
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, overridden, preview_done, script_args  # noqa: E402
+from real_blender_common import (addon_module, facts, overridden, preview_done,  # noqa: E402
+                                 register_open_copy, script_args)
 from real_blender_ui import TOP_PANELS  # noqa: E402
 
 ARGS = script_args()
@@ -50,13 +51,7 @@ def show_open(children):
             bpy.utils.unregister_class(_ORIGINAL[n])
     classes = [_ORIGINAL["NEUMESH_PT_edit"]] + [_ORIGINAL[n] for n in children]
     for cls in classes:
-        opts = next((c.__dict__["bl_options"] for c in cls.__mro__ if isinstance(c.__dict__.get("bl_options"), set)),
-                    set())
-        attrs = {"bl_idname": cls.__name__ + "_open", "bl_options": set(opts) - {"DEFAULT_CLOSED"}}
-        par = next((c.__dict__["bl_parent_id"] for c in cls.__mro__ if "bl_parent_id" in c.__dict__), "")
-        if par:
-            attrs["bl_parent_id"] = par + "_open"
-        bpy.utils.register_class(type(cls.__name__ + "_open", (cls,), attrs))
+        register_open_copy(cls, "_open")
 
 
 class Driver:

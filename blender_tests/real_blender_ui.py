@@ -27,7 +27,8 @@ import traceback
 import bpy
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, install_addon, overridden, preview_done, script_args, viewport_engines  # noqa: E402
+from real_blender_common import (addon_module, facts, install_addon, overridden, preview_done,  # noqa: E402
+                                 register_open_copy, script_args, viewport_engines)
 
 ARGS = script_args()
 EDIT_PANELS = ("NEUMESH_PT_edit", "NEUMESH_PT_swap", "NEUMESH_PT_fill", "NEUMESH_PT_paint", "NEUMESH_PT_semantics")
@@ -42,13 +43,7 @@ def open_edit_panels():
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)
     for cls in classes:
-        opts = next((c.__dict__["bl_options"] for c in cls.__mro__ if isinstance(c.__dict__.get("bl_options"), set)),
-                    set())
-        attrs = {"bl_idname": cls.__name__ + "_docs", "bl_options": set(opts) - {"DEFAULT_CLOSED"}}
-        parent = next((c.__dict__["bl_parent_id"] for c in cls.__mro__ if "bl_parent_id" in c.__dict__), "")
-        if parent:
-            attrs["bl_parent_id"] = parent + "_docs"
-        bpy.utils.register_class(type(cls.__name__ + "_docs", (cls,), attrs))
+        register_open_copy(cls, "_docs")
 
 
 # ------------------------------------------------------------------------------------------ setup
