@@ -83,6 +83,21 @@ def add_camera(location, look_at=(0, 0, 0), lens=35.0, name="cam"):
     return co
 
 
+def field_in_camera(field_path, width, height):
+    """Load ``field_path`` as a new object, seen by a camera in front of it, rendered by NEUMESH at
+    ``width`` x ``height`` with exact colours (:func:`exact_colour_settings`); returns the object."""
+    import bpy
+
+    assert bpy.ops.neumesh.load_field(filepath=field_path, new_object=True) == {"FINISHED"}
+    obj = bpy.context.active_object
+    add_camera((0.0, -4.8, 0.6), lens=35.0)
+    scene = bpy.context.scene
+    scene.render.engine = "NEUMESH"
+    exact_colour_settings(scene, width, height)
+    bpy.context.view_layer.update()
+    return obj
+
+
 def manual_K_c2w(cam_obj, width, height):
     """Independent K / OpenCV c2w from lens & sensor (sensor_fit AUTO, no shift) for checking."""
     cd = cam_obj.data

@@ -11,7 +11,7 @@ import stat
 import bpy
 import pytest
 
-from helpers import add_camera, exact_colour_settings, record_panel
+from helpers import field_in_camera, record_panel
 
 W, H = 48, 40
 
@@ -34,13 +34,7 @@ def test_the_edits_folder_rule(addon, tmp_path):
 
 
 def _paint_scene(addon, field_path):
-    assert bpy.ops.neumesh.load_field(filepath=field_path, new_object=True) == {"FINISHED"}
-    obj = bpy.context.active_object
-    add_camera((0.0, -4.8, 0.6), lens=35.0)
-    scene = bpy.context.scene
-    scene.render.engine = "NEUMESH"
-    exact_colour_settings(scene, W, H)
-    bpy.context.view_layer.update()
+    obj = field_in_camera(field_path, W, H)
     assert bpy.ops.neumesh.paint_view() == {"FINISHED"}
     paint = addon.edit.paint
     img = bpy.data.images[paint.PAINT_IMAGE]

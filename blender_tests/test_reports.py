@@ -14,7 +14,7 @@ import bpy
 import numpy as np
 import pytest
 
-from helpers import add_camera, exact_colour_settings, manual_K_c2w, record_panel
+from helpers import add_camera, field_in_camera, manual_K_c2w, record_panel
 
 W, H = 48, 40
 
@@ -123,14 +123,7 @@ def test_file_browsers_start_where_the_artist_works_and_list_their_files(addon, 
 def _paint_scene(addon, tmp_path, trained_field):
     src = str(tmp_path / "A.neumesh")
     shutil.copy(trained_field, src)
-    assert bpy.ops.neumesh.load_field(filepath=src, new_object=True) == {"FINISHED"}
-    obj = bpy.context.active_object
-    add_camera((0.0, -4.8, 0.6), lens=35.0)
-    scene = bpy.context.scene
-    scene.render.engine = "NEUMESH"
-    exact_colour_settings(scene, W, H)
-    bpy.context.view_layer.update()
-    return obj
+    return field_in_camera(src, W, H)
 
 
 def _stroke(addon, rows, cols, colour):
