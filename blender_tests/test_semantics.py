@@ -178,6 +178,10 @@ def test_distill_semantics_operator_writes_an_edit(addon, parts_data, tmp_path):
     bpy.context.scene.neumesh.dataset_path = str(tmp_path / "missing")
     with pytest.raises(RuntimeError, match="dataset folder"):
         bpy.ops.neumesh.distill_semantics(wait=True)
+    # the former operator ids still run, for scripts and keymaps written against them
+    with pytest.raises(RuntimeError, match="dataset folder"):
+        bpy.ops.neumesh.distil_semantics(wait=True)
+    assert bpy.ops.neumesh.distil_cancel() == {"CANCELLED"}
 
 
 def test_semantic_colours(addon, parts_data):

@@ -106,11 +106,10 @@ def _point_at_result(job):
             props.set_field_path(obj, job.out_path)
 
 
-class NEUMESH_OT_distill_semantics(bpy.types.Operator):
+class _Distill:
     """Distill semantic codes into the active object's field from 2D features of the dataset's training
     images (background thread; the result is saved in the Edits folder as an edit)"""
 
-    bl_idname = "neumesh.distill_semantics"
     bl_label = "Distill semantics"
 
     steps: IntProperty(name="Steps", default=0, min=0, options={"SKIP_SAVE"}, description="0 = panel setting")
@@ -149,10 +148,9 @@ class NEUMESH_OT_distill_semantics(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NEUMESH_OT_distill_cancel(bpy.types.Operator):
+class _DistillCancel:
     """Stop the semantic distillation (nothing is written)"""
 
-    bl_idname = "neumesh.distill_cancel"
     bl_label = "Cancel distillation"
 
     def execute(self, context):
@@ -163,7 +161,32 @@ class NEUMESH_OT_distill_cancel(bpy.types.Operator):
         return {"FINISHED"}
 
 
-classes = (NEUMESH_OT_distill_semantics, NEUMESH_OT_distill_cancel)
+class NEUMESH_OT_distill_semantics(_Distill, bpy.types.Operator):
+    __doc__ = _Distill.__doc__
+    bl_idname = "neumesh.distill_semantics"
+
+
+class NEUMESH_OT_distill_cancel(_DistillCancel, bpy.types.Operator):
+    __doc__ = _DistillCancel.__doc__
+    bl_idname = "neumesh.distill_cancel"
+
+
+class NEUMESH_OT_distil_semantics(_Distill, bpy.types.Operator):
+    """Distill semantics (the operator's former id, kept for scripts and keymaps that call it)"""
+
+    bl_idname = "neumesh.distil_semantics"
+    bl_options = {"INTERNAL"}
+
+
+class NEUMESH_OT_distil_cancel(_DistillCancel, bpy.types.Operator):
+    """Cancel distillation (the operator's former id, kept for scripts and keymaps that call it)"""
+
+    bl_idname = "neumesh.distil_cancel"
+    bl_options = {"INTERNAL"}
+
+
+classes = (NEUMESH_OT_distill_semantics, NEUMESH_OT_distill_cancel, NEUMESH_OT_distil_semantics,
+           NEUMESH_OT_distil_cancel)
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
 
 
