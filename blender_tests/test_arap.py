@@ -284,3 +284,61 @@ def test_the_edit_field_panels_follow_the_handle_empty_to_the_object_it_deforms(
     bpy.context.view_layer.objects.active = other
     labels, _ops = draw_panel(bpy.types.NEUMESH_PT_arap, bpy.context)
     assert any("Select an object with a field" in t for t in labels)
+
+
+def test_a_frame_change_during_a_texture_paint_stroke_writes_the_key_once_the_stroke_has_ended(addon):
+    """Blender's projection paint reads the painted object's evaluated mesh through pointers it took
+    when the stroke began; a live key written meanwhile (a frame change: a render or frame_set from a
+    script or timer) makes the mesh evaluate anew under the stroke, and Blender 3.4 segfaults at its
+    next dab (test_real_blender_redo.py runs that in a real window).  While a stroke runs on the
+    object, the frame change's solve and a finished drag solve wait; once it has ended they are
+    written."""
+    import mathutils
+
+    obj, V, anchors, handles = _bar(addon)
+    bpy.ops.neumesh.arap_add()
+    e = _empty(obj)
+    arap, ps = addon.deform.arap, addon.edit.paint_sync
+    rest = e.matrix_world.copy()
+    e.matrix_world = mathutils.Matrix.Translation((0, 0, 0.3)) @ rest
+    assert arap.drag(obj) is True
+    arap.wait_for_drags()
+    dragged = _live(obj)      # a drag's solve: the next frame change solves again from rest
+    bpy.ops.object.mode_set(mode="TEXTURE_PAINT")
+    saved = dict(ps.WATCH)
+    ps.WATCH.update(running=True, stroke=True)    # the watcher saw the press and no event since
+    try:
+        assert ps.stroke_running(obj) and ps.stroke_running()
+        bpy.context.scene.frame_set(bpy.context.scene.frame_current)
+        np.testing.assert_array_equal(_live(obj), dragged)       # nothing written under the stroke
+        assert arap.TIMINGS[obj.name_full]["mode"] == "drag"
+        assert bpy.app.timers.is_registered(arap._after_stroke)
+        assert arap._after_stroke() == 0.25                      # still running: it waits
+        np.testing.assert_array_equal(_live(obj), dragged)
+        # a drag solve that finishes during the stroke waits too
+        e.matrix_world = mathutils.Matrix.Translation((0, 0, 0.2)) @ rest
+        assert arap.drag(obj) is True
+        arap._DRAGS[obj.name_full]["thread"].join(60)
+        assert arap._apply_drags() == 0.02 and arap._DRAGS[obj.name_full]["done"] is not None
+        np.testing.assert_array_equal(_live(obj), dragged)
+        ps.WATCH["stroke"] = False                               # the stroke has ended
+        assert not ps.stroke_running(obj)
+        assert arap._apply_drags() is None
+        W = _live(obj)
+        np.testing.assert_allclose(W[handles], V[handles] + [0, 0, 0.2], atol=1e-4)
+        e.matrix_world = mathutils.Matrix.Translation((0, 0, 0.3)) @ rest
+        ps.WATCH["stroke"] = True
+        bpy.context.scene.frame_set(bpy.context.scene.frame_current)
+        np.testing.assert_array_equal(_live(obj), W)
+        ps.WATCH["stroke"] = False
+        assert arap._after_stroke() is None                      # solved from rest for the Empty now
+        assert arap.TIMINGS[obj.name_full]["mode"] == "frame" and not arap._HELD
+        W = _live(obj)
+        np.testing.assert_allclose(W[handles], V[handles] + [0, 0, 0.3], atol=1e-4)
+        np.testing.assert_allclose(W[anchors], V[anchors], atol=1e-5)
+    finally:
+        ps.WATCH.clear()
+        ps.WATCH.update(saved)
+        if bpy.app.timers.is_registered(arap._after_stroke):
+            bpy.app.timers.unregister(arap._after_stroke)
+        bpy.ops.object.mode_set(mode="OBJECT")

@@ -113,3 +113,27 @@ def test_failed_swap_preview_in_a_real_window_shows_the_refusal_and_writes_nothi
         with open(os.path.join(keep, "swap_refused.json"), "w") as fh:
             json.dump(f, fh)
         docs_pictures(keep, f)
+
+
+def test_render_from_a_timer_during_a_texture_paint_stroke_on_an_arap_object(addon_zip, trained_field, tiny_dataset,
+                                                                             tmp_path):
+    """In the real window with real input: ARAP deform on the field object, its handle moved (the next
+    frame change solves again from rest and writes the live key), Texture Paint, a real stroke whose
+    button stays down while a timer calls ``bpy.ops.render.render()`` (its frame changes run ARAP's
+    handler), the stroke then going on for seconds.  Blender's projection paint reads the mesh evaluated
+    when the stroke began: a key written under it freed that mesh and Blender segfaulted at the next
+    dab (with freed memory filled, MALLOC_CONF=junk:true, 3 of 3 runs).  The key waits for the stroke's
+    end, Blender runs on, the render shows the paint, and the key is solved from rest afterwards."""
+    from test_real_blender import crash_report
+
+    r, log, f = run_in_window("real_blender_tpaint_render.py", "tpf12", addon_zip, trained_field, tiny_dataset,
+                              tmp_path, 300, simulate=False, args=("midstroke", "NEUMESH", "arap"),
+                              env_extra={"MALLOC_CONF": "junk:true"})
+    print(json.dumps(f, indent=1))
+    assert r.returncode == 0, log[-3000:] + crash_report(tmp_path)
+    assert f["errors"] == [] and "Traceback" not in log, (f["errors"], log[-3000:])
+    assert f["arap_add"] == ["FINISHED"] and f["arap_before"] == "drag"
+    assert f["texture_paint"] == ["FINISHED"] and f["mode"] == "TEXTURE_PAINT" and f["pushes"] >= 1
+    assert f["stroke_at_render"] and f["render"] == ["FINISHED"] and f["frame_changes_in_render"] >= 1
+    assert f["arap_after"] == "frame" and not f["stroke_after"]   # solved from rest once the stroke ended
+    assert f["cyan_pixels"] > 20 and f["mode_after"] == "TEXTURE_PAINT"

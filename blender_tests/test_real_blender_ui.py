@@ -33,12 +33,13 @@ def _facts(log, tmp=None):
 
 
 def run_in_window(script: str, mode: str, addon_zip, trained_field, tiny_dataset, tmp_path, timeout: int,
-                  simulate: bool = True):
+                  simulate: bool = True, args=(), env_extra=None):
     """The two steps of a real-window test: real_blender_ui.py's ``setup`` writes tmp_path/ui/ui.blend
     in ``blender -b``, then ``script`` (a file beside this one) runs ``mode`` on it in the real window
     (Xvfb; Blender's event simulation, or with ``simulate=False`` none: with it Blender drops the window
-    system's events, and a script sending real X input with xdotool needs them).  Returns (the window
-    run's CompletedProcess, its whole log, its facts)."""
+    system's events, and a script sending real X input with xdotool needs them), ``args`` after its
+    folder, ``env_extra`` in the window run's environment.  Returns (the window run's
+    CompletedProcess, its whole log, its facts)."""
     if not os.path.isdir(os.path.join(TORCH_DIR, "torch")):
         pytest.fail(f"torch for the blender binary is missing in {TORCH_DIR}: run scripts/setup_blender.sh")
     env = _env(tmp_path)
@@ -49,8 +50,8 @@ def run_in_window(script: str, mode: str, addon_zip, trained_field, tiny_dataset
     assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
     sim = ["--enable-event-simulate"] if simulate else []
     r = subprocess.run([XVFB, "-a", "-s", "-screen 0 %dx%dx24" % WINDOW, BLENDER, str(out / "ui.blend")] + sim
-                       + ["--python", os.path.join(HERE, script), "--", mode, str(out)],
-                       env=env, capture_output=True, text=True, timeout=timeout)
+                       + ["--python", os.path.join(HERE, script), "--", mode, str(out)] + list(args),
+                       env=dict(env, **(env_extra or {})), capture_output=True, text=True, timeout=timeout)
     return r, r.stdout + r.stderr, _facts(r.stdout, tmp_path)
 
 

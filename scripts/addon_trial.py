@@ -384,13 +384,20 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
     for i in range(13):
         moves += ["mousemove", cx - 60 + 10 * i, cy + (i % 2) * 4, "sleep", "0.05"]
     t = time.time()
-    p = xdo("mousemove", cx - 60, cy, "sleep", "0.3", "mousedown", "1", *moves, "mouseup", "1")
+    p = xdo("mousemove", cx - 60, cy, "sleep", "0.3", "mousedown", "1", *moves, "mouseup", "1", "sleep", "0.3",
+            "mousemove", cx + 80, cy + 60)   # the pointer moves on after the stroke, as a hand does
     while p.poll() is None:
         yield 0.2
     while tp.STATS["pushes"] == pushes0 and time.time() - t < 60:
         yield 0.25
-    step("texture paint stroke", seconds_to_push=round(time.time() - t, 1), pushes=tp.STATS["pushes"] - pushes0,
-         texels=tp.STATS.get("texels"))
+    pushed = round(time.time() - t, 1)
+    # F12 as an artist presses it: once the stroke has ended (the watcher saw an event after it; on a
+    # big scaffold Blender handles the stroke's events well after xdotool sent them) and the image settled
+    ps = nm_addon.edit.paint_sync
+    while (ps.stroke_running() or ps.WATCH["pending"]) and time.time() - t < 60:
+        yield 0.25
+    step("texture paint stroke", seconds_to_push=pushed, seconds_to_end=round(time.time() - t, 1),
+         pushes=tp.STATS["pushes"] - pushes0, texels=tp.STATS.get("texels"), stroke_running=ps.stroke_running())
     shot("shot_texture_paint.png")
     res, dt = timed(lambda: bpy.ops.render.render())
     path = os.path.join(out, "f12_texture_paint.png")

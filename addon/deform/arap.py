@@ -17,6 +17,10 @@ the vertex groups).  *Apply as shape key* bakes the current pose into a shape ke
 the live setup, like a modifier's *Apply as shape key*.  In the viewport a drag's solve runs in a
 thread per object (the newest Empty transforms win; a timer writes the result), so the interface stays
 live while a big scaffold solves; scripts and renders (``bpy.app.background``) solve in place.
+While a Texture Paint stroke runs on the object (``paint_sync.stroke_running``) no solve is written:
+Blender's projection paint reads the mesh evaluated when the stroke began, and a key written under the
+stroke (a render or frame change that a script or timer starts) frees that mesh (Blender 3.4 then
+segfaults at the stroke's next dab); the solve is written once the stroke has ended.
 Undo and redo restore the Empties and the live shape key together, exactly (:mod:`.arap_undo`: each
 write records the Empties' transforms it was solved for, and the shapes shown before drags are
 kept).  The operators, settings and panel are in :mod:`.arap_ops`.
@@ -34,6 +38,7 @@ from ..runtime._np import np
 from ..runtime import core
 from ..runtime.errors import UserError
 from ..scene import sync
+from ..edit import paint_sync
 
 LIVE_KEY = "NeuMesh ARAP"
 APPLIED_KEY = "ARAP pose"
@@ -324,12 +329,15 @@ def _drag_worker(name, ent, which, d):
         d["error"] = exc
 
 
-def _apply_drags():
-    """Timer: write finished drag solves into their objects; keeps polling while a thread runs."""
+def _apply_drags(hold: bool = True):
+    """Timer: write finished drag solves into their objects; keeps polling while a thread runs, and
+    (``hold``) while a Texture Paint stroke runs on the object (the solve is written once it has ended)."""
     busy = False
     for name, d in list(_DRAGS.items()):
         done, d["done"] = d["done"], None
         obj = bpy.data.objects.get(name)
+        if hold and done is not None and obj is not None and paint_sync.stroke_running(obj):
+            d["done"], done = done, None
         if done is not None and done[-1] != d.get("epoch", 0):
             done = None            # solved for Empties an undo or redo has put back since
         if done is not None and obj is not None and name in _SOLVERS and not _UNDO["busy"]:
@@ -354,7 +362,7 @@ def wait_for_drags(timeout: float = 600.0) -> None:
         for d in list(_DRAGS.values()):
             if d["thread"] is not None:
                 d["thread"].join(max(0.0, end - time.perf_counter()))
-        if _apply_drags() is None:
+        if _apply_drags(hold=False) is None:
             return
 
 
@@ -362,12 +370,39 @@ def _arap_objects(scene):
     return [o for o in scene.objects if o.type == "MESH" and o.neumesh_arap.enabled]
 
 
+_HELD: set = set()   # objects whose frame-change solve waits for a Texture Paint stroke to end
+
+
 def _run(scene, depsgraph, from_rest):
     for obj in _arap_objects(scene):
+        if paint_sync.stroke_running(obj):
+            # a write now would make the mesh evaluate anew under the stroke (Blender's projection paint
+            # reads it through pointers taken when the stroke began): solved once the stroke has ended
+            _HELD.add(obj.name_full)
+            if not bpy.app.timers.is_registered(_after_stroke):
+                bpy.app.timers.register(_after_stroke, first_interval=0.25)
+            continue
         try:
             solve(obj, depsgraph, from_rest=from_rest)
         except Exception as exc:  # noqa: BLE001 - a handler must not raise; say why in the console
             print(f"NeuMesh ARAP '{obj.name}': {exc}")
+
+
+def _after_stroke():
+    """Timer: the frame-change solves held back while a Texture Paint stroke ran, once it has ended."""
+    if paint_sync.stroke_running():
+        return 0.25
+    names = sorted(_HELD)
+    _HELD.clear()
+    for name in names:
+        obj = bpy.data.objects.get(name)
+        if obj is None or obj.type != "MESH" or not obj.neumesh_arap.enabled or _UNDO["busy"]:
+            continue
+        try:
+            solve(obj, from_rest=True)
+        except Exception as exc:  # noqa: BLE001 - a timer must not raise; say why in the console
+            print(f"NeuMesh ARAP '{obj.name}': {exc}")
+    return None
 
 
 @persistent

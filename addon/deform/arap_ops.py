@@ -10,8 +10,8 @@ from ..runtime._np import np
 from ..runtime import classes_factory
 from ..runtime.errors import UserError
 from ..runtime.text import labelled, labelled_search
-from .arap import (APPLIED_KEY, LIVE_KEY, TIMINGS, _DRAGS, _SHAPES, _SOLVERS, _apply_drags, _list, _rest,
-                   on_depsgraph_update, on_frame_change, prepare_preview, read_groups, start,
+from .arap import (APPLIED_KEY, LIVE_KEY, TIMINGS, _DRAGS, _HELD, _SHAPES, _SOLVERS, _after_stroke, _apply_drags,
+                   _list, _rest, on_depsgraph_update, on_frame_change, prepare_preview, read_groups, start,
                    wait_for_drags)
 from .arap_undo import on_undo_post, on_undo_pre
 from ..edit.base import EditSubPanel, shown_object
@@ -220,6 +220,8 @@ def unregister():
     _SOLVERS.clear()
     _DRAGS.clear()
     _SHAPES.clear()
-    if bpy.app.timers.is_registered(_apply_drags):
-        bpy.app.timers.unregister(_apply_drags)
+    _HELD.clear()
+    for fn in (_apply_drags, _after_stroke):
+        if bpy.app.timers.is_registered(fn):
+            bpy.app.timers.unregister(fn)
     _unregister()

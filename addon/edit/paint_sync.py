@@ -204,6 +204,17 @@ def _painting() -> bool:
     return False
 
 
+def stroke_running(obj=None) -> bool:
+    """May a Texture Paint stroke be running now (on ``obj``, when given)?  The stroke watcher saw a
+    mouse press in Texture Paint mode and no event since: the stroke's own handler takes every event
+    until it ends.  Blender's projection paint reads the painted object's evaluated mesh through
+    pointers it took when the stroke began, so nothing may make that mesh evaluate anew until the
+    stroke ends (a shape key written meanwhile: Blender 3.4 segfaults at the stroke's next dab)."""
+    if not (WATCH["running"] and WATCH.get("stroke")):
+        return False
+    return obj is None or obj.mode == "TEXTURE_PAINT"
+
+
 def tick():
     """Timer.  With a window, it starts the stroke watcher (:class:`NEUMESH_OT_texture_paint_watch`)
     while an object is in Texture Paint mode; without one (scripts), or as a slow fallback beside
@@ -255,7 +266,7 @@ class NEUMESH_OT_texture_paint_watch(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def _end(self, context):
-        WATCH.update(running=False, pending=False)
+        WATCH.update(running=False, pending=False, stroke=False)
         try:
             context.window_manager.event_timer_remove(self._timer)
         except Exception:  # noqa: BLE001
