@@ -43,12 +43,12 @@ def box_corners(box) -> np.ndarray:
 
 def box_pixels(box, K, c2w, width, height) -> np.ndarray:
     """(H,W) bool: the pixels whose ray crosses the box (its twelve triangles rasterised)."""
-    from neumesh_core.render.raster import _project, raster_triangles
+    from neumesh_core.render.raster import project_mesh, raster_triangles
 
     c = box_corners(box)
     quads = [(0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5)]
     faces = np.array([t for q in quads for t in ((q[0], q[1], q[2]), (q[0], q[2], q[3]))], np.int64)
-    z, pix, fi = _project(c, faces, K, c2w, 1e-6)
+    z, pix, fi = project_mesh(c, faces, K, c2w, 1e-6)
     out = np.zeros(width * height, bool)
     for _, px, _ in raster_triangles(pix[faces[fi]], width, height, eps=1e-9):
         out[px] = True
@@ -58,11 +58,11 @@ def box_pixels(box, K, c2w, width, height) -> np.ndarray:
 def crossings_and_shading(vertices, faces, K, c2w, width, height):
     """Per pixel: how many scaffold triangles its centre ray crosses (in front of the camera), and the
     nearest triangle's |cos| to the ray (0 where nothing), for the shaded picture."""
-    from neumesh_core.render.raster import _project, raster_triangles
+    from neumesh_core.render.raster import project_mesh, raster_triangles
 
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
-    z, pix, fi = _project(V, F, K, c2w, 1e-6)
+    z, pix, fi = project_mesh(V, F, K, c2w, 1e-6)
     count = np.zeros(width * height, np.int64)
     best = np.full(width * height, np.inf)
     best_face = np.full(width * height, -1, np.int64)

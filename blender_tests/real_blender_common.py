@@ -76,12 +76,14 @@ def preview_done():
     return False
 
 
-def register_open_copy(cls, suffix: str) -> None:
+def register_open_copy(cls, suffix: str, opened: bool = True) -> None:
     """Register panel ``cls`` again as ``<name><suffix>`` without DEFAULT_CLOSED (Blender keeps a panel's
-    open or closed state by its name once drawn), its parent renamed with the same suffix."""
+    open or closed state by its name once drawn; ``opened=False`` keeps its own), its parent renamed
+    with the same suffix."""
     opts = next((c.__dict__["bl_options"] for c in cls.__mro__ if isinstance(c.__dict__.get("bl_options"), set)),
                 set())
-    attrs = {"bl_idname": cls.__name__ + suffix, "bl_options": set(opts) - {"DEFAULT_CLOSED"}}
+    attrs = {"bl_idname": cls.__name__ + suffix,
+             "bl_options": set(opts) - {"DEFAULT_CLOSED"} if opened else set(opts)}
     parent = next((c.__dict__["bl_parent_id"] for c in cls.__mro__ if "bl_parent_id" in c.__dict__), "")
     if parent:
         attrs["bl_parent_id"] = parent + suffix

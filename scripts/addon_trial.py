@@ -437,7 +437,10 @@ def write():
 def open_edit_panels(bpy):
     """The Edit field panels open and at the top of the sidebar (they are closed by default, below the
     workflow panels): the workflow panels go, the Edit field panel and its children are registered again
-    under new names (<name>_open) without DEFAULT_CLOSED (Blender keeps a panel's state by its name)."""
+    under new names (<name>_open), Edit field, ARAP and painting open."""
+    sys.path.insert(0, os.path.join(ROOT, "blender_tests"))
+    from real_blender_common import register_open_copy
+
     for name in ("NEUMESH_PT_data", "NEUMESH_PT_scaffold", "NEUMESH_PT_train", "NEUMESH_PT_field"):
         bpy.utils.unregister_class(getattr(bpy.types, name))
 
@@ -451,14 +454,8 @@ def open_edit_panels(bpy):
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)
     for cls in classes:
-        opts = next((c.__dict__["bl_options"] for c in cls.__mro__ if isinstance(c.__dict__.get("bl_options"), set)),
-                    set())
-        if cls.__name__ in ("NEUMESH_PT_edit", "NEUMESH_PT_arap", "NEUMESH_PT_paint"):
-            opts = set(opts) - {"DEFAULT_CLOSED"}
-        attrs = {"bl_idname": cls.__name__ + "_open", "bl_options": set(opts)}
-        if parent(cls):
-            attrs["bl_parent_id"] = parent(cls) + "_open"
-        bpy.utils.register_class(type(cls.__name__ + "_open", (cls,), attrs))
+        opened = cls.__name__ in ("NEUMESH_PT_edit", "NEUMESH_PT_arap", "NEUMESH_PT_paint")
+        register_open_copy(cls, "_open", opened=opened)
 
 
 def _wrap_panels(bpy):

@@ -80,7 +80,7 @@ def bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return ((t[yi, xi] * (1 - fx) + t[yi, x1] * fx) * (1 - fy) + (t[y1, xi] * (1 - fx) + t[y1, x1] * fx) * fy)
 
 
-def _project(vertices, faces: np.ndarray, K, c2w, near: float):
+def project_mesh(vertices, faces: np.ndarray, K, c2w, near: float):
     """Camera-axis depth (M,) and pixel coordinates (M,2) of the vertices seen by an OpenCV camera,
     and the indices of the faces whose corners all lie farther than ``near`` (no clipping)."""
     v = np.asarray(vertices, np.float64).reshape(-1, 3)
@@ -99,7 +99,7 @@ def depth_buffer(vertices, faces, K, c2w, width: int, height: int, near: float =
     inf where no triangle covers it.  Triangles with a vertex closer than ``near`` are skipped (no
     clipping: an occluder must lie wholly in front of the camera)."""
     f = np.asarray(faces, np.int64).reshape(-1, 3)
-    z, pix, fi = _project(vertices, f, K, c2w, near)
+    z, pix, fi = project_mesh(vertices, f, K, c2w, near)
     best = np.full(width * height, np.inf)
     for ids, px, bary in raster_triangles(pix[f[fi]], width, height, eps=1e-9):
         depth = 1.0 / (bary / z[f[fi[ids]]]).sum(1)
@@ -122,7 +122,7 @@ def render_textured_mesh(vertices, faces, uvs, texture, K, c2w, width: int, heig
     Kd = np.asarray(K, np.float64).copy()
     Kd[:2] *= s
     W, H = width * s, height * s
-    z, pix, fi = _project(vertices, f, Kd, c2w, 1e-6)
+    z, pix, fi = project_mesh(vertices, f, Kd, c2w, 1e-6)
     best_z = np.full(W * H, np.inf)
     best_uv = np.zeros((W * H, 2))
     for ids, px, bary in raster_triangles(pix[f[fi]], W, H, eps=1e-9):
