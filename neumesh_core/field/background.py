@@ -90,7 +90,7 @@ class BackgroundModel(nn.Module):
 
     def __init__(self, centre, radius: float, box=None, resolution: int = 64, features: int = 8,
                  hidden: int = 32, samples: int = 48, far_factor: float = 100.0, planes=(),
-                 plane_features: int = 8, version: int = 1):
+                 plane_features: int = 8, version: int = 1, support_samples: int = 0):
         super().__init__()
         planes = tuple(int(p) for p in planes)
         if resolution < 2 or features < 1 or samples < 2 or radius <= 0:
@@ -106,6 +106,9 @@ class BackgroundModel(nn.Module):
         if int(version) not in (1, 2):
             raise ValueError(f"BackgroundModel: version 1 or 2, got {version}")
         self.version = int(version)
+        if support_samples < 0:
+            raise ValueError("BackgroundModel: support_samples >= 0")
+        self.support_samples = int(support_samples)
         gen = torch.Generator().manual_seed(0)
         if not self.planes:
             r = self.resolution
@@ -128,7 +131,8 @@ class BackgroundModel(nn.Module):
                 "box": None if self.box is None else self.box.to_dict(), "resolution": self.resolution,
                 "features": self.features, "hidden": self.hidden, "samples": self.samples,
                 "far_factor": self.far_factor, "planes": list(self.planes),
-                "plane_features": self.plane_features, "version": self.version}
+                "plane_features": self.plane_features, "version": self.version,
+                "support_samples": self.support_samples}
 
     @classmethod
     def from_config(cls, cfg: dict) -> "BackgroundModel":
@@ -137,7 +141,8 @@ class BackgroundModel(nn.Module):
         box = None if cfg.get("box") is None else ObjectBox.from_dict(cfg["box"])
         return cls(cfg["centre"], cfg["radius"], box, int(cfg["resolution"]), int(cfg["features"]),
                    int(cfg["hidden"]), int(cfg["samples"]), float(cfg["far_factor"]), tuple(cfg.get("planes", ())),
-                   int(cfg.get("plane_features", 8)), int(cfg.get("version", 1)))
+                   int(cfg.get("plane_features", 8)), int(cfg.get("version", 1)),
+                   int(cfg.get("support_samples", 0)))
 
     def tv_loss(self) -> torch.Tensor:
         """K-Planes' total variation of the feature planes: the mean squared difference of neighbouring
@@ -211,6 +216,31 @@ class BackgroundModel(nn.Module):
         w = ((target - L0) / (L1 - L0).clamp_min(1e-12)).clamp(0, 1)
         return tc[k - 1] + w * (tc[k] - tc[k - 1])
 
+    def _support_edges(self, origins, dirs, jitter):
+        """(R, n) extra interval edges where each ray meets the support the box rests on (a wall, a
+        table: just behind the box's face at -half_extents[2] on its third axis), ``support_samples``
+        of them evenly over a slab from that face to a tenth of the box's third half-size behind it, so
+        the room's nearest, most detailed surface is sampled where it is, not only at the even steps.
+        Rays that meet the slab behind the camera or run along it get edges at the ray's start (empty
+        intervals)."""
+        n = self.support_samples
+        dt = origins.dtype
+        br = torch.as_tensor(self.box.rotation, dtype=dt, device=origins.device)
+        bc = torch.as_tensor(self.box.centre, dtype=dt, device=origins.device)
+        h = float(self.box.half_extents[2])
+        oz = ((origins - bc) @ br)[:, 2]
+        dz = (dirs @ br)[:, 2]
+        u = (torch.arange(n, dtype=dt, device=origins.device) + 0.5) / n
+        if jitter is not None:
+            u = (u[None, :] + (jitter[:, None].to(dt) - 0.5) / n).clamp(0, 1)
+        else:
+            u = u[None, :].expand(origins.shape[0], -1)
+        z = -h - 0.1 * h * u                                                      # face -> behind it
+        ok = dz.abs() > 1e-6
+        te = (z - oz[:, None]) / torch.where(ok, dz, torch.ones_like(dz))[:, None]
+        near = 0.01 * self.radius
+        return torch.where(ok[:, None] & (te > near), te, torch.full_like(te, near))
+
     def query(self, x: torch.Tensor, d: torch.Tensor):
         """Density per radius (S,) and colour (S,3) at world points ``x`` (S,3) seen along ``d``."""
         c, rot = self._frame(x)
@@ -233,10 +263,13 @@ class BackgroundModel(nn.Module):
         """Render rays: premultiplied colour (R,3) and opacity (R,) of the background (1 where nothing
         cuts it: the last interval is opaque).  ``jitter`` (R,) in [0,1) shifts the samples (training);
         ``far`` (R,) cuts the background behind an occluder (nothing past it counts)."""
-        R, S = origins.shape[0], self.samples
+        R = origins.shape[0]
         if R == 0:
             return origins.new_zeros(0, 3), origins.new_zeros(0)
         t = self._edges_v2(origins, dirs, jitter) if self.version == 2 else self._edges_v1(origins, dirs, jitter)
+        if self.support_samples and self.version == 2 and self.box is not None and self.box.on_support:
+            t = torch.sort(torch.cat([t, self._support_edges(origins, dirs, jitter)], 1), 1).values
+        S = t.shape[1] - 1
         mid = 0.5 * (t[:, 1:] + t[:, :-1])
         x = origins[:, None, :] + dirs[:, None, :] * mid[..., None]
         sigma, rgb = self.query(x.reshape(-1, 3), dirs[:, None, :].expand(-1, S, -1).reshape(-1, 3))
@@ -266,9 +299,10 @@ def background_for(c2w: np.ndarray, box, points: Optional[np.ndarray] = None, ra
 
 
 #: the background model of fitted real captures (neumesh fit): K-Planes at 128 and 512 texels in the
-#: object box's axes, 32 samples a ray even in the contracted space, the contraction ball centred on
-#: the box and twice its largest half-size (docs/real_captures.md)
-FIT_BACKGROUND = {"planes": (128, 512), "samples": 32, "version": 2}
+#: object box's axes, 32 samples a ray even in the contracted space and 8 more where it meets the
+#: support the box rests on, the contraction ball centred on the box and twice its largest half-size
+#: (docs/real_captures.md)
+FIT_BACKGROUND = {"planes": (128, 512), "samples": 32, "version": 2, "support_samples": 8}
 
 
 def fit_background_for(c2w: np.ndarray, box, points: Optional[np.ndarray] = None) -> BackgroundModel:
