@@ -1,14 +1,19 @@
 """The add-on tried as a new user would, on a real capture, in Debian's Blender in a real window (Xvfb):
 the install steps, Import Cameras, Import Mesh, Load Field, F12 with the background on and off, a shell
-batch render with the window still open, ARAP (the handle Empty selected, a real G drag, a real Ctrl+Z)
-and Paint on view + Apply into the Edits folder. Not a test: it needs a capture and a field trained on it.
+batch render with the window still open, ARAP (the handle Empty selected, a real G drag, a real Ctrl+Z),
+Paint on view + Apply into the Edits folder, a real Texture Paint stroke and F12, then what an artist
+does next: the Rendered viewport until its finest pass (Field & Render says which pass it shows), Save
+paint (twice) and Close painting, Select by click on a field without semantic codes (a real click; the
+error names the panel button that makes them) and a real Ctrl+S (the saved .blend's field paths read
+back by a second ``blender -b``). Not a test: it needs a capture and a field trained on it.
 
     python scripts/addon_trial.py --capture DIR --field F.neumesh --scaffold S.ply --out OUT [--percent 25]
 
 builds the add-on zip (build_addon.py), starts ``blender`` with a new user's empty preferences under
 ``xvfb-run`` (no event simulation: xdotool's real X input reaches it) with this file as its script, and
 prints what each step showed. Inside Blender (``-- window ARGS``) a timer runs the steps; the buttons are
-pressed through their operators, the keys and the drag are real X input (xdotool). OUT gets
+pressed through their operators (in the sidebar's context, the panels each step looks at alone in the
+sidebar, open), the keys, the click and the drags are real X input (xdotool). OUT gets
 trial.blend, trial_neumesh/ (the Edits folder), the frames, window screenshots (shot_*.png) and
 trial.json (every step's time and report). The screenshots show the capture's photos nowhere (camera
 background images off); they stay in OUT unless copied by hand.
@@ -22,6 +27,7 @@ import time
 import traceback
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "blender_tests"))   # real_blender_common: shared with the tests
 WINDOW = (1280, 900)
 
 
@@ -85,7 +91,7 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
         w = win()
         area = w.screen.areas[0]
         path = os.path.join(out, name)
-        with bpy.context.temp_override(window=w, area=area):
+        with override(window=w, area=area):
             bpy.ops.screen.screenshot(filepath=path)
         R.setdefault("shots", []).append(name)
         return path
@@ -97,7 +103,7 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
         old = area.type
         area.type = "INFO"
         try:
-            with bpy.context.temp_override(window=w, area=area, region=area.regions[-1]):
+            with override(window=w, area=area, region=area.regions[-1]):
                 bpy.ops.info.select_all(action="SELECT")
                 bpy.ops.info.report_copy()
         finally:
@@ -166,7 +172,7 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
     blend = os.path.join(out, "trial.blend")
     bpy.ops.wm.save_as_mainfile(filepath=blend)
     w, area, _ = view3d()
-    with bpy.context.temp_override(window=w, area=area):
+    with override(window=w, area=area):
         res, dt = timed(lambda: bpy.ops.neumesh.import_dataset(directory=capture, background_images=False))
     yield 1.0
     lines, n_rep = reports(n_rep)
@@ -185,7 +191,7 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
         w_, area_, regs_ = view3d()
         label = getattr(bpy.types, op.idname()).bl_label
         t = time.time()
-        with bpy.context.temp_override(window=w_, area=area_, region=regs_["WINDOW"]):
+        with override(window=w_, area=area_, region=regs_["WINDOW"]):
             res = op("INVOKE_DEFAULT", run=True, **props)
         seen = []
         while True:
@@ -255,7 +261,7 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
     for name, idx in (("Anchor", np.nonzero(h < lo)[0]), ("Handle", np.nonzero(h > hi)[0])):
         obj.vertex_groups.new(name=name).add([int(i) for i in idx], 1.0, "REPLACE")
     bpy.context.view_layer.objects.active = obj
-    with bpy.context.temp_override(window=w, area=area, active_object=obj, object=obj):
+    with override(window=w, area=area, active_object=obj, object=obj):
         res, dt = timed(lambda: bpy.ops.neumesh.arap_add())
     yield 1.0
     lines, n_rep = reports(n_rep)
@@ -264,7 +270,7 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
         o.select_set(False)
     empty.select_set(True)
     bpy.context.view_layer.objects.active = empty
-    with bpy.context.temp_override(window=w, area=area):
+    with override(window=w, area=area):
         # the undo step a click on the button pushes (operators called from Python push none)
         bpy.ops.ed.undo_push(message="Add ARAP deform")
     step("ARAP add", result=sorted(res), seconds=dt, empty=empty.name, reports=lines)
@@ -334,7 +340,7 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
         o.select_set(False)
     obj.select_set(True)
     bpy.context.view_layer.objects.active = obj
-    with bpy.context.temp_override(window=w, area=area, active_object=obj, object=obj):
+    with override(window=w, area=area, active_object=obj, object=obj):
         res, dt = timed(lambda: bpy.ops.neumesh.paint_view())
     yield 1.0
     lines, n_rep = reports(n_rep)
@@ -347,7 +353,7 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
         img.pixels.foreach_set(px.ravel())
         img.update()
         w, area, _ = view3d()
-        with bpy.context.temp_override(window=w, area=area, active_object=obj, object=obj):
+        with override(window=w, area=area, active_object=obj, object=obj):
             res, dt = timed(lambda: bpy.ops.neumesh.apply_paint())
         yield 1.0
         lines, n_rep = reports(n_rep)
@@ -366,7 +372,7 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
     obj = bpy.data.objects[obj_name]
     bpy.context.view_layer.objects.active = obj
     obj.select_set(True)
-    with bpy.context.temp_override(window=w, area=area, region=regs["WINDOW"], active_object=obj, object=obj):
+    with override(window=w, area=area, region=regs["WINDOW"], active_object=obj, object=obj):
         res, dt = timed(lambda: bpy.ops.neumesh.texture_paint())
         bpy.ops.ed.undo_push(message="Texture Paint")
     ip = scene.tool_settings.image_paint
@@ -414,12 +420,195 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
     step("saved in Texture Paint mode", blend=os.path.exists(blend))
     yield 2.0
     w, area, regs = view3d()
-    with bpy.context.temp_override(window=w, area=area, region=regs["WINDOW"]):
+    with override(window=w, area=area, region=regs["WINDOW"]):
         bpy.ops.object.mode_set(mode="OBJECT")
     step("Object Mode")
     yield 2.0
     bpy.ops.wm.save_mainfile()
     step("saved", blend=os.path.exists(blend))
+    yield from after_painting(bpy, nm_addon, R, out, blend, obj_name, view3d, win, shot, reports, step, xdo, to_x)
+
+
+def after_painting(bpy, nm_addon, R, out, blend, obj_name, view3d, win, shot, reports, step, xdo, to_x):
+    """Steps 10-13 (a generator, as :func:`window_steps`): the Rendered viewport, Save paint and Close
+    painting, Select by click on a field without semantic codes, a real Ctrl+S.  From the Rendered
+    viewport on, the preview thread runs Python: operators under a context override go through
+    ``overridden`` (the add-on's workers held, as the add-on's own overridden calls do)."""
+    from real_blender_common import overridden, preview_done
+
+    eng = nm_addon.render.engine
+    panels = nm_addon.ui.panels
+    _, n_rep = reports()
+
+    def level_text():
+        return panels.viewport_level_text(eng.viewport_progress())
+
+    def until_drawn(name, seconds=6.0):
+        """Wait until panel ``name`` (the add-on's class name) is drawn again."""
+        n0, t_ = DRAWN.get(name, 0), time.time()
+        while DRAWN.get(name, 0) == n0 and time.time() - t_ < seconds:
+            for r in view3d()[1].regions:
+                if r.type == "UI":
+                    r.tag_redraw()
+            yield 0.25
+        yield 0.5
+
+    # 10. the Rendered viewport: its progressive passes until the finest is drawn (or 90 s); Field &
+    # Render says which pass it shows
+    w, area, regs = view3d()
+    show_panels(bpy, ["NEUMESH_PT_field"], "_s10")
+    area.spaces.active.shading.type = "RENDERED"
+    t = time.time()
+    labels = []
+    while time.time() - t < 90 and not preview_done():
+        text_ = level_text()
+        if text_ and (not labels or labels[-1][1] != text_):
+            labels.append((round(time.time() - t, 1), text_))
+        yield 0.5
+    done = preview_done()
+    yield from until_drawn("NEUMESH_PT_field")
+    shot("shot_viewport_level.png")
+    w, area, regs = view3d()
+    pv = next((getattr(e, "_preview", None) for e in eng._PollRedraw._engines), None)
+    R["viewport"] = [regs["WINDOW"].width, regs["WINDOW"].height]
+    R["sidebar_s10"] = [regs["UI"].x, regs["UI"].y, regs["UI"].width, regs["UI"].height, w.height]
+    step("Rendered viewport", seconds=round(time.time() - t, 1), finest_drawn=done, label=level_text(),
+         labels=labels, field_panel_drawn=DRAWN.get("NEUMESH_PT_field", 0),
+         levels=None if pv is None else [[d, round(s, 1)] for d, s in pv.timings],
+         divisors=None if pv is None else list(pv.divisors), error=None if pv is None else pv.error,
+         viewport=R["viewport"])
+
+    # 11. Save paint (Texture Paint panel), pressed again, then Close painting (Paint texture panel)
+    tp, pe = nm_addon.edit.texture_paint, nm_addon.edit.paint
+
+    def paint_states():
+        """What the two panels draw (their own predicates): enabled buttons, texts, labels."""
+        o = bpy.data.objects[obj_name]
+        img = bpy.data.images.get(pe.PAINT_IMAGE)
+        has_tp = tp.paint_image(o) is not None
+        pending = pe.paint_pending(img)
+        return dict(save_paint_enabled=has_tp, unsaved_texels=tp.unsaved_texels(o) if has_tp else 0,
+                    apply_painting_enabled=pending, close_enabled=pe.is_paint_image(img),
+                    close_text=pe.cancel_text(img), applied_label=pe.applied(img) and not pending,
+                    image_editors=sum(a.type == "IMAGE_EDITOR" for a in win().screen.areas),
+                    field_path=o.neumesh.field_path)
+
+    def edits():
+        folder = os.path.join(out, "trial_neumesh")
+        return sorted(os.listdir(folder)) if os.path.isdir(folder) else []
+
+    def press(op, message, **props):
+        """A sidebar button: the operator in the sidebar's context, then the undo step a click pushes."""
+        w_, area_, regs_ = view3d()
+        o = bpy.data.objects[obj_name]
+        t_ = time.time()
+        with overridden(window=w_, area=area_, region=regs_["UI"], active_object=o, object=o):
+            res_ = op(**props)
+            if "FINISHED" in res_ and message:
+                bpy.ops.ed.undo_push(message=message)
+        return sorted(res_), round(time.time() - t_, 1)
+
+    show_panels(bpy, ["NEUMESH_PT_edit", "NEUMESH_PT_texture_paint", "NEUMESH_PT_paint"], "_s11")
+    yield from until_drawn("NEUMESH_PT_texture_paint")
+    shot("shot_paint_before_save.png")
+    step("paint panels", states=paint_states(), drawn={k: DRAWN.get(k, 0) for k in (
+        "NEUMESH_PT_edit", "NEUMESH_PT_texture_paint", "NEUMESH_PT_paint")})
+    res, dt = press(bpy.ops.neumesh.save_paint, "Save paint")
+    yield 1.0
+    lines, n_rep = reports(n_rep)
+    step("save paint", result=res, seconds=dt, reports=lines, states=paint_states(), edits_folder=edits())
+    res, dt = press(bpy.ops.neumesh.save_paint, "Save paint")
+    yield 1.0
+    lines, n_rep = reports(n_rep)
+    step("save paint again", result=res, seconds=dt, reports=lines, edits_folder=edits())
+    res, dt = press(bpy.ops.neumesh.cancel_paint, "")
+    yield 1.0
+    lines, n_rep = reports(n_rep)
+    step("close painting", result=res, seconds=dt, reports=lines, states=paint_states(),
+         areas=[a.type for a in win().screen.areas])
+    yield from until_drawn("NEUMESH_PT_paint")
+    shot("shot_paint_closed.png")
+    w, area, regs = view3d()
+    R["sidebar_s11"] = [regs["UI"].x, regs["UI"].y, regs["UI"].width, regs["UI"].height, w.height]
+    yield from info_shot("shot_paint_reports.png", "info_s11")
+
+    # 12. Select by click (Semantics panel) on a field without semantic codes: a real click in the view
+    show_panels(bpy, ["NEUMESH_PT_edit", "NEUMESH_PT_semantics"], "_s12")
+    yield from until_drawn("NEUMESH_PT_semantics")
+    w, area, regs = view3d()
+    obj = bpy.data.objects[obj_name]
+    with overridden(window=w, area=area, region=regs["UI"], active_object=obj, object=obj):
+        res = bpy.ops.neumesh.select_by_click("INVOKE_DEFAULT", group_name="NeuMesh selection")
+    yield 0.5
+    main_r = regs["WINDOW"]
+    cx, cy = to_x(w, main_r.x + main_r.width // 2, main_r.y + main_r.height // 2)
+    t = time.time()
+    p = xdo("mousemove", cx, cy, "sleep", "0.3", "click", "1")
+    while p.poll() is None:
+        yield 0.2
+    yield 2.0
+    lines, n_rep = reports(n_rep)
+    errors = [x for x in lines if x.startswith("NeuMesh")]
+    yield from until_drawn("NEUMESH_PT_semantics")
+    shot("shot_select_by_click.png")
+    w, area, regs = view3d()
+    R["sidebar_s12"] = [regs["UI"].x, regs["UI"].y, regs["UI"].width, regs["UI"].height, w.height]
+    msg = errors[-1] if errors else ""
+    modal = [op.bl_idname for op in getattr(win(), "modal_operators", ())]   # Blender 4.2+
+    step("select by click", invoke=sorted(res), seconds=round(time.time() - t, 1), reports=lines, modal=modal,
+         message=msg, names_button="Distill semantics" in msg,
+         names_command="neumesh semantics" in msg or "--field" in msg,
+         group=[g.name for g in bpy.data.objects[obj_name].vertex_groups if g.name == "NeuMesh selection"])
+    yield from info_shot("shot_select_reports.png", "info_s12")
+
+    # 13. File > Save with a real Ctrl+S over the 3D View; where the saved .blend's field paths lead
+    show_panels(bpy, ["NEUMESH_PT_edit"], "_s13")
+    yield from until_drawn("NEUMESH_PT_edit")
+    mtime = os.path.getmtime(blend)
+    w, area, regs = view3d()
+    main_r = regs["WINDOW"]
+    cx, cy = to_x(w, main_r.x + main_r.width // 2, main_r.y + main_r.height // 3)
+    t = time.time()
+    p = xdo("mousemove", cx, cy, "sleep", "0.3", "key", "ctrl+s")
+    while p.poll() is None:
+        yield 0.2
+    while os.path.getmtime(blend) == mtime and time.time() - t < 60:
+        yield 0.25
+    yield 1.0
+    lines, n_rep = reports(n_rep)
+    shot("shot_saved.png")
+    R["sidebar_s13"] = [regs["UI"].x, regs["UI"].y, regs["UI"].width, regs["UI"].height, w.height]
+    o = bpy.data.objects[obj_name]
+    expr = ("import bpy, json; print('NEUMESH_SAVED ' + json.dumps({o.name: dict(o['neumesh']) for o in "
+            "bpy.data.objects if 'neumesh' in o.keys()}, default=str))")
+    r = subprocess.run([bpy.app.binary_path, "-b", "--factory-startup", blend, "--python-expr", expr],
+                       capture_output=True, text=True, timeout=120)
+    saved = next((json.loads(x.split(" ", 1)[1]) for x in r.stdout.splitlines() if x.startswith("NEUMESH_SAVED ")),
+                 None)
+    step("Ctrl+S", seconds=round(time.time() - t, 1), written=os.path.getmtime(blend) != mtime, reports=lines,
+         dirty=bpy.data.is_dirty, field_path=o.neumesh.field_path, edits_folder=edits(),
+         blend_folder=sorted(os.listdir(out)), saved_file=saved,
+         saved_path_resolves=None if not saved else {
+             k: os.path.isfile(bpy.path.abspath(v.get("field_path", ""), start=out)) for k, v in saved.items()})
+
+
+def info_shot(name, key):
+    """The Info editor in the largest 3D View's place for a moment (the reports in full), screenshot."""
+    import bpy
+
+    w = bpy.context.window_manager.windows[0]
+    area = max((a for a in w.screen.areas if a.type == "VIEW_3D"), key=lambda a: a.width * a.height)
+    area.type = "INFO"
+    yield 1.5
+    path = os.path.join(TRIAL["out"], name)
+    from real_blender_common import overridden
+
+    with overridden(window=w, area=w.screen.areas[0]):
+        bpy.ops.screen.screenshot(filepath=path)
+    TRIAL.setdefault("shots", []).append(name)
+    TRIAL[key] = [area.x, area.y, area.width, area.height]
+    area.type = "VIEW_3D"
+    yield 1.0
 
 
 TRIAL = {"steps": [], "errors": []}
@@ -434,15 +623,26 @@ def write():
             json.dump(TRIAL, fh, indent=1, default=str)
 
 
+def override(**kw):
+    """``bpy.context.temp_override(**kw)`` with the add-on's threads held (``real_blender_common.overridden``):
+    Blender 3.4 corrupts Python's heap when an operator runs under an override beside a running Python
+    thread (the Rendered viewport's preview, a job)."""
+    from real_blender_common import overridden
+
+    return overridden(**kw)
+
+
+ORIGINALS: dict = {}   # panel name -> the add-on's sidebar panel class, unregistered (copies are shown)
+SHOWN: list = []       # the names of the copies registered now, parents first
+
+
 def open_edit_panels(bpy):
     """The Edit field panels open and at the top of the sidebar (they are closed by default, below the
     workflow panels): the workflow panels go, the Edit field panel and its children are registered again
     under new names (<name>_open), Edit field, ARAP and painting open."""
-    sys.path.insert(0, os.path.join(ROOT, "blender_tests"))
-    from real_blender_common import register_open_copy
-
     for name in ("NEUMESH_PT_data", "NEUMESH_PT_scaffold", "NEUMESH_PT_train", "NEUMESH_PT_field"):
-        bpy.utils.unregister_class(getattr(bpy.types, name))
+        ORIGINALS[name] = getattr(bpy.types, name)
+        bpy.utils.unregister_class(ORIGINALS[name])
 
     def parent(cls):
         return next((c.__dict__["bl_parent_id"] for c in cls.__mro__ if "bl_parent_id" in c.__dict__), "")
@@ -452,10 +652,24 @@ def open_edit_panels(bpy):
         if n.startswith("NEUMESH_PT") and parent(getattr(bpy.types, n)) == "NEUMESH_PT_edit":
             classes.append(getattr(bpy.types, n))
     for cls in reversed(classes):
+        ORIGINALS[cls.__name__] = cls
         bpy.utils.unregister_class(cls)
-    for cls in classes:
-        opened = cls.__name__ in ("NEUMESH_PT_edit", "NEUMESH_PT_arap", "NEUMESH_PT_paint")
-        register_open_copy(cls, "_open", opened=opened)
+    opened = {"NEUMESH_PT_edit", "NEUMESH_PT_arap", "NEUMESH_PT_paint"}
+    show_panels(bpy, [c.__name__ for c in classes], "_open", opened)
+
+
+def show_panels(bpy, names, suffix, opened=None):
+    """Only the panels ``names`` (the add-on's class names, parents first, in the sidebar's order) in the
+    sidebar, as copies named <name><suffix>: a new suffix gives panels Blender has not drawn yet, so
+    ``opened`` (default: all of them) are open whatever was folded before."""
+    from real_blender_common import register_open_copy
+
+    for name in reversed(SHOWN):
+        bpy.utils.unregister_class(getattr(bpy.types, name))
+    SHOWN.clear()
+    for name in names:
+        register_open_copy(ORIGINALS[name], suffix, opened=opened is None or name in opened)
+        SHOWN.append(name + suffix)
 
 
 def _wrap_panels(bpy):
