@@ -498,33 +498,42 @@ def after_painting(bpy, nm_addon, R, out, blend, obj_name, view3d, win, shot, re
         return sorted(os.listdir(folder)) if os.path.isdir(folder) else []
 
     def press(op, message, **props):
-        """A sidebar button: the operator in the sidebar's context, then the undo step a click pushes."""
+        """A sidebar button: the operator in the sidebar's context, then the undo step a click pushes.
+        Returns (result, seconds, its reports): an operator called from Python reports to stdout, not
+        to the status bar and the Info log as a click's would; the reports are taken from there."""
+        import contextlib
+        import io
+
         w_, area_, regs_ = view3d()
         o = bpy.data.objects[obj_name]
         t_ = time.time()
+        buf = io.StringIO()
         with overridden(window=w_, area=area_, region=regs_["UI"], active_object=o, object=o):
-            res_ = op(**props)
+            with contextlib.redirect_stdout(buf):
+                res_ = op(**props)
             if "FINISHED" in res_ and message:
                 bpy.ops.ed.undo_push(message=message)
-        return sorted(res_), round(time.time() - t_, 1)
+        sys.stdout.write(buf.getvalue())
+        said = [x for x in buf.getvalue().splitlines() if x.split(":", 1)[0] in ("Info", "Warning", "Error")]
+        return sorted(res_), round(time.time() - t_, 1), said
 
     show_panels(bpy, ["NEUMESH_PT_edit", "NEUMESH_PT_texture_paint", "NEUMESH_PT_paint"], "_s11")
     yield from until_drawn("NEUMESH_PT_texture_paint")
     shot("shot_paint_before_save.png")
     step("paint panels", states=paint_states(), drawn={k: DRAWN.get(k, 0) for k in (
         "NEUMESH_PT_edit", "NEUMESH_PT_texture_paint", "NEUMESH_PT_paint")})
-    res, dt = press(bpy.ops.neumesh.save_paint, "Save paint")
+    res, dt, said = press(bpy.ops.neumesh.save_paint, "Save paint")
     yield 1.0
     lines, n_rep = reports(n_rep)
-    step("save paint", result=res, seconds=dt, reports=lines, states=paint_states(), edits_folder=edits())
-    res, dt = press(bpy.ops.neumesh.save_paint, "Save paint")
+    step("save paint", result=res, seconds=dt, said=said, reports=lines, states=paint_states(), edits_folder=edits())
+    res, dt, said = press(bpy.ops.neumesh.save_paint, "Save paint")
     yield 1.0
     lines, n_rep = reports(n_rep)
-    step("save paint again", result=res, seconds=dt, reports=lines, edits_folder=edits())
-    res, dt = press(bpy.ops.neumesh.cancel_paint, "")
+    step("save paint again", result=res, seconds=dt, said=said, reports=lines, edits_folder=edits())
+    res, dt, said = press(bpy.ops.neumesh.cancel_paint, "")
     yield 1.0
     lines, n_rep = reports(n_rep)
-    step("close painting", result=res, seconds=dt, reports=lines, states=paint_states(),
+    step("close painting", result=res, seconds=dt, said=said, reports=lines, states=paint_states(),
          areas=[a.type for a in win().screen.areas])
     yield from until_drawn("NEUMESH_PT_paint")
     shot("shot_paint_closed.png")
@@ -580,7 +589,7 @@ def after_painting(bpy, nm_addon, R, out, blend, obj_name, view3d, win, shot, re
     R["sidebar_s13"] = [regs["UI"].x, regs["UI"].y, regs["UI"].width, regs["UI"].height, w.height]
     o = bpy.data.objects[obj_name]
     expr = ("import bpy, json; print('NEUMESH_SAVED ' + json.dumps({o.name: dict(o['neumesh']) for o in "
-            "bpy.data.objects if 'neumesh' in o.keys()}, default=str))")
+            "bpy.data.objects if o.get('neumesh', {}).get('field_path')}, default=str))")
     r = subprocess.run([bpy.app.binary_path, "-b", "--factory-startup", blend, "--python-expr", expr],
                        capture_output=True, text=True, timeout=120)
     saved = next((json.loads(x.split(" ", 1)[1]) for x in r.stdout.splitlines() if x.startswith("NEUMESH_SAVED ")),
