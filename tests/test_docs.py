@@ -174,7 +174,7 @@ HEADLINE_CODE = {
                                 "neumesh_core/edit/transfer.py", "neumesh_core/edit/fit_check.py"],
     "paint_lego.json": _FIELD + ["neumesh_core/edit/paint.py", "neumesh_core/edit/paint_view.py"],
     "bake_lego.json": _FIELD + ["neumesh_core/bake"],
-    "real_fox_ds4_60min_2threads_quiet.json": _FIT + ["neumesh_core/fit.py"],
+    "real_fox_ds2_30min_support8.json": _FIT + ["neumesh_core/fit.py"],
     "semantics_multipart.json": _TRAIN + ["neumesh_core/semantics"],
 }
 # stale headlines: the re-measurement that refreshes each (the commands are under the README's table)
@@ -191,8 +191,6 @@ STALE = {
     "paint_lego.json": "painting on lego (command 9)",
     "bake_lego.json": "baking lego (command 10)",
     "semantics_multipart.json": "one-click selection on the multi-part scene (command 6)",
-    "real_fox_ds4_60min_2threads_quiet.json": "fox with the found box and the fused scaffold, 15 and 60 minutes "
-                                              "(benchmarks/bench_real.py, docs/real_captures.md)",
     # the GPU kernels among the changes (restructured; not timed on a GPU since)
     "render_gpu_lego.json": "lego render speed on a GPU (command 12; a lent GPU)",
 }
