@@ -90,6 +90,17 @@ def register_open_copy(cls, suffix: str, opened: bool = True) -> None:
     bpy.utils.register_class(type(cls.__name__ + suffix, (cls,), attrs))
 
 
+def paint_brush(scene, colour=(0.0, 1.0, 1.0), size: int = 25) -> None:
+    """Texture Paint's brush for a real stroke: ``colour`` at full strength, ``size`` pixels, its own
+    colour (not the unified one)."""
+    ip = scene.tool_settings.image_paint
+    ip.brush.color = colour
+    ip.brush.strength = 1.0
+    scene.tool_settings.unified_paint_settings.use_unified_color = False
+    scene.tool_settings.unified_paint_settings.size = size
+    ip.brush.size = size
+
+
 def overridden(**kw):
     """``bpy.context.temp_override(**kw)`` with the add-on's Python threads held at a checkpoint
     (``runtime.quiet.override``): Blender 3.4 corrupts Python's heap when an operator runs under an

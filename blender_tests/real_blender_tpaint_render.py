@@ -30,7 +30,7 @@ import bpy
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_blender_common import addon_module, facts, overridden, script_args  # noqa: E402
+from real_blender_common import addon_module, facts, overridden, paint_brush, script_args  # noqa: E402
 
 ARGS = script_args()
 RUN: dict = {"facts": {"errors": []}}
@@ -99,12 +99,7 @@ def steps(out_dir, how, engine_name, with_arap):
     with overridden(window=win, area=area, region=regs["WINDOW"], active_object=obj, object=obj):
         f["texture_paint"] = sorted(bpy.ops.neumesh.texture_paint(resolution=1024))
         bpy.ops.ed.undo_push(message="Texture Paint")
-    ip = scene.tool_settings.image_paint
-    ip.brush.color = (0.0, 1.0, 1.0)
-    ip.brush.strength = 1.0
-    scene.tool_settings.unified_paint_settings.use_unified_color = False
-    scene.tool_settings.unified_paint_settings.size = 25
-    ip.brush.size = 25
+    paint_brush(scene)
     f["mode"] = obj.mode
     yield 2.0
     pushes0 = tp.STATS["pushes"]

@@ -366,6 +366,8 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
         shot("shot_edits.png")
 
     # 9. Texture Paint: a real stroke (xdotool drag) with a cyan brush across the middle of the view, then F12
+    from real_blender_common import paint_brush
+
     tp = nm_addon.edit.texture_paint
     scene = bpy.context.scene   # an undo step makes new Python objects
     w, area, regs = view3d()
@@ -376,11 +378,7 @@ def window_steps(zip_path, torch_dir, capture, scaffold, field, out, percent):
         res, dt = timed(lambda: bpy.ops.neumesh.texture_paint())
         bpy.ops.ed.undo_push(message="Texture Paint")
     ip = scene.tool_settings.image_paint
-    ip.brush.color = (0.0, 1.0, 1.0)
-    ip.brush.strength = 1.0
-    scene.tool_settings.unified_paint_settings.use_unified_color = False
-    scene.tool_settings.unified_paint_settings.size = 25
-    ip.brush.size = 25
+    paint_brush(scene)
     step("texture paint", result=sorted(res), seconds=dt, mode=obj.mode, canvas=getattr(ip.canvas, "name", None))
     yield 2.0
     pushes0 = tp.STATS["pushes"]
