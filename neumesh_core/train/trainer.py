@@ -195,6 +195,144 @@ def _lr_factor(step: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> float:
     return warm * cfg.lr_final_factor ** _progress(step, cfg, elapsed_s)
 
 
+class _Meter:
+    """Rays and samples done, and the rays per second since the last report."""
+
+    def __init__(self):
+        self.rays = self.samples = self.window_rays = 0
+        self.window_t = _clock()
+
+    def add(self, rays: int, samples: int) -> None:
+        self.rays += rays
+        self.samples += samples
+        self.window_rays += rays
+
+    def samples_per_ray(self) -> float:
+        return self.samples / max(1, self.rays)
+
+    def rays_per_second(self) -> float:
+        """Since the last call (a new window starts)."""
+        now = _clock()
+        rps = self.window_rays / max(now - self.window_t, 1e-9)
+        self.window_t, self.window_rays = now, 0
+        return rps
+
+
+@dataclass
+class _TrainedParts:
+    """What a training run optimises beside the field's own parameters, and where it starts."""
+
+    optimizer: object
+    start: int = 0                  # the step a resumed run goes on from
+    pyramid: object = None          # coarse code levels (cfg.code_levels), baked into the codes at the end
+    background: object = None       # the field's background model, fitted when the images have no masks
+    appearance: object = None       # per-photo appearance codes (cfg.appearance_codes; not saved)
+    averager: object = None         # the running parameter average (cfg.average_from)
+
+
+def _trained_parts(field, cfg: TrainConfig, has_masks: bool, n_images: int, device) -> _TrainedParts:
+    pyramid = None
+    if cfg.code_levels > 0:
+        from ..field.pyramid import CodePyramid
+
+        pyramid = CodePyramid(field, cfg.code_levels, cfg.code_level_factor, kinds=cfg.code_level_kinds)
+    # no masks: the background model (when the field has one) is fitted with the field, full frame
+    bg_model = None if has_masks else field._modules.get("background")
+    opt = _make_optimizer(field, cfg, () if pyramid is None else list(pyramid.parameters()), bg_model)
+    start = 0
+    meta = getattr(field, "_checkpoint_meta", None)
+    if cfg.resume and meta:
+        start = int(meta.get("train_state", {}).get("step", 0))
+        load_optimizer_state(field, opt)
+    appearance = None
+    if cfg.appearance_codes:   # (not saved: they explain the training photos only)
+        appearance = torch.zeros(n_images, 6, device=device, requires_grad=True)
+        opt.add_param_group({"params": [appearance], "lr": cfg.lr_appearance, "base_lr": cfg.lr_appearance,
+                             "name": "appearance"})
+    averaged_params = list(field.parameters()) + ([] if pyramid is None else list(pyramid.parameters()))
+    averager = ParameterAverage(averaged_params) if cfg.average_from is not None else None
+    return _TrainedParts(opt, start, pyramid, bg_model, appearance, averager)
+
+
+def _training_images(field, data: Union[Scene, ImageSet], cfg: TrainConfig):
+    """The images ``train`` fits (a Scene's ``cfg.split``) and the scene's background colour, or a
+    ValueError that says what is wrong with them or with the field."""
+    if isinstance(data, Scene):
+        images, scene_bg = data.split(cfg.split), data.background
+    else:
+        images, scene_bg = data, None
+    if len(images) == 0:
+        raise ValueError("no training images")
+    if images.images.dtype.kind == "f" and not np.isfinite(images.images).all():
+        raise ValueError("training images contain NaN/inf values; check the dataset")
+    if field.to_rest is not None:
+        raise ValueError("the field is deformed; call field.reset_vertices() before training")
+    return images, scene_bg
+
+
+def _targets(rgb_gt, mask, scene_bg, cfg: TrainConfig, gen, device):
+    """The background a batch's rays composite over and the colours they must reach.  With masks and
+    ``random_background`` the background is a random colour per ray, so only an opaque object matches."""
+    if mask is not None and cfg.random_background:
+        bg = torch.rand(len(rgb_gt), 3, generator=gen).to(device)
+        if scene_bg is not None:
+            return bg, rgb_gt + (1 - mask)[:, None] * (bg - scene_bg)
+        return bg, rgb_gt * mask[:, None] + (1 - mask)[:, None] * bg
+    return (scene_bg if scene_bg is not None else torch.zeros(3, device=device)), rgb_gt
+
+
+def _loss(field, out: dict, target, mask, bg_model, cfg: TrainConfig, gen, step: int):
+    """(loss, photometric MSE) of one batch: colour + modification colour + mask BCE + total variation
+    (field and background model).  A NaN opacity or loss raises FloatingPointError (what to do)."""
+    if not bool(torch.isfinite(out["opacity"]).all()):
+        raise FloatingPointError(
+            f"the rendered opacity became NaN/inf at step {step}; lower lr_codes/lr_decoders and "
+            "resume from the last checkpoint")
+    mse = torch.mean((out["rgb"] - target) ** 2)
+    loss = mse + cfg.weight_mod_colour * torch.mean(out["mod_colour"] ** 2)
+    if mask is not None and cfg.weight_mask > 0:
+        op = out["opacity"].clamp(1e-4, 1 - 1e-4)
+        loss = loss + cfg.weight_mask * torch.nn.functional.binary_cross_entropy(op, mask)
+    if cfg.weight_tv > 0:
+        touched = out["vertex_ids"][0] if cfg.tv_vertices == "batch" else None
+        loss = loss + cfg.weight_tv * field.tv_loss(cfg.tv_samples, generator=gen, vertices=touched)
+    if bg_model is not None and cfg.weight_background_tv > 0:
+        loss = loss + cfg.weight_background_tv * bg_model.tv_loss()
+    if not math.isfinite(float(loss.detach())):   # before the step: the field keeps its last finite state
+        raise FloatingPointError(
+            f"loss became {float(loss)} at step {step}; lower lr_codes/lr_decoders and resume from "
+            "the last checkpoint")
+    return loss, mse
+
+
+def _schedule(field, opt, pyramid, step: int, cfg: TrainConfig, elapsed_s: float) -> None:
+    """Before a step: the learning rates of the schedule, and the code levels baked into plain codes
+    once ``cfg.code_levels_until`` of the run has passed."""
+    if (pyramid is not None and field.code_prior is pyramid and cfg.code_levels_until is not None
+            and _progress(step, cfg, elapsed_s) >= cfg.code_levels_until):
+        pyramid.bake(field)   # plain per-vertex codes from here (a running average stays valid:
+        #                       it is linear, and the baked levels are zero from now on)
+    f = _lr_factor(step, cfg, elapsed_s)
+    for g in opt.param_groups:
+        g["lr"] = g["base_lr"] * f
+
+
+def _finish(field, averager, pyramid, density, step_size: float, gen) -> int:
+    """After the last step: the running parameter average applied, the code levels baked into plain
+    codes, and the occupancy grid refreshed from the averaged density.  Returns the steps averaged."""
+    averaged = 0
+    if averager is not None and averager.count > 0:
+        averager.apply()
+        averaged = averager.count
+    if pyramid is not None:
+        pyramid.bake(field)
+    if averaged:
+        # the occupancy grid follows the averaged density (every cell, not a random subset)
+        with torch.no_grad():
+            field.grid.refresh(density, step_size, max_cells=None, generator=gen)
+    return averaged
+
+
 def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = None,
           progress: Optional[Callable[[TrainProgress], Optional[bool]]] = None, *,
           callback: Optional[Callable[[TrainProgress], Optional[bool]]] = None) -> TrainResult:
@@ -209,42 +347,15 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
     cfg = config or TrainConfig()
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    if isinstance(data, Scene):
-        images = data.split(cfg.split)
-        scene_bg = data.background
-    else:
-        images, scene_bg = data, None
-    if len(images) == 0:
-        raise ValueError("no training images")
-    if images.images.dtype.kind == "f" and not np.isfinite(images.images).all():
-        raise ValueError("training images contain NaN/inf values; check the dataset")
-    if field.to_rest is not None:
-        raise ValueError("the field is deformed; call field.reset_vertices() before training")
+    images, scene_bg = _training_images(field, data, cfg)
     device = field.rest_vertices.device
     batcher = _Batcher(images, scene_bg, device, cfg.seed)
-    pyramid = None
-    if cfg.code_levels > 0:
-        from ..field.pyramid import CodePyramid
-
-        pyramid = CodePyramid(field, cfg.code_levels, cfg.code_level_factor, kinds=cfg.code_level_kinds)
-    # no masks: the background model (when the field has one) is fitted with the field, full frame
-    bg_model = field._modules.get("background") if images.masks is None else None
-    opt = _make_optimizer(field, cfg, () if pyramid is None else list(pyramid.parameters()), bg_model)
-    start = 0
-    meta = getattr(field, "_checkpoint_meta", None)
-    if cfg.resume and meta:
-        start = int(meta.get("train_state", {}).get("step", 0))
-        load_optimizer_state(field, opt)
-    appearance = None
-    if cfg.appearance_codes:   # (not saved: they explain the training photos only)
-        appearance = torch.zeros(batcher.n, 6, device=device, requires_grad=True)
-        opt.add_param_group({"params": [appearance], "lr": cfg.lr_appearance, "base_lr": cfg.lr_appearance,
-                             "name": "appearance"})
+    parts = _trained_parts(field, cfg, images.masks is not None, batcher.n, device)
+    pyramid, bg_model, opt, appearance = parts.pyramid, parts.background, parts.optimizer, parts.appearance
+    start, averager = parts.start, parts.averager
     settings = RenderSettings(step_scale=cfg.step_scale)
     step_size = default_step(field, settings)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
-    averaged_params = list(field.parameters()) + ([] if pyramid is None else list(pyramid.parameters()))
-    averager = ParameterAverage(averaged_params) if cfg.average_from is not None else None
 
     def density(x):  # what the occupancy grid is refreshed from
         return field.query(x, with_rgb=False)[0]
@@ -258,10 +369,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
     loss_v = psnr_v = float("nan")
     cancelled = interrupted = False
     step = start
-    rays_done = 0
-    samples_done = 0
-    window_t = _clock()
-    window_rays = 0
+    meter = _Meter()
 
     def save(step_now):
         if cfg.checkpoint_path:
@@ -271,24 +379,9 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
 
     try:
         while step < cfg.steps:
-            elapsed = _clock() - t_begin
-            if (pyramid is not None and field.code_prior is pyramid and cfg.code_levels_until is not None
-                    and _progress(step, cfg, elapsed) >= cfg.code_levels_until):
-                pyramid.bake(field)   # plain per-vertex codes from here (a running average stays valid:
-                #                       it is linear, and the baked levels are zero from now on)
-            f = _lr_factor(step, cfg, elapsed)
-            for g in opt.param_groups:
-                g["lr"] = g["base_lr"] * f
+            _schedule(field, opt, pyramid, step, cfg, _clock() - t_begin)
             o, d, rgb_gt, mask = batcher.sample(cfg.rays_per_batch)
-            if mask is not None and cfg.random_background:
-                bg = torch.rand(len(o), 3, generator=gen).to(device)
-                if batcher.scene_bg is not None:
-                    target = rgb_gt + (1 - mask)[:, None] * (bg - batcher.scene_bg)
-                else:
-                    target = rgb_gt * mask[:, None] + (1 - mask)[:, None] * bg
-            else:
-                bg = batcher.scene_bg if batcher.scene_bg is not None else torch.zeros(3, device=device)
-                target = rgb_gt
+            bg, target = _targets(rgb_gt, mask, batcher.scene_bg, cfg, gen, device)
             jitter = torch.rand(len(o), generator=gen).to(device)
             out = render_rays(field, o, d, background=bg, settings=settings, train=True, jitter=jitter,
                               vertex_ids=cfg.weight_tv > 0 and cfg.tv_vertices == "batch",
@@ -296,32 +389,13 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
             if appearance is not None:   # centred: the field keeps the photos' mean appearance
                 a = (appearance - appearance.mean(0))[batcher.last_index]
                 out["rgb"] = out["rgb"] * torch.exp(a[:, :3]) + a[:, 3:]
-            if not bool(torch.isfinite(out["opacity"]).all()):
-                raise FloatingPointError(
-                    f"the rendered opacity became NaN/inf at step {step}; lower lr_codes/lr_decoders and "
-                    "resume from the last checkpoint")
-            mse = torch.mean((out["rgb"] - target) ** 2)
-            loss = mse + cfg.weight_mod_colour * torch.mean(out["mod_colour"] ** 2)
-            if mask is not None and cfg.weight_mask > 0:
-                op = out["opacity"].clamp(1e-4, 1 - 1e-4)
-                loss = loss + cfg.weight_mask * torch.nn.functional.binary_cross_entropy(op, mask)
-            if cfg.weight_tv > 0:
-                touched = out["vertex_ids"][0] if cfg.tv_vertices == "batch" else None
-                loss = loss + cfg.weight_tv * field.tv_loss(cfg.tv_samples, generator=gen, vertices=touched)
-            if bg_model is not None and cfg.weight_background_tv > 0:
-                loss = loss + cfg.weight_background_tv * bg_model.tv_loss()
+            loss, mse = _loss(field, out, target, mask, bg_model, cfg, gen, step)
             opt.zero_grad(set_to_none=True)
             if loss.requires_grad:
                 loss.backward()
                 opt.step()
-            if not math.isfinite(float(loss.detach())):
-                raise FloatingPointError(
-                    f"loss became {float(loss)} at step {step}; lower lr_codes/lr_decoders and resume from "
-                    "the last checkpoint")
             step += 1
-            rays_done += len(o)
-            window_rays += len(o)
-            samples_done += out["n_samples"]
+            meter.add(len(o), out["n_samples"])
             loss_v = float(loss.detach())
             psnr_v = float(-10.0 * torch.log10(mse.detach().clamp_min(1e-10)))
             if step > cfg.occ_warmup_steps and step % cfg.occ_refresh_every == 0:
@@ -333,12 +407,9 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
                 averager.update()
             over_time = cfg.max_seconds is not None and elapsed >= cfg.max_seconds
             if step % cfg.log_every == 0 or last or step == start + 1 or over_time:
-                now = _clock()
-                rps = window_rays / max(now - window_t, 1e-9)
-                window_t, window_rays = now, 0
                 eta, limit = _eta(step, start, cfg, elapsed)
-                p = TrainProgress(step, cfg.steps, loss_v, psnr_v, rps, elapsed, eta,
-                                  samples_done / max(1, rays_done), field.grid.occupied_fraction,
+                p = TrainProgress(step, cfg.steps, loss_v, psnr_v, meter.rays_per_second(), elapsed, eta,
+                                  meter.samples_per_ray(), field.grid.occupied_fraction,
                                   _progress(step, cfg, elapsed), limit)
                 history.append(p)
                 if progress is not None and progress(p) is False:
@@ -357,16 +428,7 @@ def train(field, data: Union[Scene, ImageSet], config: Optional[TrainConfig] = N
     finally:
         field.sparse_grads = False
     field.eval()
-    averaged = 0
-    if averager is not None and averager.count > 0:
-        averager.apply()
-        averaged = averager.count
-    if pyramid is not None:
-        pyramid.bake(field)
-    if averaged:
-        # the occupancy grid follows the averaged density (every cell, not a random subset)
-        with torch.no_grad():
-            field.grid.refresh(density, step_size, max_cells=None, generator=gen)
+    averaged = _finish(field, averager, pyramid, density, step_size, gen)
     save(step)
     codes = None if appearance is None else (appearance - appearance.mean(0)).detach().cpu().numpy()
     return TrainResult(step, loss_v, psnr_v, _clock() - t_begin, cancelled, interrupted, history,
