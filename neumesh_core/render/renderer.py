@@ -344,24 +344,7 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
     far_t = None if far is None else torch.as_tensor(np.asarray(far, np.float32).reshape(-1)).to(device)
     if far_t is not None and far_t.numel() != n:
         raise ValueError(f"far must be (height, width) = ({height}, {width}), got {np.shape(far)}")
-    # the pixels whose rays can meet an occupied cell of some field, and per field where along them
-    pixels, ranges = None, None
-    if settings.skip_empty:
-        ranges = [f.grid.camera_ranges(K, c2w, width, height, settings.empty_tile) for f in fl]
-        if all(r is not None for r in ranges):
-            live = torch.zeros(n, dtype=torch.bool, device=device)
-            for r_near, r_far in ranges:
-                live |= r_near <= r_far
-            if far_t is not None:
-                live &= far_t > 0
-            pixels = live.nonzero().squeeze(1)
-            if render_path(settings, fl, device, semantics=semantics).fused:
-                from ..kernels.fused import KERNEL_OPTIONS
-
-                if KERNEL_OPTIONS["ray_order"] == "tiles":   # a block of 32 rays: an 8 x 4 patch, not a line
-                    pixels = tile_order(pixels, width)
-            ranges = [(r_near[pixels], r_far[pixels]) for r_near, r_far in ranges]
-        # else: a camera inside some field's occupied cells marches every pixel (that field unbounded)
+    pixels, ranges = _live_pixels(fl, K, c2w, width, height, settings, far_t, device, semantics)
     m = n if pixels is None else len(pixels)
     chunk = chunk_size(settings, device)
     total = max(1, len(offsets) * m)
@@ -414,6 +397,30 @@ def render_camera(fields, K, c2w, width: int, height: int, background=(1.0, 1.0,
                         n_samples, time.perf_counter() - t0,
                         None if sem is None else host[4].reshape(height, width, -1),
                         None if bg_op is None else host[-1].reshape(height, width))
+
+
+def _live_pixels(fl, K, c2w, width: int, height: int, settings: RenderSettings, far_t, device, semantics: bool):
+    """The pixels whose rays can meet an occupied cell of some field (flat ids, in the order the
+    renderer marches them) and per field the (near, far) distances along them.  Pixels None: every
+    pixel (``settings.skip_empty`` off: no ranges either; or a camera inside some field's occupied
+    cells: that field's ranges are None, it is unbounded)."""
+    if not settings.skip_empty:
+        return None, None
+    ranges = [f.grid.camera_ranges(K, c2w, width, height, settings.empty_tile) for f in fl]
+    if any(r is None for r in ranges):
+        return None, ranges   # every pixel; the ranges of the bounded fields still apply
+    live = torch.zeros(width * height, dtype=torch.bool, device=device)
+    for r_near, r_far in ranges:
+        live |= r_near <= r_far
+    if far_t is not None:
+        live &= far_t > 0
+    pixels = live.nonzero().squeeze(1)
+    if render_path(settings, fl, device, semantics=semantics).fused:
+        from ..kernels.fused import KERNEL_OPTIONS
+
+        if KERNEL_OPTIONS["ray_order"] == "tiles":   # a block of 32 rays: an 8 x 4 patch, not a line
+            pixels = tile_order(pixels, width)
+    return pixels, [(r_near[pixels], r_far[pixels]) for r_near, r_far in ranges]
 
 
 def tile_order(pixels: torch.Tensor, width: int, tile=(8, 4)) -> torch.Tensor:
