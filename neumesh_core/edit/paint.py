@@ -95,14 +95,7 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
 
     # 2. the pixels the affected vertices can change: look around the stroke, as far as the influence
     # of a vertex (two radii) projects at the nearest painted depth
-    fx = float(K[0, 0])
-    zmin = max(float(np.min(np.linalg.norm(pts - cam[None], axis=1))), 1e-6)
-    pad = int(np.ceil(3.0 * max(f.radius for f in fl) * fx / zmin)) + 2
-    ys, xs = painted // width, painted % width
-    x0, x1 = max(0, xs.min() - pad), min(width, xs.max() + pad + 1)
-    y0, y1 = max(0, ys.min() - pad), min(height, ys.max() + pad + 1)
-    gy, gx = np.mgrid[y0:y1, x0:x1]
-    box = (gy * width + gx).reshape(-1)
+    box = _stroke_box(painted, pts, cam, float(K[0, 0]), max(f.radius for f in fl), width, height)
     t = time.perf_counter()
     ob, db = _rays(K, c2w, width, height, box, device)
     rgb_b, _, _ = _render(fl, ob, db, settings, cfg.chunk_rays)
@@ -135,27 +128,55 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
     _cancel(progress, 0.7)
     t = time.perf_counter()
 
-    # 3. solve (M^T M + damping * diag) delta = M^T b, one factorisation for the three channels
-    from scipy.sparse.linalg import splu
-
-    n_a = M.shape[1]
-    diag = np.asarray(M.multiply(M).sum(0)).reshape(-1)
-    lam = cfg.damping * max(float(diag.max()), 1e-12)
-    N = (M.T @ M + sp.diags(np.full(n_a, lam))).tocsc()
-    solver = splu(N)
-    rhs = np.asarray(M.T @ b)
-    delta = np.stack([solver.solve(np.ascontiguousarray(rhs[:, c])) for c in range(3)], 1)
-    if not np.isfinite(delta).all():
-        raise EditError("painting did not converge (non-finite colours); paint a larger area")
+    # 3. solve
+    delta = _damped_least_squares(M, b, cfg.damping)
     timing["solve_s"] = time.perf_counter() - t
     _cancel(progress, 0.9)
 
     # 4. write the affected rows of each field
-    records = []
-    offset = 0
     fit_res = (M @ delta - b)[: int(paint_rows.sum())]
-    for i, f in enumerate(fl):
-        ids = affected[i]
+    records = _add_to_fields(fl, affected, delta, t0, painted_pixels=int(len(painted)), hit_pixels=int(hit.sum()),
+                             ring_pixels=int(ring_rows.sum()), box_pixels=int(len(box)),
+                             predicted_rmse=float(np.sqrt(np.mean(fit_res ** 2))) if len(fit_res) else 0.0, **timing)
+    if progress is not None:
+        progress(1.0)
+    return records
+
+
+def _stroke_box(painted, pts, cam, fx: float, radius: float, width: int, height: int) -> np.ndarray:
+    """Flat ids of the pixels the affected vertices can change: the stroke's bounding box, padded by
+    how far a vertex's influence (two radii, plus a margin) projects at the nearest painted depth."""
+    zmin = max(float(np.min(np.linalg.norm(pts - cam[None], axis=1))), 1e-6)
+    pad = int(np.ceil(3.0 * radius * fx / zmin)) + 2
+    ys, xs = painted // width, painted % width
+    x0, x1 = max(0, xs.min() - pad), min(width, xs.max() + pad + 1)
+    y0, y1 = max(0, ys.min() - pad), min(height, ys.max() + pad + 1)
+    gy, gx = np.mgrid[y0:y1, x0:x1]
+    return (gy * width + gx).reshape(-1)
+
+
+def _damped_least_squares(M, b: np.ndarray, damping: float) -> np.ndarray:
+    """delta solving (M^T M + damping * max diag) delta = M^T b, one factorisation for the three
+    channels; EditError when it does not converge."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    n_a = M.shape[1]
+    diag = np.asarray(M.multiply(M).sum(0)).reshape(-1)
+    lam = damping * max(float(diag.max()), 1e-12)
+    solver = splu((M.T @ M + sp.diags(np.full(n_a, lam))).tocsc())
+    rhs = np.asarray(M.T @ b)
+    delta = np.stack([solver.solve(np.ascontiguousarray(rhs[:, c])) for c in range(3)], 1)
+    if not np.isfinite(delta).all():
+        raise EditError("painting did not converge (non-finite colours); paint a larger area")
+    return delta
+
+
+def _add_to_fields(fl, affected, delta: np.ndarray, t0: float, **facts) -> list:
+    """Add each field's rows of ``delta`` (the fields' affected vertices, in order) to its
+    modification colours; one EditRecord per field (None where no vertex is affected)."""
+    records, offset = [], 0
+    for f, ids in zip(fl, affected):
         dd = delta[offset:offset + len(ids)]
         offset += len(ids)
         if len(ids) == 0:
@@ -166,12 +187,7 @@ def paint_fields(fields: Sequence, K, c2w, width: int, height: int, paint_rgba: 
             idx = torch.as_tensor(ids, device=f.mod_colours.device)
             f.mod_colours[idx] = f.mod_colours[idx] + torch.as_tensor(dd, dtype=f.mod_colours.dtype,
                                                                      device=f.mod_colours.device)
-        records.append(rec.finish(f, painted_pixels=int(len(painted)), hit_pixels=int(hit.sum()),
-                                  ring_pixels=int(ring_rows.sum()), affected_vertices=int(len(ids)),
-                                  predicted_rmse=float(np.sqrt(np.mean(fit_res ** 2))) if len(fit_res) else 0.0,
-                                  box_pixels=int(len(box)), seconds=time.perf_counter() - t0, **timing))
-    if progress is not None:
-        progress(1.0)
+        records.append(rec.finish(f, affected_vertices=int(len(ids)), seconds=time.perf_counter() - t0, **facts))
     return records
 
 
