@@ -91,6 +91,83 @@ def _grid_index(pts, lo_t, vox_vec, dims):
     return idx
 
 
+@dataclass
+class _Grid:
+    """One stage's grid: ``table`` (M, 4) density parameter and colour logits per node, the allowed
+    nodes (as floats for interpolation and as bools per cell), the node dims, the box and the voxel
+    size (per axis and mean)."""
+
+    table: torch.Tensor
+    allow_flat: torch.Tensor
+    allow_bool: torch.Tensor
+    dims: tuple
+    lo: torch.Tensor
+    hi: torch.Tensor
+    vox_vec: torch.Tensor
+    vox: float
+
+    @classmethod
+    def of(cls, sig_param, col_param, allow, dims: tuple, lo, hi, vox_vec) -> "_Grid":
+        """The stage's grid from its (1, 1, *dims) density and (1, 3, *dims) colour parameters (the
+        table is a new leaf the optimiser trains) and its allowed nodes (1, 1, *dims floats)."""
+        M = int(np.prod(dims))
+        table = torch.cat([sig_param, col_param], 1)[0].reshape(4, M).T.contiguous().requires_grad_(True)
+        return cls(table, allow[0, 0].reshape(M, 1).contiguous(), allow[0, 0] > 0.5, dims, lo, hi, vox_vec,
+                   float(vox_vec.mean()))
+
+
+def _composite(grid: _Grid, o, d, n_samples: int, step_world: float, u) -> tuple:
+    """Colour (B, 3) and opacity (B,) of rays through the grid: stratified samples in the box (offset
+    ``u``), only in allowed cells, alpha-composited."""
+    B = len(o)
+    _, pts, valid = _box_samples(o, d, grid.lo, grid.hi, n_samples, step_world, u)
+    idx = _grid_index(pts, grid.lo, grid.vox_vec, grid.dims)
+    valid &= grid.allow_bool[idx[..., 0], idx[..., 1], idx[..., 2]]
+    sel = valid.nonzero(as_tuple=True)
+    fc = (pts[sel] - grid.lo) / grid.vox_vec
+    q = trilinear(grid.table, grid.dims, fc)
+    with torch.no_grad():
+        a_s = trilinear(grid.allow_flat, grid.dims, fc)[:, 0]
+    sigma = F.softplus(q[:, 0]) * a_s
+    dens = torch.zeros(B, n_samples).index_put(sel, sigma * (step_world / grid.vox))
+    col = torch.zeros(B, n_samples, 3).index_put(sel, torch.sigmoid(q[:, 1:4]))
+    alpha = 1.0 - torch.exp(-dens)
+    T = torch.exp(-(torch.cumsum(dens, 1) - dens))
+    w = alpha * T
+    return (w[..., None] * col).sum(1), w.sum(1)
+
+
+def _stage_start(sig_param, col_param, inside_t, dims: tuple, empty_init: float):
+    """A stage's starting density and colour grids: the first from ``inside_t`` (dense inside, a fog
+    of ``empty_init`` elsewhere), later ones the previous stage's resampled."""
+    if sig_param is None:
+        inside = F.interpolate(inside_t, size=dims, mode="trilinear", align_corners=True)
+        sig0 = torch.where(inside > 0.5, torch.tensor(3.0), torch.tensor(float(empty_init)))
+        return sig0.clone(), torch.zeros((1, 3) + dims)
+    return (F.interpolate(sig_param.detach(), size=dims, mode="trilinear", align_corners=True),
+            F.interpolate(col_param.detach(), size=dims, mode="trilinear", align_corners=True))
+
+
+def _stage_optimiser(table, lr: float, bg_param, background_model, background_lr: float):
+    """Adam over a stage's grid, the learnt background colours and the background model."""
+    params = [{"params": [table], "lr": lr}]
+    if bg_param is not None:
+        params.append({"params": [bg_param], "lr": 0.01})
+    if background_model is not None:
+        params.append({"params": list(background_model.parameters()), "lr": background_lr})
+    try:
+        return torch.optim.Adam(params, betas=(0.9, 0.99), fused=True)
+    except (RuntimeError, TypeError):  # fused kernels unavailable on this build
+        return torch.optim.Adam(params, betas=(0.9, 0.99))
+
+
+def _density_tv(table, dims: tuple):
+    """Total variation of the density parameter over the grid's three axes."""
+    s = table[:, 0].reshape(dims)
+    return ((s[1:] - s[:-1]) ** 2).mean() + ((s[:, 1:] - s[:, :-1]) ** 2).mean() + \
+        ((s[:, :, 1:] - s[:, :, :-1]) ** 2).mean()
+
+
 def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, lo, voxel: float,
                 resolutions=(64, 128), iters=(300, 400), batch_rays: int = 4096,
                 background=None, use_masks: bool = True, lr: float = 0.1, mask_weight: float = 0.5,
@@ -135,30 +212,11 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
         vox0 = float(ext.max() / res)
         dims = tuple(int(max(2, math.ceil(e / vox0) + 1)) for e in ext)
         vox_vec = torch.as_tensor(ext / (np.asarray(dims) - 1), dtype=torch.float32)  # exact box
-        vox = float(vox_vec.mean())
-        allow = F.interpolate(allowed_t, size=dims, mode="trilinear", align_corners=True)
-        allow = (allow > 0.01).float()
-        if sig_param is None:
-            inside = F.interpolate(inside_t, size=dims, mode="trilinear", align_corners=True)
-            sig0 = torch.where(inside > 0.5, torch.tensor(3.0), torch.tensor(float(empty_init)))
-            sig_param = sig0.clone()
-            col_param = torch.zeros((1, 3) + dims)
-        else:
-            sig_param = F.interpolate(sig_param.detach(), size=dims, mode="trilinear", align_corners=True)
-            col_param = F.interpolate(col_param.detach(), size=dims, mode="trilinear", align_corners=True)
-        M = int(np.prod(dims))
-        table = torch.cat([sig_param, col_param], 1)[0].reshape(4, M).T.contiguous().requires_grad_(True)
-        allow_flat = allow[0, 0].reshape(M, 1).contiguous()
-        params = [{"params": [table], "lr": lr}]
-        if bg_param is not None:
-            params.append({"params": [bg_param], "lr": 0.01})
-        if background_model is not None:
-            params.append({"params": list(background_model.parameters()), "lr": background_lr})
-        try:
-            opt = torch.optim.Adam(params, betas=(0.9, 0.99), fused=True)
-        except (RuntimeError, TypeError):  # fused kernels unavailable on this build
-            opt = torch.optim.Adam(params, betas=(0.9, 0.99))
-        allow_bool = allow[0, 0] > 0.5
+        allow = (F.interpolate(allowed_t, size=dims, mode="trilinear", align_corners=True) > 0.01).float()
+        sig_param, col_param = _stage_start(sig_param, col_param, inside_t, dims, empty_init)
+        grid = _Grid.of(sig_param, col_param, allow, dims, lo_t, hi_t, vox_vec)
+        table, vox = grid.table, grid.vox
+        opt = _stage_optimiser(table, lr, bg_param, background_model, background_lr)
         n_samples = int(min(512, math.ceil(1.6 * max(dims))))
         step_world = float(ext.max() * 1.8 / n_samples)
         for it in range(n_it):
@@ -170,28 +228,7 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
             o, d = _pixel_rays(K[vi], c2w[vi], px)
             gt = imgs[vi, pi]
             gm = masks[vi, pi] if masks is not None else None
-            # --- stratified samples inside the box
-            S = n_samples
-            t, pts, valid = _box_samples(o, d, lo_t, hi_t, S, step_world, torch.rand(batch_rays, 1, generator=gen))
-            idx = _grid_index(pts, lo_t, vox_vec, dims)
-            valid &= allow_bool[idx[..., 0], idx[..., 1], idx[..., 2]]
-            sel = valid.nonzero(as_tuple=True)
-            p_sel = pts[sel]
-            fc = (p_sel - lo_t) / vox_vec
-            q = trilinear(table, dims, fc)
-            with torch.no_grad():
-                a_s = trilinear(allow_flat, dims, fc)[:, 0]
-            sigma = F.softplus(q[:, 0]) * a_s
-            rgb_s = torch.sigmoid(q[:, 1:4])
-            dens = torch.zeros(batch_rays, S)
-            dens = dens.index_put(sel, sigma * (step_world / vox))
-            col = torch.zeros(batch_rays, S, 3).index_put(sel, rgb_s)
-            alpha = 1.0 - torch.exp(-dens)
-            csum = torch.cumsum(dens, 1)
-            T = torch.exp(-(csum - dens))
-            w = alpha * T
-            rgb = (w[..., None] * col).sum(1)
-            op = w.sum(1)
+            rgb, op = _composite(grid, o, d, n_samples, step_world, torch.rand(batch_rays, 1, generator=gen))
             if background_model is not None:
                 bgc, _ = background_model(o, d, jitter=torch.rand(batch_rays, generator=gen))
             elif bg_param is not None:
@@ -207,10 +244,7 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
                 opc = op.clamp(1e-4, 1 - 1e-4)
                 loss = loss + mask_weight * F.binary_cross_entropy(opc, gm)
             if tv_weight > 0:
-                s = table[:, 0].reshape(dims)
-                tv = ((s[1:] - s[:-1]) ** 2).mean() + ((s[:, 1:] - s[:, :-1]) ** 2).mean() + \
-                    ((s[:, :, 1:] - s[:, :, :-1]) ** 2).mean()
-                loss = loss + tv_weight * tv
+                loss = loss + tv_weight * _density_tv(table, dims)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
