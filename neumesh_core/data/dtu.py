@@ -91,6 +91,45 @@ def _load_mask(path: str, downscale: float, threshold: float) -> np.ndarray:
     return m > threshold  # bool: ImageSet.float_mask gives {0, 1}
 
 
+def _camera_matrices(cams: dict, img_paths: list) -> tuple:
+    """Intrinsics and camera-to-world matrices (OpenCV) of each image from ``cameras_sphere.npz``'s
+    ``world_mat_i @ scale_mat_i``."""
+    Ks, c2ws = [], []
+    for i in range(len(img_paths)):
+        key = f"world_mat_{i}"
+        if key not in cams:
+            raise DataError(
+                f"cameras_sphere.npz has no {key} for image {os.path.basename(img_paths[i])}; "
+                "world matrices must be numbered 0..N-1 in image order"
+            )
+        world = np.asarray(cams[key], dtype=np.float64)
+        scale = np.asarray(cams.get(f"scale_mat_{i}", np.eye(4)), dtype=np.float64)
+        if world.shape not in ((4, 4), (3, 4)) or scale.shape != (4, 4):
+            raise DataError(f"cameras_sphere.npz: {key} must be 4x4 (or 3x4) and scale_mat_{i} 4x4")
+        if world.shape == (3, 4):
+            world = np.vstack([world, [0, 0, 0, 1]])
+        K, c2w = decompose_projection((world @ scale)[:3, :4])
+        Ks.append(K)
+        c2ws.append(c2w)
+    return Ks, c2ws
+
+
+def _holdout_splits(full: ImageSet, holdout_every: int, root: str) -> dict:
+    """'val': views 0, holdout_every, 2*holdout_every, ...; 'train': the others (0: all, no 'val')."""
+    idx = np.arange(len(full))
+    if holdout_every:
+        val_idx = idx[idx % holdout_every == 0]
+        train_idx = idx[idx % holdout_every != 0]
+    else:
+        val_idx, train_idx = idx[:0], idx
+    if len(train_idx) == 0:
+        raise DataError(f"{root}: holdout_every={holdout_every} leaves no training views; use a larger value or 0")
+    splits = {"train": full.subset(train_idx)}
+    if len(val_idx):
+        splits["val"] = full.subset(val_idx)
+    return splits
+
+
 def load_dtu(root: str, downscale: float = 1, holdout_every: int = 10, mask_threshold: float = 0.5,
              num_workers: int | None = None) -> Scene:
     """Load a NeuS/IDR-format DTU scan into a :class:`Scene`.
@@ -130,23 +169,7 @@ def load_dtu(root: str, downscale: float = 1, holdout_every: int = 10, mask_thre
             f"{root}: {n} images in {os.path.basename(img_dir)}/ but {n_cams} cameras (world_mat_i) in "
             "cameras_sphere.npz; the counts must match"
         )
-    Ks, c2ws = [], []
-    for i in range(n):
-        key = f"world_mat_{i}"
-        if key not in cams:
-            raise DataError(
-                f"cameras_sphere.npz has no {key} for image {os.path.basename(img_paths[i])}; "
-                "world matrices must be numbered 0..N-1 in image order"
-            )
-        world = np.asarray(cams[key], dtype=np.float64)
-        scale = np.asarray(cams.get(f"scale_mat_{i}", np.eye(4)), dtype=np.float64)
-        if world.shape not in ((4, 4), (3, 4)) or scale.shape != (4, 4):
-            raise DataError(f"cameras_sphere.npz: {key} must be 4x4 (or 3x4) and scale_mat_{i} 4x4")
-        if world.shape == (3, 4):
-            world = np.vstack([world, [0, 0, 0, 1]])
-        K, c2w = decompose_projection((world @ scale)[:3, :4])
-        Ks.append(K)
-        c2ws.append(c2w)
+    Ks, c2ws = _camera_matrices(cams, img_paths)
 
     mask_dir = os.path.join(root, "mask")
     if not os.path.isdir(mask_dir):
@@ -182,19 +205,8 @@ def load_dtu(root: str, downscale: float = 1, holdout_every: int = 10, mask_thre
     masks_arr = np.stack(masks) if masks is not None else None
     names = [os.path.relpath(p, root) for p in img_paths]
     full = ImageSet(cams_all, images_arr, masks_arr, names)
-    idx = np.arange(n)
-    if holdout_every:
-        val_idx = idx[idx % holdout_every == 0]
-        train_idx = idx[idx % holdout_every != 0]
-    else:
-        val_idx, train_idx = idx[:0], idx
-    if len(train_idx) == 0:
-        raise DataError(f"{root}: holdout_every={holdout_every} leaves no training views; use a larger value or 0")
-    splits = {"train": full.subset(train_idx)}
-    if len(val_idx):
-        splits["val"] = full.subset(val_idx)
     scene = Scene(
-        splits=splits,
+        splits=_holdout_splits(full, holdout_every, root),
         background=None,
         bbox=np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], dtype=np.float32),
         source=os.path.abspath(root),
