@@ -220,6 +220,43 @@ def render_disagreement(field_depths: list, vertices, faces, cams: list, size: i
     return total / max(1, len(cams))
 
 
+def _regulariser(F: np.ndarray, nv: int, smoothness: float, damping: float):
+    """smoothness * L + damping * I, L = D^T D the graph Laplacian of the mesh's edges (D the
+    edge-difference operator)."""
+    import scipy.sparse as sp
+
+    from ..mesh import unique_edges
+
+    E = unique_edges(F)
+    D = sp.csr_matrix((np.concatenate([np.ones(len(E)), -np.ones(len(E))]),
+                       (np.concatenate([np.arange(len(E))] * 2), np.concatenate([E[:, 0], E[:, 1]]))),
+                      shape=(len(E), nv))
+    return smoothness * (D.T @ D) + damping * sp.identity(nv)
+
+
+def _best_level(field, V, F, P, Ns, cfg: SurfaceFitConfig, solve, progress, span, after: float, info: dict):
+    """The first fit solved for every level of ``cfg.levels``; the level whose mesh's depth maps best
+    match the field's own renders wins.  Returns (level, its offsets, its fit (V, d, found)); the
+    scores go into ``info``."""
+    from ..render.renderer import render_camera
+
+    r = float(field.radius)
+    levels = [float(x) for x in cfg.levels]
+    offs = surface_offsets(field, P, Ns, cfg.search, levels, cfg.step, cfg.chunk, progress, span)
+    cams = view_cameras(V, cfg.views, cfg.view_size)
+    refs = []
+    for K, c2w in cams:
+        out = render_camera(field, K, c2w, cfg.view_size, cfg.view_size, background=None)
+        refs.append(np.where(out.opacity >= 0.5, out.depth, np.inf))
+    _cancel(progress, after)
+    fits = [solve(offs[:, li]) for li in range(len(levels))]
+    scores = [render_disagreement(refs, Vl.astype(np.float32), F, cams, cfg.view_size, r) for Vl, _, _ in fits]
+    best = int(np.argmin(scores))
+    info["level_scores"] = {f"{lv:g}": sc for lv, sc in zip(levels, scores)}
+    info["before_render_disagreement"] = render_disagreement(refs, V.astype(np.float32), F, cams, cfg.view_size, r)
+    return levels[best], offs[:, best], fits[best]
+
+
 def fit_to_field(field, vertices, faces, config: Optional[SurfaceFitConfig] = None,
                  progress: Optional[Callable[[float], bool]] = None) -> tuple:
     """Move a mesh's vertices along their normals onto the field's surface.
@@ -249,7 +286,7 @@ def fit_to_field(field, vertices, faces, config: Optional[SurfaceFitConfig] = No
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
-    from ..mesh import unique_edges, vertex_normals
+    from ..mesh import vertex_normals
 
     cfg = config or SurfaceFitConfig()
     t0 = time.perf_counter()
@@ -259,13 +296,8 @@ def fit_to_field(field, vertices, faces, config: Optional[SurfaceFitConfig] = No
         raise NeuMeshError("the mesh to fit has no triangles")
     r = float(field.radius)
     bary = _face_barycentrics(cfg.face_samples)
-    E = unique_edges(F)
     nv = len(V)
-    # graph Laplacian of the edges: L = D^T D with D the edge-difference operator
-    D = sp.csr_matrix((np.concatenate([np.ones(len(E)), -np.ones(len(E))]),
-                       (np.concatenate([np.arange(len(E))] * 2), np.concatenate([E[:, 0], E[:, 1]]))),
-                      shape=(len(E), nv))
-    reg = cfg.smoothness * (D.T @ D) + cfg.damping * sp.identity(nv)
+    reg = _regulariser(F, nv, cfg.smoothness, cfg.damping)
     Fs = F       # the faces that carry sample points: all, or a fixed random subset of a big mesh
     room = max(0, int(cfg.max_samples) - nv) // max(1, len(bary))
     if len(bary) and len(F) > room:
@@ -289,29 +321,8 @@ def fit_to_field(field, vertices, faces, config: Optional[SurfaceFitConfig] = No
         P, Ns, B = _sample_points(V, Fs, N, bary)
         lo, hi = it / (n_iter + 2), (it + 1) / (n_iter + 2)
         if it == 0 and calibrate:
-            levels = [float(x) for x in cfg.levels]
-            offs = surface_offsets(field, P, Ns, cfg.search, levels, cfg.step, cfg.chunk, progress, (lo, hi))
-            cams = view_cameras(V, cfg.views, cfg.view_size)
-            from ..render.renderer import render_camera
-
-            refs = []
-            for K, c2w in cams:
-                out = render_camera(field, K, c2w, cfg.view_size, cfg.view_size, background=None)
-                refs.append(np.where(out.opacity >= 0.5, out.depth, np.inf))
-            _cancel(progress, (it + 1.5) / (n_iter + 2))
-            scores = []
-            fits = []
-            for li in range(len(levels)):
-                Vl, d, found = solve(V, N, Ns, B, offs[:, li])
-                scores.append(render_disagreement(refs, Vl.astype(np.float32), F, cams, cfg.view_size, r))
-                fits.append((Vl, d, found))
-            best = int(np.argmin(scores))
-            level = levels[best]
-            info["level_scores"] = {f"{lv:g}": sc for lv, sc in zip(levels, scores)}
-            info["before_render_disagreement"] = render_disagreement(
-                refs, V.astype(np.float32), F, cams, cfg.view_size, r)
-            off = offs[:, best]
-            V, d, found = fits[best]
+            level, off, (V, d, found) = _best_level(field, V, F, P, Ns, cfg, lambda o: solve(V, N, Ns, B, o),
+                                                    progress, (lo, hi), (it + 1.5) / (n_iter + 2), info)
         else:
             off = surface_offsets(field, P, Ns, cfg.search, level, cfg.step, cfg.chunk, progress, (lo, hi))
             V, d, found = solve(V, N, Ns, B, off)
