@@ -48,8 +48,8 @@ SHADING_ITEMS = (
 TARGET_ITEMS = (
     ("FIELD", "Field surface", "Bake onto a new mesh extracted from the field's own density (marching "
                                "cubes, decimated): lies where the field renders, so part edges match; costs a "
-                               "density grid and marching cubes first (lego: 28 dB against the field with "
-                               "Views, 24 dB on the scaffold)"),
+                               "density grid and marching cubes first; matches the field's renders more "
+                               "closely than the scaffold"),
     ("SCAFFOLD", "Scaffold", "Bake onto the field's scaffold as it is posed now (optionally decimated): "
                              "quickest, keeps the scaffold's topology, but sits up to a radius off the "
                              "field's surface, so part edges come out a few pixels off"),

@@ -178,10 +178,10 @@ def speed_status(measure: bool = True):
     return st
 
 
-# The 2-core machine of docs/benchmarks.md: fp32 matrix multiply 177-183 GFLOP/s, lego rendered at
-# 400x400 in ~0.7 s (early interpolation), 36 ms per 4,096-ray training step on the built-in scene.
-# A rate is judged against it: from FAST_GFLOPS on, those figures hold; below SLOW_GFLOPS renders and
-# training take several times longer (matrix multiplies are much of their work, not all of it).
+# The 2-core machine the figures of docs/benchmarks.md were measured on multiplies fp32 matrices at
+# about 180 GFLOP/s (every results file records its own rate).  A rate is judged against it: from
+# FAST_GFLOPS on, those figures hold; below SLOW_GFLOPS renders and training take several times
+# longer (matrix multiplies are much of their work, not all of it).
 REFERENCE_GFLOPS = 180.0
 FAST_GFLOPS = 120.0
 SLOW_GFLOPS = 40.0

@@ -27,8 +27,8 @@ class ScaffoldConfig:
     method: "auto" (with masks: "hull+mvs"; without masks: "fusion"), "hull" (visual
         hull only; fastest; no concavities; needs masks), "hull+mvs" (hull, then plane-sweep stereo
         depth maps fused on the hull grid carve what no silhouette shows: concavities, and the depth
-        of one-sided captures such as DTU; textureless parts keep the hull; needs masks. On lego it
-        lifts a 4-minute fit from 27.0 to 29.0 dB; on DTU it is what makes the scaffold usable),
+        of one-sided captures such as DTU; textureless parts keep the hull; needs masks; docs/benchmarks.md
+        gives its effect on lego and DTU),
         "hull+density" (hull, then a density grid fitted by volume rendering; slower; needs masks),
         "density" (photometric density only; needs a bbox; no masks needed; an iso-level of the grid),
         "fusion" (photos without masks, what "auto" picks for them: the density grid fitted with a
