@@ -214,15 +214,7 @@ LONG_FILES = {
     "neumesh_core/semantics/extractors.py": "the 2D feature extractors, a class each",
     "neumesh_core/semantics/geometry.py": "the shape features of selection and their cache",
 }
-LONG_FUNCTIONS = {
-    "neumesh_core/bake/surface.py:fit_to_field": "the surface fit's iterations",
-    "neumesh_core/data/dtu.py:load_dtu": "the DTU reader",
-    "neumesh_core/edit/paint.py:paint_fields": "vertex-colour paint: rays, ring, weights, solve",
-    "neumesh_core/reconstruct/build.py:build_scaffold": "the scaffold pipeline's stages",
-    "neumesh_core/reconstruct/density.py:fit_density": "the density fit's loop",
-    "neumesh_core/render/renderer.py:render_camera": "rays, ranges, batches, background, host copy",
-    "neumesh_core/train/trainer.py:train": "the training loop",
-}
+LONG_FUNCTIONS: dict = {}
 
 
 def _lines(path: str) -> int:
