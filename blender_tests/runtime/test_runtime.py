@@ -9,6 +9,8 @@ import time
 import bpy
 import pytest
 
+from conftest import ROOT
+
 
 # ------------------------------------------------------------------------------------------- jobs
 def test_job_states_result_error_and_cancel(addon):
@@ -108,7 +110,7 @@ def test_the_blender_crash_quiet_prevents(tmp_path):
         "stop[0] = True; t.join()\n"
         "print('QUIET_OK', calls, n[0], flush=True)\n"
         "import os; os._exit(0)\n"
-    ) % os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "addon", "runtime")
+    ) % os.path.join(ROOT, "addon", "runtime")
     script = tmp_path / "quiet_probe.py"
     script.write_text(code)
     r = subprocess.run([BLENDER, "-b", "--factory-startup", "--python", str(script)], env=_env(tmp_path),
@@ -166,10 +168,9 @@ def test_setup_script_reads_the_same_list(addon):
     """scripts/setup_blender.sh runs deps.py with runpy: it must load without the add-on package."""
     import runpy
 
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    d = runpy.run_path(os.path.join(root, "addon", "runtime", "deps.py"))
+    d = runpy.run_path(os.path.join(ROOT, "addon", "runtime", "deps.py"))
     assert d["full_requirements"]((3, 4, 1)) == addon.runtime.deps.full_requirements((3, 4, 1))
-    with open(os.path.join(root, "scripts", "setup_blender.sh"), encoding="utf-8") as f:
+    with open(os.path.join(ROOT, "scripts", "setup_blender.sh"), encoding="utf-8") as f:
         script = f.read()
     assert "full_requirements" in script and "torch==2.13.0" not in script   # no second copy of the list
 

@@ -11,7 +11,8 @@ import sys
 
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from conftest import ROOT
+
 BLAS_PY = os.path.join(ROOT, "addon", "runtime", "blas.py")
 
 
