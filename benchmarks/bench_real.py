@@ -72,7 +72,8 @@ def main(argv=None) -> int:
     ap.add_argument("--snapshot-minutes", type=float, default=None,
                     help="also save the field at this training minute and evaluate it (e.g. 15 in a 60-minute run)")
     ap.add_argument("--scaffold", default=None, help="reuse this scaffold.ply (its build time is not counted)")
-    ap.add_argument("--off-views", type=int, default=0, help="held-out photos evaluated with the background off (0: all)")
+    ap.add_argument("--off-views", type=int, default=0,
+                    help="held-out photos evaluated with the background off (0: all)")
     ap.add_argument("--train-views", type=int, default=7,
                     help="training photos (evenly spaced) scored like the held-out ones: the memorisation gap")
     args = ap.parse_args(argv)
@@ -155,11 +156,13 @@ def main(argv=None) -> int:
         ev = score_views(sf, val)
         res["snapshot"] = dict(snap, **ev["mean"], views=ev["views"],
                                note="the same run's field at this point (its lr schedule spans the whole run)")
-        log(f"held-out at the snapshot (step {snap['step']}): PSNR {ev['mean']['psnr']:.2f} SSIM {ev['mean']['ssim']:.3f}")
+        log(f"held-out at the snapshot (step {snap['step']}): PSNR {ev['mean']['psnr']:.2f} "
+            f"SSIM {ev['mean']['ssim']:.3f}")
     ev = score_views(field, val)
     res["background_on"] = dict(ev["mean"], views=ev["views"])
     log(f"held-out, background model on: PSNR {ev['mean']['psnr']:.2f} SSIM {ev['mean']['ssim']:.3f} (object "
-        f"{ev['mean']['psnr_object']:.2f}, room {ev['mean']['psnr_room']:.2f}) render {ev['mean']['render_s']:.1f}s/frame")
+        f"{ev['mean']['psnr_object']:.2f}, room {ev['mean']['psnr_room']:.2f}) "
+        f"render {ev['mean']['render_s']:.1f}s/frame")
     for v in ev["views"]:
         log(f"  {v['view']}: {v['psnr']:.2f} dB (object {v['psnr_object']:.2f} on {v['object_share']:.0%} of the "
             f"frame, room {v['psnr_room']:.2f})")

@@ -24,7 +24,6 @@ def add_armature_bend(obj, split_x=0.0, angle_deg=60.0, axis="Y", frame=None):
     """Rig ``obj`` with a two-bone armature along x; vertices with x > split_x follow the second bone,
     which is rotated by ``angle_deg`` (keyed at ``frame`` if given). Returns the armature object."""
     import bpy
-    import mathutils
 
     me = obj.data
     xs = np.array([v.co.x for v in me.vertices])

@@ -36,7 +36,8 @@ comp = scene.neumesh.composite_scene
 layers = {}
 for name, sc in (("cyc", scene), ("fld", comp)):
     layers[name] = render_pass(addon.render.composite, sc, "Image", os.path.join(out_dir, f"{name}.exr"))
-    layers["z" + name[0]] = render_pass(addon.render.composite, sc, "Depth", os.path.join(out_dir, f"z{name}.exr"))[..., 0]
+    layers["z" + name[0]] = render_pass(addon.render.composite, sc, "Depth",
+                                        os.path.join(out_dir, f"z{name}.exr"))[..., 0]
 for k, v in layers.items():
     np.save(os.path.join(out_dir, f"{k}.npy"), v)
 scene.frame_start, scene.frame_end, scene.frame_step = 1, 3, 2

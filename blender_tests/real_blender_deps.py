@@ -20,5 +20,6 @@ addon = addon_module(module)
 st = addon.runtime.prefs._status_cache["blas"]
 facts(result=sorted(res), version=list(bpy.app.version), sgemm=st["sgemm"], own=st["own"],
       gflops=st["gflops"], remedy=st["remedy"], rebound=len(st["rebind"]["rebound"]),
-      foreign=st["rebind"]["foreign"], rebind_error=st["rebind"]["error"], torch_lib=addon.runtime.blas.torch_cpu_library(),
+      foreign=st["rebind"]["foreign"], rebind_error=st["rebind"]["error"],
+      torch_lib=addon.runtime.blas.torch_cpu_library(),
       message=addon.runtime.prefs.speed_message(st), missing=addon.runtime.deps.missing_required())

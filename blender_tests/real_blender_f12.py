@@ -48,4 +48,5 @@ field.set_vertices(items[0].vertices)
 ref = nm.render_camera(field, K, c2w, W, H, background=(1.0, 1.0, 1.0))
 facts(version=list(bpy.app.version), handoff=phases.get("handoff"), torch_threads=phases.get("torch_threads"),
       max_diff=float(np.abs(got - ref.rgb).max()), ref_std=float(ref.rgb.std()),
-      jemalloc=addon.runtime.malloc.available(), malloc=addon.runtime.malloc.report(), decay_now=addon.runtime.malloc.decay_times(), error=addon.render.engine.LAST_ERROR["message"])
+      jemalloc=addon.runtime.malloc.available(), malloc=addon.runtime.malloc.report(),
+      decay_now=addon.runtime.malloc.decay_times(), error=addon.render.engine.LAST_ERROR["message"])

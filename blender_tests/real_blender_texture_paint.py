@@ -171,7 +171,8 @@ class TexturePaintDriver:
 
     def finish(self):
         self.facts["engines"] = [dict(latest=None if e._preview is None or e._preview.latest is None
-                                      else list(e._preview.latest[:2]), error=e._error or getattr(e._preview, "error", ""),
+                                      else list(e._preview.latest[:2]),
+                                      error=e._error or getattr(e._preview, "error", ""),
                                       timings=getattr(e._preview, "timings", None)) for e in self.engines()]
         try:
             self.facts["stats"] = dict(addon_module().edit.texture_paint.STATS)

@@ -3,8 +3,9 @@
 Public API (see README.md): load_scene, load_mesh, create_field, train, save_field, load_field,
 render_camera, evaluate, save_image, make_default_scene; edits: swap_texture, fill_texture,
 paint_texture (nm.edit); semantics: nm.semantics; baking: bake_texture (nm.bake: decimate, save_bake);
-scaffold building: build_scaffold, ScaffoldConfig; real captures: read_capture, training_photos, undistorted_images,
-estimate_poses, frames_from_video; deformation: nm.deform (ArapSolver, arap); devices: resolve_device. The add-on reaches the core only through these names.
+scaffold building: build_scaffold, ScaffoldConfig; real captures: read_capture, training_photos,
+undistorted_images, estimate_poses, frames_from_video; deformation: nm.deform (ArapSolver, arap);
+devices: resolve_device. The add-on reaches the core only through these names.
 """
 from __future__ import annotations
 
@@ -46,17 +47,18 @@ __version__ = "0.1.0"
 
 
 __all__ = [
-    "Cameras", "ScaffoldConfig", "axis_to_ray_depth", "bake", "deform", "bake_texture", "build_scaffold", "depth_buffer",
-    "field_key", "ray_to_axis_depth", "remap_field", "resolve_ids", "split_by_key", "sub_triangles", "Cancelled", "CheckpointError", "CornerUVs", "DataError", "DeformError", "EditError", "PaintMissError", "FieldConfig", "ImageSet",
-    "Mesh", "NeuMeshError", "NeuMeshField", "NoSemanticsError", "RenderOutput", "RenderSettings", "Scene",
-    "SelectionError", "TrainConfig", "TrainProgress", "TrainResult", "VertexMismatchError",
-    "WeightsUnavailableError", "create_field", "default_scene_dir", "evaluate", "fill_texture",
-    "intrinsics_from_fov", "load_field", "load_mesh", "load_scene", "make_default_scene", "opencv_to_opengl",
-    "opengl_to_opencv", "paint_layer", "paint_texture", "pixel_rays", "read_image", "srgb_to_linear", "render_camera", "render_rays",
-    "save_field", "save_image", "save_mesh", "swap_texture", "train",
-    "Capture", "PosesConfig", "PosesError", "PosesProgress", "PosesReport", "estimate_poses", "frames_from_video",
-    "read_capture", "capture_object_box", "training_photos", "undistorted_images",
-    "ObjectBox", "SceneFrame", "object_box", "parse_box", "scene_frame", "BackgroundModel", "attach_background",
+    "Cameras", "ScaffoldConfig", "axis_to_ray_depth", "bake", "deform", "bake_texture", "build_scaffold",
+    "depth_buffer", "field_key", "ray_to_axis_depth", "remap_field", "resolve_ids", "split_by_key", "sub_triangles",
+    "Cancelled", "CheckpointError", "CornerUVs", "DataError", "DeformError", "EditError", "PaintMissError",
+    "FieldConfig", "ImageSet", "Mesh", "NeuMeshError", "NeuMeshField", "NoSemanticsError", "RenderOutput",
+    "RenderSettings", "Scene", "SelectionError", "TrainConfig", "TrainProgress", "TrainResult",
+    "VertexMismatchError", "WeightsUnavailableError", "create_field", "default_scene_dir", "evaluate",
+    "fill_texture", "intrinsics_from_fov", "load_field", "load_mesh", "load_scene", "make_default_scene",
+    "opencv_to_opengl", "opengl_to_opencv", "paint_layer", "paint_texture", "pixel_rays", "read_image",
+    "srgb_to_linear", "render_camera", "render_rays", "save_field", "save_image", "save_mesh", "swap_texture",
+    "train", "Capture", "PosesConfig", "PosesError", "PosesProgress", "PosesReport", "estimate_poses",
+    "frames_from_video", "read_capture", "capture_object_box", "training_photos", "undistorted_images", "ObjectBox",
+    "SceneFrame", "object_box", "parse_box", "scene_frame", "BackgroundModel", "attach_background",
     "background_for", "background_of", "fit_background_for", "resolve_device", "capture_box", "is_unmasked_capture",
     "prepare_capture_field",
 ]

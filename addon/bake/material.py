@@ -7,8 +7,8 @@ export (glTF, FBX, OBJ).
 renders; ``SCAFFOLD`` onto the field's scaffold in its current pose (quicker).
 ``colours``: ``VIEWS`` (default) gives each texel the colour the field's renders from ``views``
 virtual cameras show there; ``RAYS`` the colour one short ray along the texel's normal sees (quicker).
-The core (``neumesh_core.bake.bake_texture``) unwraps the target with xatlas (docs/baking.md).  That colour already holds
-the lighting of the photos the field was trained on, so the material offers two ways to use it
+The core (``neumesh_core.bake.bake_texture``) unwraps the target with xatlas (docs/baking.md).  That
+colour already holds the lighting of the photos the field was trained on, so the material offers two ways to use it
 (``shading``):
 
 * ``EMISSION`` (default): the texture drives the Principled BSDF's emission at strength 1 and the base
@@ -20,8 +20,9 @@ the lighting of the photos the field was trained on, so the material offers two 
 The new object is built from the field's vertices in world space (identity transform); the field and
 the original object are not changed.  ``decimate`` < 1 bakes onto a lighter copy instead: the posed
 scaffold goes through Blender's own Decimate modifier (collapse, triangulated) on a temporary object,
-and the bake's texel rays start on that mesh's surface along its normal (docs/baking.md).  Invoked from the UI the bake runs in a thread (progress in the
-status bar, Esc cancels); from a script it blocks.
+and the bake's texel rays start on that mesh's surface along its normal (docs/baking.md).  Invoked
+from the UI the bake runs in a thread (progress in the status bar, Esc cancels); from a script it
+blocks.
 """
 from __future__ import annotations
 
@@ -253,7 +254,6 @@ class NEUMESH_OT_bake_material(JobModal, bpy.types.Operator):
             self.report({"ERROR"}, f"NeuMesh: bake: {job.error}")
             return {"CANCELLED"}
         name, _ = self._source
-        src = bpy.data.objects.get(name)
         coll = output_collection(context)
         obj = build_object(f"{name}_baked", job.result, self.shading, coll)
         for o in context.view_layer.objects:

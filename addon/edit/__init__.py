@@ -8,6 +8,7 @@ from __future__ import annotations
 from ..runtime import modules_factory
 from . import base, paint, paint_sync, swap_fill, swap_preview, texture_paint
 
-_modules = (base, swap_fill, swap_preview, paint, paint_sync, texture_paint)   # base first: its panel is the others' parent
+# base first: its panel is the others' parent
+_modules = (base, swap_fill, swap_preview, paint, paint_sync, texture_paint)
 
 register, unregister = modules_factory(_modules)

@@ -8,7 +8,8 @@ Image mode, that image as the canvas).  The artist paints on the object with Ble
 stencils and masks.
 
 The image is the truth while painting: :mod:`paint_sync` pushes its changed texels into the cached
-field's paint atlas and the Rendered viewports follow.  *Save paint* writes the field with its atlas as a new edit file in the edits folder (``nm.edit.paint_image_record`` + :func:`base.commit_edit`:
+field's paint atlas and the Rendered viewports follow.  *Save paint* writes the field with its atlas
+as a new edit file in the edits folder (``nm.edit.paint_image_record`` + :func:`base.commit_edit`:
 atomic; Undo edit / Ctrl+Z go back as for every edit).
 """
 from __future__ import annotations

@@ -8,8 +8,9 @@ the scene's settings are the user's. "The first time" is caught wherever it happ
 interface (a message-bus subscription on ``RenderSettings.engine``), when a file whose engine is
 NeuMesh is opened (``load_post``), and before any render (``render_pre``: an engine given on the
 command line, ``blender -b file.blend -E NEUMESH -a``, or set by a script), so F12, ``-a`` and the
-viewport show the same pixels. A render with other settings says so in the log. The Render properties panel says when the settings differ from
-the photographic ones, with a button (:class:`NEUMESH_OT_photo_colour`) that sets them.
+viewport show the same pixels. A render with other settings says so in the log. The Render
+properties panel says when the settings differ from the photographic ones, with a button
+(:class:`NEUMESH_OT_photo_colour`) that sets them.
 """
 from __future__ import annotations
 

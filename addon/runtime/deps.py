@@ -33,7 +33,8 @@ DEPENDENCIES = (
     ("pykdtree", "pykdtree", False, "pykdtree", ("select", "edit")),
     ("trimesh", "trimesh", False, "trimesh", ()),
     ("sklearn", "scikit-learn", False, "scikit-learn", ("semantics", "select")),   # PCA, DBSCAN
-    ("skimage", "scikit-image", False, "scikit-image", ("semantics", "scaffold", "bake_field")),  # superpixels, marching cubes
+    # superpixels, marching cubes
+    ("skimage", "scikit-image", False, "scikit-image", ("semantics", "scaffold", "bake_field")),
     # the field-surface bake's decimation (the core falls back to libigl's collapse)
     ("fast_simplification", "fast-simplification", False, "fast-simplification", ("bake_field",)),
     ("xatlas", "xatlas", False, "xatlas", ("bake",)),                              # UV atlas

@@ -25,7 +25,7 @@ class NEUMESH_OT_semantic_colours(bpy.types.Operator):
     def execute(self, context):
         obj = context.active_object
         try:
-            nm = core.get()
+            core.get()   # the core loads, or the error says what to install
             props.field_path_of(obj)
             field, mesh_index = field_cache.object_field(obj, context.evaluated_depsgraph_get())
             feats = field.vertex_semantics().cpu().numpy().astype(np.float64)

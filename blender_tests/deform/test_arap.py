@@ -3,7 +3,6 @@ the solve written into the live shape key on depsgraph updates and frame changes
 from __future__ import annotations
 
 import math
-import os
 
 import bpy
 import numpy as np

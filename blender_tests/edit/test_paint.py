@@ -24,7 +24,8 @@ def _scene(trained_field, tmp_path, names=("A",)):
         obj.name = name
         obj.location.x = 2.6 * i
         objs.append(obj)
-    cam = add_camera((1.3 * (len(names) - 1), -4.8 - 2.5 * (len(names) - 1), 0.6), look_at=(1.3 * (len(names) - 1), 0, 0), lens=35.0)
+    cam = add_camera((1.3 * (len(names) - 1), -4.8 - 2.5 * (len(names) - 1), 0.6),
+                     look_at=(1.3 * (len(names) - 1), 0, 0), lens=35.0)
     scene = bpy.context.scene
     scene.render.engine = "NEUMESH"
     exact_colour_settings(scene, W, H)
@@ -53,7 +54,8 @@ def test_paint_on_view_then_apply_shows_the_paint_in_f12(addon, trained_field, t
     img = bpy.data.images[addon.edit.paint.PAINT_IMAGE]
     assert tuple(img.size) == (W, H) and img["neumesh_camera"] == cam.name
     # the image holds the render (8-bit), the unpainted copy beside it
-    assert np.abs(addon.edit.paint._image_pixels(img)[..., :3] - _core(str(tmp_path / "A.neumesh"), cam)).max() < 1 / 255 + 1e-6
+    shown = addon.edit.paint._image_pixels(img)[..., :3]
+    assert np.abs(shown - _core(str(tmp_path / "A.neumesh"), cam)).max() < 1 / 255 + 1e-6
     before = addon.edit.paint._image_pixels(img)[16:22, 18:30, :3]
     _paint(addon, (16, 22), (18, 30), (0.05, 0.1, 0.9))
     assert bpy.ops.neumesh.apply_paint() == {"FINISHED"}

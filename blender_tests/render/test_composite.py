@@ -299,7 +299,8 @@ def test_composite_with_scene_keeps_eevee_and_says_what_is_missing(addon, traine
     assert scene.render.engine == eevee and scene.neumesh.composite_scene.render.engine == "NEUMESH"
     tree = addon.render.composite.compositor_tree(scene, create=False)
     names = {n.name for n in tree.nodes}
-    assert {addon.render.composite.NODE_SCENE, addon.render.composite.NODE_FIELDS, addon.render.composite.NODE_ZCOMBINE} <= names
+    comp = addon.render.composite
+    assert {comp.NODE_SCENE, comp.NODE_FIELDS, comp.NODE_ZCOMBINE} <= names
     assert all(vl.use_pass_z for vl in scene.view_layers)
 
 

@@ -79,7 +79,8 @@ def test_install_dependencies_operator_uses_blenders_python_and_own_folder(addon
     import neumesh_fakedep
 
     assert neumesh_fakedep.__version__ == "0.1"
-    assert addon.runtime.deps.PIP_REQUIREMENTS[0] == "torch==2.13.0" and "numpy<2" in addon.runtime.deps.PIP_REQUIREMENTS
+    requirements = addon.runtime.deps.PIP_REQUIREMENTS
+    assert requirements[0] == "torch==2.13.0" and "numpy<2" in requirements
 
 
 def test_install_dependencies_failure_is_reported(addon, tmp_path):

@@ -86,7 +86,6 @@ def test_the_blender_crash_quiet_prevents(tmp_path):
     """Why runtime/quiet.py exists: bpy.ops under temp_override while another Python thread runs
     crashes Blender 3.4 (Python heap corruption); the same thread parked at a checkpoint does not."""
     import subprocess
-    import sys
 
     from test_real_blender import BLENDER, _env
     if not os.path.exists(BLENDER):

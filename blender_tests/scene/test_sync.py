@@ -2,10 +2,8 @@
 cameras, field paths stored relative to the .blend."""
 from __future__ import annotations
 
-import os
 
 import bpy
-import mathutils
 import numpy as np
 import pytest
 

@@ -174,7 +174,8 @@ def test_poses_from_photos_names_missing_packages_and_bad_sources(addon, tmp_pat
     txt.write_text("x")
     with pytest.raises(RuntimeError, match="not a video"):
         bpy.ops.neumesh.poses_from_photos(source=str(txt))
-    monkeypatch.setattr(deps, "missing_for", lambda feature, statuses=None: ["pycolmap"] if feature == "capture" else [])
+    monkeypatch.setattr(deps, "missing_for",
+                        lambda feature, statuses=None: ["pycolmap"] if feature == "capture" else [])
     with pytest.raises(RuntimeError, match="pycolmap"):
         bpy.ops.neumesh.poses_from_photos(source=str(tmp_path))
 

@@ -3,11 +3,9 @@ training mesh after Load field, wrapped messages, the wording of errors, field p
 (the 3.4 binary has its own tests in test_real_blender.py / test_real_blender_ui.py)."""
 from __future__ import annotations
 
-import os
 import shutil
 
 import bpy
-import numpy as np
 import pytest
 
 from helpers import add_camera, grid_mesh
@@ -128,7 +126,8 @@ def test_missing_dependency_message_has_one_neumesh(addon, monkeypatch):
     msg = str(exc.value)
     assert "NeuMesh: missing Python package(s) torch" in msg and msg.count("NeuMesh") == 2  # + "> NeuMesh"
     assert "NeuMesh: NeuMesh" not in msg and "Install dependencies" in msg
-    assert addon.render.engine.prefixed("NeuMesh: x") == "NeuMesh: x" and addon.render.engine.prefixed("x") == "NeuMesh: x"
+    prefixed = addon.render.engine.prefixed
+    assert prefixed("NeuMesh: x") == "NeuMesh: x" and prefixed("x") == "NeuMesh: x"
 
 
 def test_relative_field_path_in_unsaved_file_keeps_its_slashes(addon, trained_field):

@@ -89,8 +89,8 @@ def _data_or_poses(args, progress: Progress):
 
 
 def add_commands(sub) -> None:
-    p = sub.add_parser("fit", help="images alone -> scaffold -> trained field -> evaluation (resumable); plain photos or a video: "
-                            "poses first (--images / --video)",
+    p = sub.add_parser("fit", help="images alone -> scaffold -> trained field -> evaluation (resumable); "
+                            "plain photos or a video: poses first (--images / --video)",
                        description="Build the scaffold (skipped when OUT/scaffold.ply exists), train the "
                                    "field (resumes OUT/field.neumesh), evaluate on 'val'. Progress per stage. "
                                    "Photos without masks (a phone capture: transforms.json or COLMAP): the "

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .common import (_add_device_option, _add_render_options, _device, _held_out_split, _render_cameras, _render_settings,
-                     turntable_cameras)
+from .common import (_add_device_option, _add_render_options, _device, _held_out_split, _render_cameras,
+                     _render_settings, turntable_cameras)
 
 
 def cmd_render(args) -> int:

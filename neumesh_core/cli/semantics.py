@@ -26,7 +26,8 @@ def add_commands(sub) -> None:
                    help="DINO weights file or folder (default: $NEUMESH_WEIGHTS/<model>.safetensors or the "
                         "Hugging Face cache); nothing is downloaded")
     p.add_argument("--sem-dim", type=int, default=8, help="semantic code per vertex (default 8)")
-    p.add_argument("--pca", type=int, default=16, help="PCA of the 2D features to this width (0 = keep all; default 16)")
+    p.add_argument("--pca", type=int, default=16,
+                   help="PCA of the 2D features to this width (0 = keep all; default 16)")
     p.add_argument("--steps", type=int, default=1500, help="optimisation steps (default 1500)")
     p.add_argument("--rays-per-view", type=int, default=4096, help="rays drawn per training view (default 4096)")
     p.add_argument("--max-views", type=int, default=None, help="use at most this many training views")
@@ -68,7 +69,8 @@ def cmd_semantics(args) -> int:
     record = semantics_record(field, res)
     out = save_edited(field, args.field, record, out_path=args.out)
     print(f"semantics: {res.steps_done} steps, loss {res.final_loss:.4f}, {res.bank_rays} rays, "
-          f"{res.feature_channels} feature channels ({extractor.name}); features {res.timings.get('features_s', 0):.1f}s, "
+          f"{res.feature_channels} feature channels ({extractor.name}); "
+          f"features {res.timings.get('features_s', 0):.1f}s, "
           f"rays {res.timings.get('rays_s', 0):.1f}s, training {res.timings.get('train_s', 0):.1f}s, "
           f"total {time.perf_counter() - t0:.1f}s; wrote {out}")
     return 0

@@ -6,9 +6,13 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass, field, fields
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .fusion import FusionConfig
+    from .mvs import MVSConfig
 
 from ..errors import DataError
 

@@ -142,7 +142,8 @@ def test_render_rays_reference_per_ray(blob_mesh, room):
         # the background model's own sum, sample by sample (a loop reference of its compositing)
         t0 = bgm.ray_start(o, d)
         assert (t0 > 0).all()
-    exp = b["rgb"] + (1 - b["opacity"])[:, None] * c + ((1 - b["opacity"]) * (1 - op))[:, None] * torch.tensor([0.2, 0.4, 0.6])
+    wall = torch.tensor([0.2, 0.4, 0.6])
+    exp = b["rgb"] + (1 - b["opacity"])[:, None] * c + ((1 - b["opacity"]) * (1 - op))[:, None] * wall
     assert torch.allclose(a["rgb"], exp, atol=1e-6)
     assert torch.allclose(a["opacity"], b["opacity"])
     # rays through the box start the background where they leave it

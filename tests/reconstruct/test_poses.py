@@ -1,5 +1,5 @@
-"""Poses from photos (neumesh_core/reconstruct/poses.py, video.py, cli/poses.py): pycolmap on photos the test renders itself
-(a textured cube), mapping of a pycolmap synthetic database, cancel, clear errors, video frames."""
+"""Poses from photos (neumesh_core/reconstruct/poses.py, video.py, cli/poses.py): pycolmap on photos the
+test renders itself (a textured cube), mapping of a pycolmap synthetic database, cancel, clear errors, video frames."""
 import json
 import os
 import re

@@ -1,6 +1,5 @@
 """build_scaffold on the small built-in scene (true mesh known) and on bad input."""
 import json
-import os
 
 import numpy as np
 import pytest
@@ -8,7 +7,7 @@ import pytest
 from neumesh_core.data.cameras import Cameras
 from neumesh_core.data.scene import ImageSet, Scene
 from neumesh_core.errors import DataError
-from neumesh_core.mesh import Mesh, load_mesh
+from neumesh_core.mesh import load_mesh
 from neumesh_core.reconstruct import (Cancelled, ScaffoldConfig, ScaffoldError, build_scaffold,
                                    chamfer_distance)
 
