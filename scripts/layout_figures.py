@@ -297,6 +297,8 @@ SPELLINGS = {   # a word's other spelling -> the house's
 LIBRARY_NAMES = {"color", "color_attributes", "colorspace_settings", "active_color", "diffuse_color", "color_mode",
                  "color_type", "use_unified_color", "color_depth", "colorspace", "normalize", "Optimizer",
                  "optimize", "COLOR_BGR2GRAY", "cvtColor", "baseColorTexture"}
+# former names kept working for saved .blend files, keymaps and user scripts, each beside the current one
+ALIAS_NAMES = {"distil_semantics", "distil_cancel", "NEUMESH_OT_distil_semantics", "NEUMESH_OT_distil_cancel"}
 CODE_DIRS = ("neumesh_core", "addon", "tests", "blender_tests", "benchmarks", "scripts")
 TEXT_EXT = (".py", ".sh", ".toml", ".md", ".txt", ".cfg", ".yml", ".yaml", ".json")
 # an issue number, a mention of an issue's report or a round of work, in a source or doc file
@@ -345,12 +347,12 @@ def _plain_form(name: str) -> str:
 def spellings(root: str = ROOT) -> dict:
     """Names spelled two ways in the code: identifiers that differ only in a word's spelling
     (``mod_colors`` / ``mod_colours``), and words that appear in both spellings across identifiers
-    (colour in one name, color in another), the libraries' own names left out."""
+    (colour in one name, color in another), the libraries' own names and the declared aliases left out."""
     names = set()
     for rel in _source_files(root, (".py",), [d for d in CODE_DIRS if os.path.exists(os.path.join(root, d))]
                              + [f for f in ("build_addon.py",) if os.path.exists(os.path.join(root, f))]):
         names |= identifiers(os.path.join(root, rel))
-    names -= LIBRARY_NAMES
+    names -= LIBRARY_NAMES | ALIAS_NAMES
     forms: dict[str, set] = {}
     for n in names:
         forms.setdefault(_house_form(n), set()).add(n)

@@ -148,7 +148,7 @@ def _stage_start(sig_param, col_param, inside_t, dims: tuple, empty_init: float)
             F.interpolate(col_param.detach(), size=dims, mode="trilinear", align_corners=True))
 
 
-def _stage_optimiser(table, lr: float, bg_param, background_model, background_lr: float):
+def _stage_optimizer(table, lr: float, bg_param, background_model, background_lr: float):
     """Adam over a stage's grid, the learnt background colours and the background model."""
     params = [{"params": [table], "lr": lr}]
     if bg_param is not None:
@@ -216,7 +216,7 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
         sig_param, col_param = _stage_start(sig_param, col_param, inside_t, dims, empty_init)
         grid = _Grid.of(sig_param, col_param, allow, dims, lo_t, hi_t, vox_vec)
         table, vox = grid.table, grid.vox
-        opt = _stage_optimiser(table, lr, bg_param, background_model, background_lr)
+        opt = _stage_optimizer(table, lr, bg_param, background_model, background_lr)
         n_samples = int(min(512, math.ceil(1.6 * max(dims))))
         step_world = float(ext.max() * 1.8 / n_samples)
         for it in range(n_it):
