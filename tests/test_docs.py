@@ -179,18 +179,10 @@ HEADLINE_CODE = {
 }
 # stale headlines: the re-measurement that refreshes each (the commands are under the README's table)
 STALE = {
-    "fit_lego.json": "lego, 60 minutes (README command 1)",
     "fit_lego_cuda_h100_16min.json": "lego on a GPU, 16 minutes (command 2; a lent GPU)",
     "fit_scan24_pyr3_3m_avg02.json": "DTU scan24, 120 minutes (command 3)",
     "fit_scan24_pyr3_3m_avg02_seed1.json": "DTU scan24 with --seed 1 (command 3)",
-    "core_default_scene_v1.json": "the built-in scene's speed (command 4)",
-    "addon.json": "Blender preview latency (command 5)",
-    "render_lego.json": "lego render speed, interleaved with an older checkout (command 11)",
     "docs_images.json": "the documentation's pictures (command 7)",
-    "edit_lego_scaffold.json": "swap speed on lego's scaffold (command 8)",
-    "paint_lego.json": "painting on lego (command 9)",
-    "bake_lego.json": "baking lego (command 10)",
-    "semantics_multipart.json": "one-click selection on the multi-part scene (command 6)",
     # the GPU kernels among the changes (restructured; not timed on a GPU since)
     "render_gpu_lego.json": "lego render speed on a GPU (command 12; a lent GPU)",
 }
