@@ -182,7 +182,6 @@ STALE = {
     "fit_lego_cuda_h100_16min.json": "lego on a GPU, 16 minutes (command 2; a lent GPU)",
     "fit_scan24_pyr3_3m_avg02.json": "DTU scan24, 120 minutes (command 3)",
     "fit_scan24_pyr3_3m_avg02_seed1.json": "DTU scan24 with --seed 1 (command 3)",
-    "docs_images.json": "the documentation's pictures (command 7)",
     # the GPU kernels among the changes (restructured; not timed on a GPU since)
     "render_gpu_lego.json": "lego render speed on a GPU (command 12; a lent GPU)",
 }
