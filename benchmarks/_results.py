@@ -25,7 +25,8 @@ RESULTS_DIR = os.path.join(ROOT, "benchmarks", "results")
 LOG_DIR = os.path.join(RESULTS_DIR, "log")
 FIGURES_DIR = os.path.join(RESULTS_DIR, "figures")
 
-# the run's start, as the scripts import this module first: the time and the load average then
+# the run's start, as the scripts import this module first: the time, the load average and the tree
+# (commit, uncommitted changes) then; ``_tree_state`` is defined below
 _START = {"time": time.time(), "load": os.getloadavg()}
 
 # the common options: name -> (flags, argparse keywords); a script overrides the keywords it needs
@@ -119,15 +120,27 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def machine_record() -> dict:
-    """What the run measured on: the commit and whether the tree had uncommitted changes to tracked
-    files (``NEUMESH_COMMIT`` / ``NEUMESH_DIRTY`` where there is no git checkout, e.g. a copy of the tree
-    on a lent GPU machine), CPU model, cores, torch's threads and version, the GPU, the load average at
-    the start of the run and now, and the command."""
+def _tree_state() -> tuple:
+    """(commit, whether tracked files have uncommitted changes) of the checkout, or of
+    ``NEUMESH_COMMIT`` / ``NEUMESH_DIRTY`` where there is no git checkout (a copy of the tree on a lent
+    GPU machine)."""
     commit = _git("rev-parse", "HEAD") or os.environ.get("NEUMESH_COMMIT")
     status = _git("status", "--porcelain", "--untracked-files=no")
     dirty = bool(status) if status is not None else (
         None if "NEUMESH_DIRTY" not in os.environ else os.environ["NEUMESH_DIRTY"] not in ("", "0"))
+    return commit, dirty
+
+
+_START["tree"] = _tree_state()
+
+
+def machine_record() -> dict:
+    """What the run measured on: the commit and whether the tree had uncommitted changes to tracked
+    files when the run started (the code it ran; files the run writes itself, such as the
+    documentation's pictures, come later; ``tree_at_end`` says when the tree changed during the run),
+    CPU model, cores, torch's threads and version, the GPU, the load average at the start of the run
+    and now, and the command."""
+    commit, dirty = _START["tree"]
     rec = {"commit": commit, "dirty": dirty, "cpu": _cpu_model(), "cores": os.cpu_count(),
            "python": platform.python_version(), "platform": platform.platform()}
     try:
@@ -142,6 +155,9 @@ def machine_record() -> dict:
     except ImportError:
         rec.update(torch=None, torch_threads=None, gpu=None)
     now = time.time()
+    end = _tree_state()
+    if end != (commit, dirty):
+        rec["tree_at_end"] = {"commit": end[0], "dirty": end[1]}
     rec.update(load_start=[round(x, 2) for x in _START["load"]], load_end=[round(x, 2) for x in os.getloadavg()],
                started=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(_START["time"])),
                finished=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(now)),

@@ -71,6 +71,20 @@ def test_write_results_adds_the_machine_record(tmp_path):
     assert m["floors"] == 2.0 and m["cores"] >= 1
 
 
+def test_the_record_names_the_tree_the_run_started_on(tmp_path, monkeypatch):
+    """A run that writes tracked files itself (the documentation's pictures) measured a clean tree: the
+    record keeps the state at the start and says how the tree ended."""
+    monkeypatch.setitem(R._START, "tree", ("a" * 40, False))
+    monkeypatch.setattr(R, "_tree_state", lambda: ("a" * 40, True))
+    with open(R.write_results({}, "z.json", str(tmp_path)), encoding="utf-8") as fh:
+        m = json.load(fh)["machine"]
+    assert m["commit"] == "a" * 40 and m["dirty"] is False
+    assert m["tree_at_end"] == {"commit": "a" * 40, "dirty": True}
+    monkeypatch.setattr(R, "_tree_state", lambda: ("a" * 40, False))
+    with open(R.write_results({}, "z.json", str(tmp_path)), encoding="utf-8") as fh:
+        assert "tree_at_end" not in json.load(fh)["machine"]
+
+
 def test_write_results_defaults_to_the_log():
     assert R.LOG_DIR == os.path.join(ROOT, "benchmarks", "results", "log")
     assert R.FIGURES_DIR == os.path.join(ROOT, "benchmarks", "results", "figures")
