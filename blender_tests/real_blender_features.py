@@ -44,6 +44,6 @@ def run(name, fn):
 run("distill", lambda: bpy.ops.neumesh.distill_semantics(wait=True, steps=2, max_views=2, rays_per_view=32))
 job = addon.semantics.distill.current_job()
 out["distill_job"] = None if job is None else [job.state, job.message]
-run("bake", lambda: bpy.ops.neumesh.bake_material(resolution=64))
+run("bake", lambda: bpy.ops.neumesh.bake_material(resolution=64, views=4, view_size=64))
 out["baked"] = [o.name for o in bpy.data.objects if o.name.endswith("_baked")]
 facts(**out)

@@ -38,9 +38,9 @@ def test_fit_without_masks_box_background(tmp_path, capsys):
     _write_room_capture(str(data))
     out = tmp_path / "out"
     with one_thread():
-        rc = main(["fit", "--data", str(data), "--out", str(out), "--steps", "40", "--method", "density",
-                   "--iters", "40,40", "--density-resolutions", "24,32", "--box", "0,0,0,1.4,1.4,1.4",
-                   "--threads", "1", "--vertices", "5000"])
+        rc = main(["fit", "--data", str(data), "--out", str(out), "--steps", "40", "--rays", "1024",
+                   "--method", "density", "--iters", "40,40", "--density-resolutions", "24,32",
+                   "--box", "0,0,0,1.4,1.4,1.4", "--threads", "1", "--vertices", "5000"])
     assert rc == 0
     summary = json.loads((out / "fit.json").read_text())
     assert summary["object_box"]["half_extents"] == [1.4, 1.4, 1.4]

@@ -319,7 +319,7 @@ def test_cli_bake_onto_a_given_mesh(trained, tmp_path):
     out = tmp_path / "baked"
     with one_thread():
         assert main(["bake", "--field", str(fpath), "--out", str(out), "--resolution", "32", "--mesh",
-                     str(mpath)]) == 0
+                     str(mpath), "--views", "4", "--view-size", "64"]) == 0
     m = trimesh.load(str(out / "blob.obj"), process=False, force="mesh")
     assert len(m.faces) == len(target.faces)
     g = trimesh.load(str(out / "blob.glb"), force="mesh")
