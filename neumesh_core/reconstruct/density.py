@@ -131,10 +131,21 @@ def _composite(grid: _Grid, o, d, n_samples: int, step_world: float, u) -> tuple
     sigma = F.softplus(q[:, 0]) * a_s
     dens = torch.zeros(B, n_samples).index_put(sel, sigma * (step_world / grid.vox))
     col = torch.zeros(B, n_samples, 3).index_put(sel, torch.sigmoid(q[:, 1:4]))
-    alpha = 1.0 - torch.exp(-dens)
-    T = torch.exp(-(torch.cumsum(dens, 1) - dens))
-    w = alpha * T
+    w = _weights(dens)
     return (w[..., None] * col).sum(1), w.sum(1)
+
+
+def _march(dims: tuple, ext) -> tuple:
+    """(samples per ray, step in world units) through a grid of ``dims`` nodes spanning ``ext``: about
+    1.6 samples per node along the longest axis (at most 512), over 1.8 times its length (a diagonal)."""
+    n_samples = int(min(512, math.ceil(1.6 * max(dims))))
+    return n_samples, float(ext.max() * 1.8 / n_samples)
+
+
+def _weights(dens):
+    """Compositing weights of samples with optical depths ``dens`` (rays x samples): alpha times the
+    transmittance before each sample."""
+    return (1.0 - torch.exp(-dens)) * torch.exp(-(torch.cumsum(dens, 1) - dens))
 
 
 def _stage_start(sig_param, col_param, inside_t, dims: tuple, empty_init: float):
@@ -217,8 +228,7 @@ def fit_density(images: ImageSet, allowed: np.ndarray, init_inside: np.ndarray, 
         grid = _Grid.of(sig_param, col_param, allow, dims, lo_t, hi_t, vox_vec)
         table, vox = grid.table, grid.vox
         opt = _stage_optimizer(table, lr, bg_param, background_model, background_lr)
-        n_samples = int(min(512, math.ceil(1.6 * max(dims))))
-        step_world = float(ext.max() * 1.8 / n_samples)
+        n_samples, step_world = _march(dims, ext)
         for it in range(n_it):
             # --- random rays over all views
             vi = torch.randint(0, N, (batch_rays,), generator=gen)
@@ -280,8 +290,7 @@ def grid_depths(res: DensityResult, cameras, chunk: int = 8192, check=None):
     lo_t = torch.as_tensor(np.asarray(res.lo, np.float32))
     ext = vox_vec * (torch.tensor(dims, dtype=torch.float32) - 1)
     hi_t = lo_t + ext
-    n_samples = int(min(512, math.ceil(1.6 * max(dims))))
-    step_world = float(ext.max() * 1.8 / n_samples)
+    n_samples, step_world = _march(dims, ext)
     N, H, W = len(cameras), cameras.height, cameras.width
     K, c2w = torch.as_tensor(cameras.K, dtype=torch.float32), torch.as_tensor(cameras.c2w, dtype=torch.float32)
     depth = np.full((N, H * W), np.inf, np.float32)
@@ -298,7 +307,7 @@ def grid_depths(res: DensityResult, cameras, chunk: int = 8192, check=None):
             sel = valid.nonzero(as_tuple=True)
             dens = torch.zeros(R, n_samples)
             dens[sel] = trilinear(table, dims, (pts[sel] - lo_t) / vox_vec)[:, 0] * (step_world / vox)
-            w = (1.0 - torch.exp(-dens)) * torch.exp(-(torch.cumsum(dens, 1) - dens))
+            w = _weights(dens)
             op = w.sum(1)
             cw = torch.cumsum(w, 1)
             k = torch.searchsorted(cw, (0.5 * op)[:, None].contiguous()).clamp_max(n_samples - 1)[:, 0]
