@@ -65,6 +65,34 @@ def add_armature_bend(obj, split_x=0.0, angle_deg=60.0, axis="Y", frame=None):
     return arm, np.asarray(idx_root), np.asarray(idx_tip)
 
 
+def careless_cap_pairs(obj):
+    """Vertex groups "cap+" / "cap-" (the blob's caps along x) and four pairs that squeeze the cap+
+    source onto a few neighbouring vertices of cap- (as a careless pick would), selected in edit-mode
+    history order: a source vertex, then its target.  Runs in bpy 5 and in Blender 3.4."""
+    import bmesh
+
+    co = np.array([v.co[:] for v in obj.data.vertices])
+    c = co - co.mean(0)
+    src, tgt = np.nonzero(c[:, 0] > 0.3)[0], np.nonzero(c[:, 0] < -0.3)[0]
+    for name, idx in (("cap+", src), ("cap-", tgt)):
+        obj.vertex_groups.new(name=name).add([int(i) for i in idx], 1.0, "REPLACE")
+    s_pick = [src[np.argmax(c[src, 1])], src[np.argmin(c[src, 1])], src[np.argmax(c[src, 2])],
+              src[np.argmin(c[src, 2])]]
+    centre = tgt[np.argmin(c[tgt, 0])]
+    t_pick = tgt[np.argsort(np.linalg.norm(c[tgt] - c[centre], axis=1))[:4]]
+    bm = bmesh.new()
+    bm.from_mesh(obj.data)
+    bm.verts.ensure_lookup_table()
+    for v in bm.verts:
+        v.select = False
+    for s_i, t_i in zip(s_pick, t_pick):
+        for i in (s_i, t_i):
+            bm.verts[int(i)].select = True
+            bm.select_history.add(bm.verts[int(i)])
+    bm.to_mesh(obj.data)
+    bm.free()
+
+
 def add_camera(location, look_at=(0, 0, 0), lens=35.0, name="cam"):
     import bpy
     import mathutils

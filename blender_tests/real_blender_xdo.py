@@ -550,29 +550,9 @@ class SwapDriver(Driver):
         self.shown = ("NEUMESH_PT_edit", "NEUMESH_PT_swap")
 
     def prepare_object(self, obj, scene):
-        import bmesh
+        from helpers import careless_cap_pairs
 
-        co = np.array([v.co[:] for v in obj.data.vertices])
-        c = co - co.mean(0)
-        src, tgt = np.nonzero(c[:, 0] > 0.3)[0], np.nonzero(c[:, 0] < -0.3)[0]
-        for name, idx in (("cap+", src), ("cap-", tgt)):
-            g = obj.vertex_groups.new(name=name)
-            g.add([int(i) for i in idx], 1.0, "REPLACE")
-        s_pick = [src[np.argmax(c[src, 1])], src[np.argmin(c[src, 1])], src[np.argmax(c[src, 2])],
-                  src[np.argmin(c[src, 2])]]
-        centre = tgt[np.argmin(c[tgt, 0])]
-        t_pick = tgt[np.argsort(np.linalg.norm(c[tgt] - c[centre], axis=1))[:4]]
-        bm = bmesh.new()
-        bm.from_mesh(obj.data)
-        bm.verts.ensure_lookup_table()
-        for v in bm.verts:
-            v.select = False
-        for s_i, t_i in zip(s_pick, t_pick):   # one object: a source vertex, then its target vertex
-            for i in (s_i, t_i):
-                bm.verts[int(i)].select = True
-                bm.select_history.add(bm.verts[int(i)])
-        bm.to_mesh(obj.data)
-        bm.free()
+        careless_cap_pairs(obj)
         s = scene.neumesh_edit
         s.swap_target_group, s.swap_source_group, s.swap_use_pairs = "cap-", "cap+", True
         bpy.context.view_layer.objects.active = obj

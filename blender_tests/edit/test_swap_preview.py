@@ -11,7 +11,8 @@ import bpy
 import numpy as np
 import pytest
 
-from test_texture_edit import _group, _setup
+from helpers import careless_cap_pairs
+from test_texture_edit import _setup
 
 
 def _edits(tmp_path):
@@ -83,28 +84,7 @@ def test_discard_removes_the_wireframe_and_nothing_else(addon, trained_field, tm
 def _failing(target):
     """Pairs that squeeze a cap of the blob onto a few neighbouring vertices of the opposite cap (as a
     careless pick would): the aligned source covers almost none of the target."""
-    import bmesh
-
-    co = np.array([v.co[:] for v in target.data.vertices])
-    src = np.nonzero(co[:, 0] > 0.3)[0]
-    tgt = np.nonzero(co[:, 0] < -0.3)[0]
-    _group(target, "cap+", src)
-    _group(target, "cap-", tgt)
-    s_pick = [src[np.argmax(co[src, 1])], src[np.argmin(co[src, 1])], src[np.argmax(co[src, 2])],
-              src[np.argmin(co[src, 2])]]
-    centre = tgt[np.argmin(co[tgt, 0])]
-    t_pick = tgt[np.argsort(np.linalg.norm(co[tgt] - co[centre], axis=1))[:4]]
-    bm = bmesh.new()
-    bm.from_mesh(target.data)
-    bm.verts.ensure_lookup_table()
-    for v in bm.verts:
-        v.select = False
-    for s_i, t_i in zip(s_pick, t_pick):   # one object: a source vertex, then its target vertex
-        for i in (s_i, t_i):
-            bm.verts[int(i)].select = True
-            bm.select_history.add(bm.verts[int(i)])
-    bm.to_mesh(target.data)
-    bm.free()
+    careless_cap_pairs(target)
     return dict(target_group="cap-", source_object="", source_group="cap+", use_pairs=True, nonrigid=False)
 
 
